@@ -1,0 +1,87 @@
+"""ED-UAV association, the paper's Eq. (association), for a batch of scenarios.
+
+Both functions take channel gains [N, U, V] and horizontal distances [N, U, V] and return
+`serving` [N, V] (UAV index, or -1 when the ED is unassociated this slot).
+
+greedy (the paper's channel-aware matching, SPEC.md order): EDs are taken in descending
+order of their best in-range gain; each takes its max-gain in-range UAV with free quota.
+That is a serial dictatorship with one common priority order over the EDs, and with a
+common priority order the ED-proposing deferred-acceptance algorithm yields exactly the
+serial-dictatorship matching. Deferred acceptance runs in rounds that are vectorised over
+the batch, the EDs and the UAVs: each round every unmatched ED proposes to its next
+preferred UAV, and each UAV keeps its Lambda_max highest-priority candidates. When no
+quota binds (the default layout) it ends after one round. At most V * U rounds, usually
+<= U. Cost per round O(N U V), plus one O(N V log V) sort.
+
+optimal (extension): the assignment that maximises the total linear gain under the quota,
+solved per scenario with scipy's linear_sum_assignment on Lambda_max replicated slots per
+UAV plus one "unassociated" slot per ED.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+UNASSOCIATED = -1
+
+
+def in_range_mask(d_h: np.ndarray, comm_range_m: float) -> np.ndarray:
+    return d_h <= comm_range_m
+
+
+def greedy_association(gains: np.ndarray, d_h: np.ndarray, comm_range_m: float, quota: int) -> np.ndarray:
+    n, n_uavs, n_eds = gains.shape
+    ok = in_range_mask(d_h, comm_range_m)  # [N, U, V]
+    g = np.where(ok, gains, -np.inf)
+    # Priority: descending best in-range gain; ties by ED index (stable sort).
+    order = np.argsort(-g.max(axis=1), axis=-1, kind="stable")  # [N, V] ED ids, best first
+    g_sorted = np.take_along_axis(g, order[:, None, :], axis=-1)  # [N, U, V'] in priority order
+    ok_sorted = np.take_along_axis(ok, order[:, None, :], axis=-1)
+    # Each ED's preference list over UAVs (descending gain); only in-range entries are usable.
+    prefs = np.argsort(-g_sorted, axis=1, kind="stable")  # [N, U(rank), V']
+    n_options = ok_sorted.sum(axis=1)  # [N, V']
+
+    rank = np.zeros((n, n_eds), dtype=np.int64)  # next preference to try
+    held = np.full((n, n_eds), UNASSOCIATED, dtype=np.int64)  # UAV currently holding each ED
+    uav_ids = np.arange(n_uavs)[None, :, None]
+    while True:
+        proposing = (held == UNASSOCIATED) & (rank < n_options)
+        if not proposing.any():
+            break
+        target = np.take_along_axis(prefs, np.minimum(rank, n_uavs - 1)[:, None, :], axis=1)[:, 0, :]
+        candidate_uav = np.where(proposing, target, held)  # held EDs stay candidates of their UAV
+        cand = candidate_uav[:, None, :] == uav_ids  # [N, U, V'], columns already in priority order
+        keep = cand & (np.cumsum(cand, axis=-1) <= quota)
+        kept = keep.any(axis=1)
+        rejected = (candidate_uav != UNASSOCIATED) & ~kept
+        held = np.where(kept, candidate_uav, UNASSOCIATED)
+        rank = rank + rejected  # proposers and displaced EDs move on to their next choice
+    serving = np.empty_like(held)
+    np.put_along_axis(serving, order, held, axis=-1)
+    return serving
+
+
+def optimal_association(gains: np.ndarray, d_h: np.ndarray, comm_range_m: float, quota: int) -> np.ndarray:
+    n, n_uavs, n_eds = gains.shape
+    slots = min(quota, n_eds)
+    serving = np.full((n, n_eds), UNASSOCIATED, dtype=np.int64)
+    ok = in_range_mask(d_h, comm_range_m)
+    for i in range(n):  # one assignment problem per scenario; the solver is C inside
+        # Scale so the solver works on O(1) numbers; out-of-range pairs are worth nothing.
+        scale = gains[i][ok[i]].max() if ok[i].any() else 1.0
+        value = np.where(ok[i], gains[i] / scale, 0.0).T  # [V, U]
+        value = np.repeat(value, slots, axis=1)  # [V, U * slots]
+        rows, cols = linear_sum_assignment(value, maximize=True)
+        uav = cols // slots
+        valid = ok[i][uav, rows]
+        serving[i, rows[valid]] = uav[valid]
+    return serving
+
+
+def associate(gains: np.ndarray, d_h: np.ndarray, comm_range_m: float, quota: int, method: str) -> np.ndarray:
+    if method == "greedy":
+        return greedy_association(gains, d_h, comm_range_m, quota)
+    if method == "optimal":
+        return optimal_association(gains, d_h, comm_range_m, quota)
+    raise ValueError(f"association: {method!r} is not one of ['greedy', 'optimal']")

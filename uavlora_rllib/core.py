@@ -1,0 +1,280 @@
+"""The simulator core: N independent scenarios stepped at once with NumPy.
+
+Arrays are shaped [N, ...]: EDs [N, V, 2], channels [N, U, V], actions [N, U] (per_uav) or
+[N, U, 2 Lambda + 1] (per_device). No Python loop runs over EDs or UAVs in a step; the only
+per-scenario loop refills the random-number buffers every `NOISE_CHUNK` steps (each
+scenario owns a numpy Generator, so that scenario i of a batch seeded with s replays
+exactly the single scenario seeded with s + i, bit for bit, as in Gymnasium's vector envs).
+
+Slot semantics: `reset` places the EDs and associates them (slot 0). `step(actions)`
+applies the actions to the CURRENT slot (its positions and association), scores it with
+`physics.slot_metrics`, then moves the EDs, re-associates them and returns the next
+slot's observations. After `episode_len` steps the episode is truncated (never terminated).
+
+Observation o_u (SPEC.md; scaling documented in README "Observations and state"):
+Lambda_max rows of (x_v, y_v, d_uv, G_uv) over the EDs u serves, sorted by gain, then 3
+per-UAV features (served count / Lambda_max, UAV x, UAV y):
+  x, y      -> 2 p / L - 1                         in [-1, 1]
+  d_uv      -> d_h / R_comm                        in [0, 1] for served EDs
+  G_uv      -> dB gain mapped linearly so that G(d_h = 0) -> 1 and G(d_h = R_comm) -> -1
+Padding rows are zeros. Global state s (critics and mixers only): ED positions (2V), gain
+features to every UAV (UV, clipped to [-3, 1]), association one-hot (V (U+1), last column =
+unassociated), each ED's previous (SF, TP, BW) one-hot (V (n_sf + n_tp + n_bw), zeros when it
+was silent), and t / T.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from uavlora_rllib import physics
+from uavlora_rllib.association import UNASSOCIATED, associate
+from uavlora_rllib.scenario import ScenarioConfig
+
+NOISE_CHUNK = 32  # steps of mobility noise drawn per refill
+OBS_ROW = 4  # (x, y, d, G) per served ED
+OBS_EXTRA = 3  # served count / quota, UAV x, UAV y
+
+
+class ActionError(ValueError):
+    """An action outside its space; the message names the agent and the allowed range."""
+
+
+@dataclass
+class StepResult:
+    obs: np.ndarray  # [N, U, obs_dim] observation of the next slot
+    reward: np.ndarray  # [N] shared reward of the slot just played
+    truncated: np.ndarray  # [N] bool
+    metrics: dict[str, np.ndarray]  # physics.SLOT_METRICS, each [N]
+
+
+def obs_dim(cfg: ScenarioConfig) -> int:
+    return cfg.quota * OBS_ROW + OBS_EXTRA
+
+
+def state_dim(cfg: ScenarioConfig) -> int:
+    v, u = cfg.n_eds, cfg.n_uavs
+    return 2 * v + u * v + v * (u + 1) + v * (cfg.n_sf + cfg.n_tp + cfg.n_bw) + 1
+
+
+def per_device_action_len(cfg: ScenarioConfig) -> int:
+    return 2 * cfg.quota + 1
+
+
+def decode_joint_action(a: np.ndarray, cfg: ScenarioConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """per_uav index -> (sf_idx, tp_idx, bw_idx); index = (sf_idx * n_tp + tp_idx) * n_bw + bw_idx."""
+    a = np.asarray(a)
+    return a // (cfg.n_tp * cfg.n_bw), (a // cfg.n_bw) % cfg.n_tp, a % cfg.n_bw
+
+
+def encode_joint_action(sf_idx, tp_idx, bw_idx, cfg: ScenarioConfig) -> np.ndarray:
+    return (np.asarray(sf_idx) * cfg.n_tp + np.asarray(tp_idx)) * cfg.n_bw + np.asarray(bw_idx)
+
+
+class BatchCore:
+    """N independent copies of the scenario, stepped together."""
+
+    def __init__(self, cfg: ScenarioConfig, n_envs: int = 1):
+        if n_envs < 1:
+            raise ValueError(f"n_envs: must be >= 1, got {n_envs}")
+        self.cfg = cfg
+        self.n = n_envs
+        self.tables = physics.Tables.from_config(cfg)
+        self.uav_xy = physics.uav_positions(cfg)
+        self.quota = cfg.quota
+        self.obs_dim = obs_dim(cfg)
+        self.state_dim = state_dim(cfg)
+        g_hi = float(-physics.path_loss_db(0.0, cfg))
+        g_lo = float(-physics.path_loss_db(cfg.comm_range_m, cfg))
+        self._gain_db_mid = (g_hi + g_lo) / 2.0
+        self._gain_db_half = max((g_hi - g_lo) / 2.0, 1e-9)
+        v, u = cfg.n_eds, cfg.n_uavs
+        self.ed_xy = np.zeros((n_envs, v, 2))
+        self.ed_vel = np.zeros((n_envs, v, 2))
+        self.ed_mean_vel = np.zeros((n_envs, v, 2))
+        self.t = np.zeros(n_envs, dtype=np.int64)
+        self.prev_alloc = np.full((n_envs, v, 3), -1, dtype=np.int64)
+        self._rngs: list[np.random.Generator] = [np.random.default_rng() for _ in range(n_envs)]
+        self._gauss = np.zeros((n_envs, NOISE_CHUNK, v, 2))
+        self._resample = np.zeros((n_envs, NOISE_CHUNK, v))
+        self._new_mean = np.zeros((n_envs, NOISE_CHUNK, v, 2))
+        self._cursor = np.zeros(n_envs, dtype=np.int64)
+        self._seed_source = np.random.SeedSequence()
+        self._ready = False
+        self.serving = np.full((n_envs, v), UNASSOCIATED, dtype=np.int64)
+        self._env_idx = np.arange(n_envs)
+
+    # ------------------------------------------------------------------ reset
+    def reset(self, seed: int | Sequence[int | None] | None = None, mask: np.ndarray | None = None) -> np.ndarray:
+        """Start new episodes. `seed` int s -> scenario i gets s + i; a sequence gives one seed
+        per scenario; None draws fresh entropy. `mask` [N] bool resets only those scenarios."""
+        mask = np.ones(self.n, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
+        if not self._ready and not mask.all():
+            raise ValueError("the first reset must reset every scenario (mask=None)")
+        seeds = self._seeds_for(seed)
+        cfg, mob = self.cfg, self.cfg.mobility
+        for i in np.flatnonzero(mask):  # per-scenario RNG draws only; no physics here
+            rng = np.random.default_rng(seeds[i])
+            self._rngs[i] = rng
+            self.ed_xy[i] = rng.uniform(0.0, cfg.area_m, size=(cfg.n_eds, 2))
+            self.ed_vel[i] = rng.uniform(-mob.v_max_mps, mob.v_max_mps, size=(cfg.n_eds, 2))
+            self._refill(i)
+        self.ed_vel[mask] = self._clip_speed(self.ed_vel[mask])
+        self.ed_mean_vel[mask] = mob.mean_velocity_init_mps
+        self.t[mask] = 0
+        self.prev_alloc[mask] = -1
+        self._ready = True
+        self._observe()
+        return self.obs
+
+    def _seeds_for(self, seed: int | Sequence[int | None] | None) -> list:
+        if seed is None:
+            return [s for s in self._seed_source.spawn(self.n)]
+        if isinstance(seed, (int, np.integer)):
+            return [int(seed) + i for i in range(self.n)]
+        seeds = list(seed)
+        if len(seeds) != self.n:
+            raise ValueError(f"seed: expected {self.n} seeds, got {len(seeds)}")
+        return [s if s is not None else self._seed_source.spawn(1)[0] for s in seeds]
+
+    def _refill(self, i: int) -> None:
+        rng, v, vmax = self._rngs[i], self.cfg.n_eds, self.cfg.mobility.v_max_mps
+        self._gauss[i] = rng.standard_normal((NOISE_CHUNK, v, 2))
+        self._resample[i] = rng.random((NOISE_CHUNK, v))
+        self._new_mean[i] = rng.uniform(-vmax, vmax, (NOISE_CHUNK, v, 2))
+        self._cursor[i] = 0
+
+    # ------------------------------------------------------------------ dynamics
+    def _clip_speed(self, vel: np.ndarray) -> np.ndarray:
+        vmax = self.cfg.mobility.v_max_mps
+        speed = np.sqrt(np.einsum("...k,...k->...", vel, vel))
+        factor = np.minimum(1.0, vmax / np.maximum(speed, 1e-12))
+        return vel * factor[..., None]
+
+    def _move(self) -> None:
+        """Eq. (gm) with SPEC.md's decisions: v-bar re-draw, speed clip, mirror reflection."""
+        mob, area = self.cfg.mobility, self.cfg.area_m
+        for i in np.flatnonzero(self._cursor >= NOISE_CHUNK):
+            self._refill(i)
+        c = self._cursor
+        gauss = self._gauss[self._env_idx, c]
+        redraw = self._resample[self._env_idx, c] < mob.mean_resample_prob
+        self.ed_mean_vel = np.where(redraw[..., None], self._new_mean[self._env_idx, c], self.ed_mean_vel)
+        self._cursor += 1
+        eth = mob.memory
+        vel = eth * self.ed_vel + (1.0 - eth) * self.ed_mean_vel + mob.sigma * np.sqrt(1.0 - eth * eth) * gauss
+        vel = self._clip_speed(vel)
+        pos = self.ed_xy + vel * mob.dt_s
+        low, high = pos < 0.0, pos > area
+        pos = np.where(low, -pos, np.where(high, 2.0 * area - pos, pos))
+        vel = np.where(low | high, -vel, vel)
+        self.ed_xy = np.clip(pos, 0.0, area)  # guards a step longer than the area itself
+        self.ed_vel = vel
+
+    def _observe(self) -> None:
+        """Channels, association and the observations of the current slot."""
+        cfg = self.cfg
+        self.d_h = physics.horizontal_distance(self.ed_xy, self.uav_xy)  # [N, U, V]
+        self.gain_db = -physics.path_loss_db(self.d_h, cfg)
+        self.gains = np.power(10.0, self.gain_db / 10.0)
+        self.serving = associate(self.gains, self.d_h, cfg.comm_range_m, self.quota, cfg.association)
+        self.associated = self.serving != UNASSOCIATED
+        self._serving_idx = np.where(self.associated, self.serving, 0)
+        # Slot of each served ED in its UAV's observation: rank by gain among that UAV's EDs.
+        g_serving = np.take_along_axis(self.gain_db, self._serving_idx[:, None, :], axis=1)[:, 0, :]
+        key = np.where(self.associated, g_serving, -np.inf)
+        order = np.argsort(-key, axis=-1, kind="stable")  # [N, V] best first
+        serving_sorted = np.take_along_axis(self.serving, order, axis=-1)
+        onehot = serving_sorted[:, None, :] == np.arange(cfg.n_uavs)[None, :, None]  # [N, U, V']
+        slot_sorted = (np.cumsum(onehot, axis=-1) * onehot).sum(axis=1) - 1  # -1 when unserved
+        self.slot_of_ed = np.empty_like(slot_sorted)
+        np.put_along_axis(self.slot_of_ed, order, slot_sorted, axis=-1)
+        self.obs = self._build_obs(g_serving)
+
+    def _gain_feature(self, gain_db: np.ndarray) -> np.ndarray:
+        return (gain_db - self._gain_db_mid) / self._gain_db_half
+
+    def _build_obs(self, g_serving_db: np.ndarray) -> np.ndarray:
+        cfg, n = self.cfg, self.n
+        rows = np.zeros((n, cfg.n_uavs, self.quota, OBS_ROW))
+        d_serving = np.take_along_axis(self.d_h, self._serving_idx[:, None, :], axis=1)[:, 0, :]
+        feats = np.stack(
+            [
+                2.0 * self.ed_xy[..., 0] / cfg.area_m - 1.0,
+                2.0 * self.ed_xy[..., 1] / cfg.area_m - 1.0,
+                d_serving / cfg.comm_range_m,
+                self._gain_feature(g_serving_db),
+            ],
+            axis=-1,
+        )  # [N, V, 4]
+        e, v = np.nonzero(self.associated)
+        rows[e, self.serving[e, v], self.slot_of_ed[e, v]] = feats[e, v]
+        counts = (self.serving[:, None, :] == np.arange(cfg.n_uavs)[None, :, None]).sum(axis=-1)
+        extra = np.empty((n, cfg.n_uavs, OBS_EXTRA))
+        extra[..., 0] = counts / self.quota
+        extra[..., 1:] = 2.0 * self.uav_xy[None] / cfg.area_m - 1.0
+        return np.concatenate([rows.reshape(n, cfg.n_uavs, -1), extra], axis=-1)
+
+    # ------------------------------------------------------------------ actions
+    def allocations(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per-ED (sf_idx, tp_idx, bw_idx) [N, V] implied by the agents' actions this slot."""
+        cfg = self.cfg
+        actions = np.asarray(actions)
+        if cfg.action_mode == "per_uav":
+            self._check_range(actions, (self.n, cfg.n_uavs), cfg.n_joint_actions)
+            sf_u, tp_u, bw_u = decode_joint_action(actions, cfg)  # [N, U]
+            pick = lambda x: np.take_along_axis(x, self._serving_idx, axis=-1)  # noqa: E731
+            return pick(sf_u), pick(tp_u), pick(bw_u)
+        length = per_device_action_len(cfg)
+        highs = np.array([cfg.n_sf, cfg.n_tp] * self.quota + [cfg.n_bw])
+        self._check_range(actions, (self.n, cfg.n_uavs, length), highs)
+        slot = np.maximum(self.slot_of_ed, 0)
+        per_uav = actions[self._env_idx[:, None], self._serving_idx]  # [N, V, length]
+        sf = np.take_along_axis(per_uav, (2 * slot)[..., None], axis=-1)[..., 0]
+        tp = np.take_along_axis(per_uav, (2 * slot + 1)[..., None], axis=-1)[..., 0]
+        return sf, tp, per_uav[..., -1]
+
+    def _check_range(self, actions: np.ndarray, shape: tuple[int, ...], high) -> None:
+        if actions.shape != shape:
+            raise ActionError(f"actions: expected shape {shape}, got {actions.shape}")
+        if not np.issubdtype(actions.dtype, np.integer):
+            raise ActionError(f"actions: expected integers, got dtype {actions.dtype}")
+        bad = (actions < 0) | (actions >= high)
+        if bad.any():
+            idx = tuple(int(i) for i in np.argwhere(bad)[0])
+            limit = high if np.isscalar(high) else int(np.broadcast_to(high, shape)[idx])
+            raise ActionError(
+                f"action of uav_{idx[1]} (scenario {idx[0]}): {int(actions[idx])} is outside [0, {limit})"
+            )
+
+    # ------------------------------------------------------------------ step
+    def step(self, actions: np.ndarray) -> StepResult:
+        if not self._ready:
+            raise RuntimeError("call reset() before step()")
+        sf, tp, bw = self.allocations(actions)
+        metrics = physics.slot_metrics(self.gains, self._serving_idx, self.associated, sf, tp, bw, self.cfg, self.tables)
+        self.prev_alloc = np.where(self.associated[..., None], np.stack([sf, tp, bw], axis=-1), -1)
+        self.t += 1
+        self._move()
+        self._observe()
+        return StepResult(self.obs, metrics["reward"], self.t >= self.cfg.episode_len, metrics)
+
+    # ------------------------------------------------------------------ global state
+    def state(self) -> np.ndarray:
+        cfg, n = self.cfg, self.n
+        pos = 2.0 * self.ed_xy / cfg.area_m - 1.0
+        gains = np.clip(self._gain_feature(self.gain_db), -3.0, 1.0)
+        assoc = np.zeros((n, cfg.n_eds, cfg.n_uavs + 1))
+        np.put_along_axis(assoc, np.where(self.associated, self.serving, cfg.n_uavs)[..., None], 1.0, axis=-1)
+        sizes = (cfg.n_sf, cfg.n_tp, cfg.n_bw)
+        prev = [
+            (self.prev_alloc[..., k, None] == np.arange(size)).astype(np.float64) for k, size in enumerate(sizes)
+        ]
+        t = (self.t / cfg.episode_len)[:, None]
+        return np.concatenate(
+            [pos.reshape(n, -1), gains.reshape(n, -1), assoc.reshape(n, -1), *(p.reshape(n, -1) for p in prev), t],
+            axis=-1,
+        )
