@@ -1,0 +1,109 @@
+"""Algorithms the grid YAML can name, and what each must provide.
+
+An algorithm module registers one `AlgorithmEntry` per name at import time. The Tune
+entry point, the evaluate CLI and the tests only go through this registry, so a new
+algorithm needs no change anywhere else. Modules are imported lazily (importing RLlib and
+torch costs seconds), from `MODULES`.
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Callable
+
+from pydantic import Field
+from pydantic.dataclasses import dataclass as typed_dataclass
+
+from uavlora_rllib.config_errors import ConfigError, build
+
+if TYPE_CHECKING:
+    from ray.rllib.algorithms import Algorithm, AlgorithmConfig
+
+    from uavlora_rllib.evaluation import Policy
+    from uavlora_rllib.scenario import ScenarioConfig
+
+# name -> module that registers it. Only names whose module exists are offered.
+MODULES: dict[str, str] = {
+    "mappo": "uavlora_rllib.algorithms.mappo",
+    "ippo": "uavlora_rllib.algorithms.mappo",
+    "qmix": "uavlora_rllib.algorithms.qmix",
+    "vdn": "uavlora_rllib.algorithms.qmix",
+    "coma": "uavlora_rllib.algorithms.coma",
+}
+
+
+@typed_dataclass(config={"extra": "forbid", "frozen": True})
+class Resources:
+    """How one trial samples and learns (grid YAML `resources:`)."""
+
+    num_env_runners: int = Field(0, ge=0)  # 0: sample in the trial's own process
+    num_envs_per_env_runner: int = Field(1, ge=1)
+    num_cpus_per_env_runner: float = Field(1.0, gt=0)
+    num_cpus_per_learner: float = Field(1.0, gt=0)
+    torch_threads: int = Field(1, ge=1)
+
+
+@dataclass(frozen=True)
+class AlgorithmEntry:
+    name: str
+    hparams_cls: type  # pydantic dataclass of hyperparameters; defaults = SPEC.md's training table
+    action_modes: tuple[str, ...]  # scenario.action_mode values it supports
+    # (scenario, hparams, resources, seed) -> an RLlib AlgorithmConfig ready for .build_algo()
+    build: Callable[["ScenarioConfig", Any, Resources, int], "AlgorithmConfig"]
+    # (built or restored algorithm, scenario) -> the decentralised greedy policy for evaluation
+    greedy_policy: Callable[["Algorithm", "ScenarioConfig"], "Policy"]
+
+    def hparams(self, overrides: dict | None, prefix: str | None = None) -> Any:
+        return build(self.hparams_cls, overrides or {}, prefix or f"algorithms.{self.name}")
+
+    def check_scenario(self, scenario: "ScenarioConfig", prefix: str = "scenario.action_mode") -> None:
+        if scenario.action_mode not in self.action_modes:
+            raise ConfigError(
+                f"{prefix}: algorithm {self.name!r} supports action modes {list(self.action_modes)}, "
+                f"got {scenario.action_mode!r}"
+            )
+
+
+_REGISTRY: dict[str, AlgorithmEntry] = {}
+
+
+def register(entry: AlgorithmEntry) -> None:
+    _REGISTRY[entry.name] = entry
+
+
+def available() -> list[str]:
+    """Names whose module can be imported (implemented algorithms)."""
+    out = []
+    for name, module in MODULES.items():
+        try:
+            importlib.import_module(module)
+        except ModuleNotFoundError as exc:
+            if exc.name != module:
+                raise
+            continue
+        if name in _REGISTRY:
+            out.append(name)
+    return out
+
+
+def get(name: str, path: str = "algorithm") -> AlgorithmEntry:
+    if name not in MODULES:
+        raise ConfigError(f"{path}: unknown algorithm {name!r}; allowed: {sorted(MODULES)}")
+    if name not in _REGISTRY:
+        try:
+            importlib.import_module(MODULES[name])
+        except ModuleNotFoundError as exc:
+            if exc.name != MODULES[name]:
+                raise
+    if name not in _REGISTRY:
+        raise ConfigError(f"{path}: algorithm {name!r} is not implemented yet; implemented: {available()}")
+    return _REGISTRY[name]
+
+
+def entry_for_algorithm(algo: "Algorithm") -> AlgorithmEntry:
+    """The registry entry of a built or restored algorithm (stored in its config)."""
+    name = getattr(algo.config, "uavlora_algorithm", None) or algo.config.env_config.get("uavlora_algorithm")
+    if name is None:
+        raise ConfigError("checkpoint: not a uavlora_rllib algorithm (no 'uavlora_algorithm' in its env_config)")
+    return get(name)
