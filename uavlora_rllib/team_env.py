@@ -1,0 +1,143 @@
+"""The team view: all UAVs of a scenario as one Gymnasium env, and N scenarios as one vector env.
+
+Centralised-training algorithms (a mixer, a joint critic, a centralised value function)
+need every agent's observation and action and the global state at the same time step.
+The team view gives them exactly that without RLlib's agent grouping (which has known bugs
+on 2.60, see RLLIB_NOTES.md): observation [U, obs_dim] (row u is agent u's LOCAL
+observation; decentralised actors read only their own row), action MultiDiscrete of U
+entries (per_uav) or [U, 2 Lambda + 1] (per_device), the shared reward, and the global state
+under info["state"].
+
+`UavLoraTeamVectorEnv` steps N scenarios with ONE `BatchCore`, so RLlib's env runners sample
+through the vectorised core (config.env_runners(num_envs_per_env_runner=N,
+gym_env_vectorize_mode="vector_entry_point")). It follows Gymnasium's NEXT_STEP autoreset,
+which RLlib's SingleAgentEnvRunner expects: the step after an episode ends resets that
+scenario and ignores its action.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import gymnasium as gym
+import numpy as np
+from ray.tune.registry import register_env
+
+from uavlora_rllib.core import BatchCore, per_device_action_len
+from uavlora_rllib.env import STATE_KEY, observation_space, scenario_from, state_space
+from uavlora_rllib.scenario import ScenarioConfig
+
+TEAM_ENV_NAME = "uavlora_team"
+
+
+def team_observation_space(cfg: ScenarioConfig) -> gym.spaces.Box:
+    single = observation_space(cfg)
+    return gym.spaces.Box(-1.0, 1.0, shape=(cfg.n_uavs, single.shape[0]), dtype=np.float32)
+
+
+def team_action_space(cfg: ScenarioConfig) -> gym.spaces.MultiDiscrete:
+    if cfg.action_mode == "per_uav":
+        return gym.spaces.MultiDiscrete(np.full(cfg.n_uavs, cfg.n_joint_actions, dtype=np.int64))
+    row = [cfg.n_sf, cfg.n_tp] * cfg.quota + [cfg.n_bw]
+    assert len(row) == per_device_action_len(cfg)
+    return gym.spaces.MultiDiscrete(np.tile(np.asarray(row, dtype=np.int64), (cfg.n_uavs, 1)))
+
+
+def _obs32(obs: np.ndarray) -> np.ndarray:
+    return np.clip(obs, -1.0, 1.0).astype(np.float32)
+
+
+class UavLoraTeamEnv(gym.Env):
+    """One scenario, all UAVs as one agent-team (a thin view of BatchCore with N = 1)."""
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, config: Mapping[str, Any] | ScenarioConfig | None = None):
+        self.scenario = scenario_from(config)
+        self.core = BatchCore(self.scenario, 1)
+        self.observation_space = team_observation_space(self.scenario)
+        self.action_space = team_action_space(self.scenario)
+        self.state_space = state_space(self.scenario)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        obs = self.core.reset(seed)
+        return _obs32(obs[0]), {STATE_KEY: self.core.state()[0].astype(np.float32)}
+
+    def step(self, action):
+        res = self.core.step(np.asarray(action, dtype=np.int64)[None])
+        info = {k: float(v[0]) for k, v in res.metrics.items()}
+        info[STATE_KEY] = self.core.state()[0].astype(np.float32)
+        return _obs32(res.obs[0]), float(res.reward[0]), False, bool(res.truncated[0]), info
+
+
+class UavLoraTeamVectorEnv(gym.vector.VectorEnv):
+    """N scenarios stepped by one BatchCore; Gymnasium vector API with NEXT_STEP autoreset."""
+
+    metadata = {"autoreset_mode": gym.vector.AutoresetMode.NEXT_STEP}
+
+    def __init__(self, config: Mapping[str, Any] | ScenarioConfig | None = None, num_envs: int = 1):
+        self.scenario = scenario_from(config)
+        self.num_envs = int(num_envs)
+        self.core = BatchCore(self.scenario, self.num_envs)
+        self.single_observation_space = team_observation_space(self.scenario)
+        self.single_action_space = team_action_space(self.scenario)
+        self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = gym.vector.utils.batch_space(self.single_action_space, self.num_envs)
+        self.state_space = state_space(self.scenario)
+        self._needs_reset = np.zeros(self.num_envs, dtype=bool)
+        self._seeds = np.random.SeedSequence()
+
+    def _infos(self, metrics: Mapping[str, np.ndarray] | None, live: np.ndarray) -> dict[str, np.ndarray]:
+        """Gymnasium's dict-of-arrays infos; metrics only for scenarios that really stepped."""
+        infos: dict[str, np.ndarray] = {STATE_KEY: self.core.state().astype(np.float32)}
+        infos["_" + STATE_KEY] = np.ones(self.num_envs, dtype=bool)
+        if metrics is not None:
+            for key, value in metrics.items():
+                infos[key] = value
+                infos["_" + key] = live.copy()
+        return infos
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        self._seeds = np.random.SeedSequence(seed) if seed is not None else np.random.SeedSequence()
+        obs = self.core.reset(seed)
+        self._needs_reset[:] = False
+        return _obs32(obs), self._infos(None, np.zeros(self.num_envs, dtype=bool))
+
+    def step(self, actions):
+        actions = np.asarray(actions, dtype=np.int64)
+        restart = self._needs_reset.copy()
+        if restart.any():
+            # NEXT_STEP autoreset: these scenarios ignore their action and start a new episode.
+            # Their placeholder action (0) is valid, so the whole batch can still step below.
+            actions = np.where(restart.reshape((-1,) + (1,) * (actions.ndim - 1)), 0, actions)
+        if restart.all():
+            seeds = [s for s in self._seeds.spawn(self.num_envs)]
+            obs = self.core.reset(seeds)
+            self._needs_reset[:] = False
+            zeros = np.zeros(self.num_envs)
+            false = np.zeros(self.num_envs, dtype=bool)
+            return _obs32(obs), zeros, false, false.copy(), self._infos(None, false)
+        res = self.core.step(actions)
+        rewards = np.where(restart, 0.0, res.reward)
+        truncated = np.where(restart, False, res.truncated)
+        if restart.any():
+            seeds: list = [None] * self.num_envs
+            for i, s in zip(np.flatnonzero(restart), self._seeds.spawn(int(restart.sum()))):
+                seeds[i] = s
+            self.core.reset(seeds, mask=restart)
+        self._needs_reset = truncated.copy()
+        terminated = np.zeros(self.num_envs, dtype=bool)
+        return _obs32(self.core.obs), rewards, terminated, truncated, self._infos(res.metrics, ~restart)
+
+
+def make_team_env(config: Mapping[str, Any] | None = None):
+    """Env creator registered with Tune: a vector env when RLlib asks for `num_envs`."""
+    config = dict(config or {})
+    num_envs = config.pop("num_envs", None)
+    if num_envs is None:
+        return UavLoraTeamEnv(config)
+    return UavLoraTeamVectorEnv(config, num_envs=num_envs)
+
+
+register_env(TEAM_ENV_NAME, make_team_env)
