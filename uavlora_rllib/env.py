@@ -80,17 +80,21 @@ class _SingleScenario:
                 f"actions: need one action for each of {self.possible_agents}; missing {missing}, unknown {unknown}"
             )
         if self.scenario.action_mode == "per_uav":
-            arr = np.array([[int(np.asarray(actions[a]).item()) for a in self.possible_agents]], dtype=np.int64)
+            shape: tuple[int, ...] = ()
+            what = "one integer (Discrete)"
         else:
-            length = per_device_action_len(self.scenario)
-            rows = []
-            for a in self.possible_agents:
-                row = np.asarray(actions[a], dtype=np.int64).reshape(-1)
-                if row.shape != (length,):
-                    raise ActionError(f"action of {a}: expected {length} integers (MultiDiscrete), got shape {row.shape}")
-                rows.append(row)
-            arr = np.stack(rows)[None]
-        return arr
+            shape = (per_device_action_len(self.scenario),)
+            what = f"{shape[0]} integers (MultiDiscrete)"
+        rows = []
+        for a in self.possible_agents:
+            value = np.asarray(actions[a])
+            # Reject (rather than silently truncate or crash on) wrong sizes and non-integer values.
+            if value.dtype.kind not in "iuf" or value.size != int(np.prod(shape)):
+                raise ActionError(f"action of {a}: expected {what}, got {value.dtype} of shape {value.shape}")
+            if value.dtype.kind == "f" and not (np.isfinite(value).all() and (value == np.round(value)).all()):
+                raise ActionError(f"action of {a}: expected {what}, got non-integer values {value.tolist()}")
+            rows.append(value.astype(np.int64).reshape(shape))
+        return np.stack(rows)[None]
 
     def global_state(self) -> np.ndarray:
         return self.core.state()[0].astype(np.float32)

@@ -1,0 +1,145 @@
+"""ED-UAV association (Eq. association): greedy against a naive sequential reference written
+(conftest.reference_greedy) in SPEC.md's order, optimal against brute force, and the constraints both must keep."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from conftest import reference_greedy
+from uavlora_rllib.association import UNASSOCIATED, associate, greedy_association, optimal_association
+
+SETTINGS = settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+def total_gain(g: np.ndarray, serving: np.ndarray) -> float:
+    return float(sum(g[u, v] for v, u in enumerate(serving) if u != UNASSOCIATED))
+
+
+def brute_force_best(g: np.ndarray, d: np.ndarray, r_comm: float, quota: int) -> float:
+    n_uavs, n_eds = g.shape
+    best = 0.0
+    for assign in itertools.product(range(-1, n_uavs), repeat=n_eds):
+        if any(u >= 0 and d[u, v] > r_comm for v, u in enumerate(assign)):
+            continue
+        if any(assign.count(u) > quota for u in range(n_uavs)):
+            continue
+        best = max(best, total_gain(g, assign))
+    return best
+
+
+def check_constraints(serving: np.ndarray, g: np.ndarray, d: np.ndarray, r_comm: float, quota: int) -> None:
+    n, n_uavs, n_eds = g.shape
+    assert serving.shape == (n, n_eds)
+    assert np.issubdtype(serving.dtype, np.integer)
+    assert ((serving >= UNASSOCIATED) & (serving < n_uavs)).all()  # one UAV or none, per ED
+    for i in range(n):
+        for u in range(n_uavs):
+            assert (serving[i] == u).sum() <= quota  # quota Lambda_max
+        for v in range(n_eds):
+            u = serving[i, v]
+            if u != UNASSOCIATED:
+                assert d[i, u, v] <= r_comm  # never beyond R_comm
+            else:  # unassociated only when every in-range UAV is full (both methods, positive gains)
+                for w in range(n_uavs):
+                    assert d[i, w, v] > r_comm or (serving[i] == w).sum() == quota
+
+
+# ------------------------------------------------------------------ hand examples
+def test_greedy_and_optimal_by_hand_when_the_quota_binds():
+    # quota 1. ED0: 10 at UAV0, 9 at UAV1. ED1: 8 at UAV0, 1 at UAV1. ED2: out of range everywhere.
+    g = np.array([[[10.0, 8.0, 50.0], [9.0, 1.0, 60.0]]])
+    d = np.array([[[1.0, 1.0, 700.0], [1.0, 1.0, 700.0]]])
+    # greedy: ED0 (best 10) goes first and takes UAV0; ED1 finds UAV0 full and takes UAV1 -> total 11
+    np.testing.assert_array_equal(greedy_association(g, d, 600.0, 1), [[0, 1, -1]])
+    # optimal: ED0 -> UAV1 (9), ED1 -> UAV0 (8) -> total 17 > 11
+    np.testing.assert_array_equal(optimal_association(g, d, 600.0, 1), [[1, 0, -1]])
+    np.testing.assert_array_equal(associate(g, d, 600.0, 1, "greedy"), [[0, 1, -1]])
+    with pytest.raises(ValueError, match="association"):
+        associate(g, d, 600.0, 1, "auction")
+
+
+def test_greedy_order_is_by_best_gain_not_by_index():
+    # ED2 has the strongest link, so it is served first and takes the only slot of UAV0
+    g = np.array([[[3.0, 2.0, 5.0], [1.0, 0.5, 0.1]]])
+    d = np.ones_like(g)
+    np.testing.assert_array_equal(greedy_association(g, d, 600.0, 1), [[1, -1, 0]])
+    # with a quota of 2 ED0 (3.0) beats ED1 (2.0) to UAV0's second slot
+    np.testing.assert_array_equal(greedy_association(g, d, 600.0, 2), [[0, 1, 0]])
+
+
+def test_out_of_range_best_uav_is_skipped():
+    # ED0's strongest UAV (1) is beyond R_comm: it takes UAV0, the best in range
+    g = np.array([[[1e-9], [1e-8]]])
+    d = np.array([[[500.0], [601.0]]])
+    np.testing.assert_array_equal(greedy_association(g, d, 600.0, 4), [[0]])
+    np.testing.assert_array_equal(optimal_association(g, d, 600.0, 4), [[0]])
+    # exactly at R_comm counts as in range
+    np.testing.assert_array_equal(greedy_association(g, np.array([[[700.0], [600.0]]]), 600.0, 4), [[1]])
+
+
+def test_no_ed_in_range():
+    g = np.full((2, 3, 5), 1e-9)
+    d = np.full((2, 3, 5), 1000.0)
+    for method in ("greedy", "optimal"):
+        np.testing.assert_array_equal(associate(g, d, 10.0, 2, method), np.full((2, 5), -1))
+
+
+# ------------------------------------------------------------------ properties
+@st.composite
+def association_problems(draw, max_uavs=4, max_eds=9, max_batch=3):
+    n = draw(st.integers(1, max_batch))
+    n_uavs = draw(st.integers(1, max_uavs))
+    n_eds = draw(st.integers(1, max_eds))
+    quota = draw(st.integers(1, max(1, n_eds)))
+    if draw(st.booleans()):  # realistic magnitudes: 60..140 dB path loss
+        loss_db = draw(st.lists(st.floats(60.0, 140.0), min_size=n * n_uavs * n_eds, max_size=n * n_uavs * n_eds))
+        g = 10.0 ** (-np.array(loss_db) / 10.0)
+    else:  # small integers: many ties, in the ED order and between UAVs
+        g = np.array(draw(st.lists(st.integers(1, 4), min_size=n * n_uavs * n_eds, max_size=n * n_uavs * n_eds)), float)
+    d = np.array(draw(st.lists(st.floats(0.0, 1000.0), min_size=n * n_uavs * n_eds, max_size=n * n_uavs * n_eds)))
+    r_comm = draw(st.sampled_from([1.0, 300.0, 600.0, 2000.0]))
+    return g.reshape(n, n_uavs, n_eds), d.reshape(n, n_uavs, n_eds), r_comm, quota
+
+
+@SETTINGS
+@given(association_problems())
+def test_greedy_equals_the_sequential_reference(problem):
+    g, d, r_comm, quota = problem
+    serving = greedy_association(g, d, r_comm, quota)
+    check_constraints(serving, g, d, r_comm, quota)
+    for i in range(g.shape[0]):
+        assert serving[i].tolist() == reference_greedy(g[i], d[i], r_comm, quota)
+
+
+@SETTINGS
+@given(association_problems())
+def test_optimal_keeps_the_constraints_and_beats_greedy(problem):
+    g, d, r_comm, quota = problem
+    opt = optimal_association(g, d, r_comm, quota)
+    greedy = greedy_association(g, d, r_comm, quota)
+    check_constraints(opt, g, d, r_comm, quota)
+    for i in range(g.shape[0]):
+        assert total_gain(g[i], opt[i]) >= total_gain(g[i], greedy[i]) * (1 - 1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(association_problems(max_uavs=3, max_eds=5, max_batch=1))
+def test_optimal_equals_brute_force(problem):
+    g, d, r_comm, quota = problem
+    opt = optimal_association(g, d, r_comm, quota)
+    assert total_gain(g[0], opt[0]) == pytest.approx(brute_force_best(g[0], d[0], r_comm, quota), rel=1e-9)
+
+
+def test_batch_rows_are_independent():
+    rng = np.random.default_rng(7)
+    g = 10.0 ** (-rng.uniform(60, 120, size=(6, 3, 12)) / 10)
+    d = rng.uniform(0, 900, size=(6, 3, 12))
+    for method in ("greedy", "optimal"):
+        batch = associate(g, d, 600.0, 3, method)
+        for i in range(6):
+            np.testing.assert_array_equal(batch[i], associate(g[i : i + 1], d[i : i + 1], 600.0, 3, method)[0])
