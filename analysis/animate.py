@@ -1,0 +1,128 @@
+"""Episode animation: a GIF of the ED-UAV association, one frame per slot.
+
+    python -m analysis.animate --policy {random,fixed,adr,greedy,optimal|CHECKPOINT_DIR}
+        [--n-eds V] [--n-uavs U] [--seed S] [--steps K] [--fps F] [--out file.gif]
+
+Plays K slots (default: the whole episode, T = episode_len) of one episode of the
+PettingZoo env (`UavLoraParallelEnv(render_mode="rgb_array")`), the policy acting on the
+env's batch core, and writes K + 1 frames: the env's render after reset, then after every
+step. A baseline runs on the default scenario with --n-eds/--n-uavs applied; a checkpoint
+runs on its own training scenario with those overrides (uavlora_rllib.evaluate).
+Bad input: one error line, exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from typing import Sequence
+
+import numpy as np
+
+
+class UsageError(Exception):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:
+        raise UsageError(message)
+
+
+def _positive(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {v}")
+    return v
+
+
+def _int(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from uavlora_rllib.baselines import BASELINES
+
+    p = _Parser(prog="python -m analysis.animate", description=__doc__.split("\n\n")[0])
+    p.add_argument("--policy", required=True, help=f"one of {', '.join(BASELINES)}, or a checkpoint directory")
+    p.add_argument("--n-eds", type=_positive, default=None, help="V (default: the scenario's)")
+    p.add_argument("--n-uavs", type=_positive, default=None, help="U (default: the scenario's)")
+    p.add_argument("--seed", type=_int, default=0, help="episode seed (default 0)")
+    p.add_argument("--steps", type=_positive, default=None, help="slots to play, <= episode_len (default: all)")
+    p.add_argument("--fps", type=_positive, default=8, help="frames per second (default 8)")
+    p.add_argument("--out", default="animation.gif", help="output GIF (default animation.gif)")
+    return p
+
+
+def resolve_policy(policy: str, n_eds: int | None, n_uavs: int | None, seed: int = 0):
+    """(policy, scenario) for a baseline name or a checkpoint directory."""
+    from uavlora_rllib.baselines import BASELINES, make_baseline
+    from uavlora_rllib.scenario import ScenarioConfig
+
+    overrides = {k: v for k, v in (("n_eds", n_eds), ("n_uavs", n_uavs)) if v is not None}
+    if policy in BASELINES:
+        cfg = ScenarioConfig.from_dict(overrides)
+        return make_baseline(policy, cfg, seed=seed), cfg
+    if not os.path.isdir(policy):
+        raise UsageError(
+            f"--policy: {policy!r} is neither a baseline ({', '.join(BASELINES)}) nor an existing checkpoint directory"
+        )
+    from uavlora_rllib.evaluate import load_checkpoint_policy
+
+    return load_checkpoint_policy(policy, overrides)
+
+
+def record_frames(policy, cfg, seed: int, steps: int) -> list[np.ndarray]:
+    """Render after reset and after each of `steps` steps: steps + 1 uint8 frames [H, W, 3]."""
+    from uavlora_rllib.env import UavLoraParallelEnv
+
+    env = UavLoraParallelEnv(cfg, render_mode="rgb_array")
+    env.reset(seed=seed)
+    policy.reset(env.core)
+    frames = [env.render()]
+    for _ in range(steps):
+        acts = np.asarray(policy.act(env.core))[0]
+        env.step({a: acts[i] for i, a in enumerate(env.possible_agents)})
+        frames.append(env.render())
+    env.close()
+    return frames
+
+
+def write_gif(frames: Sequence[np.ndarray], path: str, fps: int) -> None:
+    import imageio.v3 as iio
+
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    iio.imwrite(path, np.stack(frames), extension=".gif", duration=1000.0 / fps, loop=0)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from uavlora_rllib.config_errors import ConfigError
+
+    try:
+        args = build_parser().parse_args(argv)
+        if not args.out.lower().endswith(".gif"):
+            raise UsageError(f"--out: expected a .gif file name, got {args.out!r}")
+        policy, cfg = resolve_policy(args.policy, args.n_eds, args.n_uavs, args.seed)
+        steps = cfg.episode_len if args.steps is None else args.steps
+        if steps > cfg.episode_len:
+            raise UsageError(f"--steps: at most the episode length {cfg.episode_len}, got {steps}")
+    except (UsageError, ConfigError) as exc:
+        print(f"animate: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 2
+    frames = record_frames(policy, cfg, args.seed, steps)
+    write_gif(frames, args.out, args.fps)
+    print(f"animate: {args.out} ({len(frames)} frames, policy {getattr(policy, 'name', args.policy)}, "
+          f"V={cfg.n_eds} U={cfg.n_uavs}, seed {args.seed})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

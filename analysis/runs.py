@@ -1,0 +1,223 @@
+"""Reading an experiment's runs from MLflow (MlflowClient only; never Ray's result folders).
+
+The schema is the Tune callback's (README / issue 6): tags kind, algorithm, seed, n_eds,
+n_uavs, git_commit, grid_file, trial_id, checkpoint, budget_env_steps; params
+"scenario.<field>", "stop.env_steps", "eval.episodes", ...; execution metrics "eval/<k>";
+training curves with step = env steps. Runs tagged kind=summary (this package's own output)
+are left out.
+"""
+
+from __future__ import annotations
+
+import ast
+import json
+import logging
+import math
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+SUMMARY_KIND = "summary"
+EVAL_PREFIX = "eval/"
+EE_KEY = "eval/ee_sys_mean"
+
+
+class ReportError(Exception):
+    """Bad user input (experiment, tracking URI, flags): printed as one line, exit code 2."""
+
+
+@dataclass
+class RunRecord:
+    run_id: str
+    run_name: str
+    status: str
+    start_time: int
+    kind: str
+    algorithm: str | None
+    seed: str | None
+    n_eds: int | None
+    n_uavs: int | None
+    tags: dict[str, str] = field(default_factory=dict)
+    params: dict[str, str] = field(default_factory=dict)
+    metrics: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def label(self) -> str:
+        """Short human description for warnings."""
+        name = f" ({self.run_name})" if self.run_name else ""
+        return (
+            f"run {self.run_id[:8]}{name}: kind={self.kind} algorithm={self.algorithm} seed={self.seed} "
+            f"V={self.n_eds} U={self.n_uavs} status={self.status}"
+        )
+
+    @property
+    def scenario_key(self) -> tuple[int, int] | None:
+        if self.n_eds is None or self.n_uavs is None:
+            return None
+        return (self.n_eds, self.n_uavs)
+
+    def eval_metrics(self) -> dict[str, float]:
+        return {k: v for k, v in self.metrics.items() if k.startswith(EVAL_PREFIX)}
+
+    @property
+    def ee(self) -> float:
+        v = self.metrics.get(EE_KEY)
+        return float(v) if v is not None else math.nan
+
+    @property
+    def has_eval(self) -> bool:
+        return math.isfinite(self.ee)
+
+
+def _quiet_mlflow() -> None:
+    # Fail fast on an unreachable server instead of retrying for minutes (user settings win).
+    os.environ.setdefault("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")
+    os.environ.setdefault("MLFLOW_HTTP_REQUEST_TIMEOUT", "15")
+    for name in ("mlflow", "alembic", "sqlalchemy"):
+        logging.getLogger(name).setLevel(logging.ERROR)
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0] if text else ''}".strip()
+
+
+def sqlite_path(uri: str) -> str | None:
+    """The database file of a sqlite:/// URI (None for other URIs or in-memory databases)."""
+    if not uri.startswith("sqlite:"):
+        return None
+    rest = uri[len("sqlite:") :]
+    if not rest.startswith("///"):
+        return None
+    path = rest[3:].split("?", 1)[0]
+    if path in ("", ":memory:"):
+        return None
+    return path
+
+
+def connect(tracking_uri: str):
+    """An MlflowClient that has answered once; ReportError naming the URI otherwise."""
+    _quiet_mlflow()
+    path = sqlite_path(tracking_uri)
+    if tracking_uri.startswith("sqlite:") and path is not None and not os.path.isfile(path):
+        raise ReportError(
+            f"tracking URI {tracking_uri!r} is unreachable: database file {os.path.abspath(path)} does not exist"
+        )
+    if tracking_uri.startswith("file:") or ("://" not in tracking_uri and not tracking_uri.startswith("sqlite:")):
+        raise ReportError(
+            f"tracking URI {tracking_uri!r} is not supported: use a database or server URI such as "
+            "sqlite:///mlflow.db or http://host:5000"
+        )
+    from mlflow.tracking import MlflowClient
+
+    try:
+        client = MlflowClient(tracking_uri=tracking_uri)
+        client.search_experiments(max_results=1)
+    except Exception as exc:  # noqa: BLE001 - any failure here means "cannot reach it"
+        raise ReportError(f"tracking URI {tracking_uri!r} is unreachable: {_first_line(exc)}") from None
+    return client
+
+
+def find_experiment(client, name: str, tracking_uri: str):
+    exp = client.get_experiment_by_name(name)
+    if exp is None or getattr(exp, "lifecycle_stage", "active") != "active":
+        names = sorted(e.name for e in client.search_experiments())
+        listing = ", ".join(repr(n) for n in names) if names else "(none)"
+        raise ReportError(f"experiment {name!r} not found at {tracking_uri}; existing experiments: {listing}")
+    return exp
+
+
+def _as_int(text: Any) -> int | None:
+    if text is None:
+        return None
+    try:
+        return int(float(str(text)))
+    except ValueError:
+        return None
+
+
+def _record(run) -> RunRecord:
+    tags = dict(run.data.tags)
+    params = dict(run.data.params)
+    n_eds = _as_int(tags.get("n_eds", params.get("scenario.n_eds")))
+    n_uavs = _as_int(tags.get("n_uavs", params.get("scenario.n_uavs")))
+    algorithm = tags.get("algorithm") or None
+    return RunRecord(
+        run_id=run.info.run_id,
+        run_name=run.info.run_name or tags.get("mlflow.runName", ""),
+        status=str(run.info.status),
+        start_time=int(run.info.start_time or 0),
+        kind=tags.get("kind", "train"),
+        algorithm=algorithm.strip() if algorithm else None,
+        seed=tags.get("seed"),
+        n_eds=n_eds,
+        n_uavs=n_uavs,
+        tags=tags,
+        params=params,
+        metrics={k: float(v) for k, v in run.data.metrics.items()},
+    )
+
+
+def load_runs(client, experiment_id: str) -> tuple[list[RunRecord], list[Any]]:
+    """All active runs of the experiment as RunRecords (summary runs excluded), and the
+    summary runs themselves (raw MLflow Run objects, newest first)."""
+    records: list[RunRecord] = []
+    summaries: list[Any] = []
+    token = None
+    while True:
+        page = client.search_runs([experiment_id], max_results=1000, page_token=token)
+        for run in page:
+            if run.data.tags.get("kind") == SUMMARY_KIND:
+                summaries.append(run)
+            else:
+                records.append(_record(run))
+        token = getattr(page, "token", None)
+        if not token:
+            break
+    summaries.sort(key=lambda r: r.info.start_time or 0, reverse=True)
+    records.sort(key=lambda r: (r.start_time, r.run_id))
+    return records, summaries
+
+
+def metric_history(client, run_id: str, key: str) -> tuple[list[float], list[float]]:
+    """(steps, values) of a metric, sorted by step, last value kept for a repeated step."""
+    hist = client.get_metric_history(run_id, key)
+    by_step: dict[int, tuple[int, float]] = {}
+    for m in hist:
+        prev = by_step.get(m.step)
+        if prev is None or m.timestamp >= prev[0]:
+            by_step[m.step] = (m.timestamp, float(m.value))
+    steps = sorted(by_step)
+    vals = [by_step[s][1] for s in steps]
+    keep = [i for i, v in enumerate(vals) if math.isfinite(v)]
+    return [float(steps[i]) for i in keep], [vals[i] for i in keep]
+
+
+def _parse_param(text: str) -> Any:
+    try:
+        return json.loads(text)
+    except (ValueError, TypeError):
+        pass
+    try:
+        return ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        return text
+
+
+def scenario_dict(params: dict[str, str]) -> dict[str, Any]:
+    """Nested scenario fields from "scenario.<field>[.<sub>]" params (derived 'quota' dropped)."""
+    out: dict[str, Any] = {}
+    for key, text in params.items():
+        if not key.startswith("scenario."):
+            continue
+        parts = key.split(".")[1:]
+        if parts == ["quota"]:
+            continue
+        node = out
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+            if not isinstance(node, dict):
+                break
+        else:
+            node[parts[-1]] = _parse_param(text)
+    return out
