@@ -1,0 +1,105 @@
+"""TD learner of QMIX/VDN: n-step double-Q targets through the (target) mixer, soft target updates.
+
+Loss (per update, over B whole episodes of T steps):
+  y_t = sum_{k<m} gamma^k r_{t+k} + gamma^m (1 - d) Q_tot^target(s_{t+m}, argmax_a Q^online(o_{t+m}))
+  with m = min(n_step, T - t); d = 1 only when the episode TERMINATED at t+m = T. A truncation
+  (this project's only episode end) bootstraps from the final observation/state.
+  L = mean_{b,t} (Q_tot(s_t, a_t) - y_t)^2
+After every gradient update: target <- (1 - tau) target + tau online (agent network and mixer).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Dict
+
+import torch
+
+from ray.rllib.core.columns import Columns
+from ray.rllib.core.learner.torch.torch_learner import TorchLearner
+from ray.rllib.core.rl_module.apis import QNetAPI, TargetNetworkAPI
+
+from uavlora_rllib.algorithms.qmix_module import Q_TAKEN, Q_TOT, TARGET_Q_TOT_NEXT
+from uavlora_rllib.algorithms.qmix_replay import TERMINATED
+
+TD_LOSS = "td_loss"
+NUM_TARGET_UPDATES = "num_soft_target_updates"
+
+
+def nstep_targets(
+    rewards: torch.Tensor, next_values: torch.Tensor, terminated: torch.Tensor, gamma: float, n_step: int
+) -> torch.Tensor:
+    """rewards [B, T], next_values[:, j] = target Q_tot at s_{j+1} [B, T], terminated [B] -> y [B, T]."""
+    b, t = rewards.shape
+    n = max(int(n_step), 1)
+    padded = torch.cat([rewards, rewards.new_zeros(b, n)], dim=1)
+    ret = torch.zeros_like(rewards)
+    for k in range(n):  # rewards past T are the zero padding
+        ret = ret + (gamma**k) * padded[:, k : k + t]
+    steps = torch.arange(t, device=rewards.device)
+    last = torch.clamp(steps + n, max=t) - 1  # index into next_values of the bootstrap state
+    m = (last + 1 - steps).to(rewards.dtype)
+    boot = next_values.gather(1, last.expand(b, t))
+    done = terminated.to(torch.bool).view(b, 1) & (last == t - 1).view(1, t)
+    return ret + torch.pow(torch.full_like(m, gamma), m).view(1, t) * boot * (~done).to(rewards.dtype)
+
+
+def soft_update(main: torch.nn.Module, target: torch.nn.Module, tau: float) -> None:
+    """target <- (1 - tau) target + tau main, parameters and buffers."""
+    with torch.no_grad():
+        for p_t, p in zip(target.state_dict().values(), main.state_dict().values()):
+            if p_t.dtype.is_floating_point:
+                p_t.mul_(1.0 - tau).add_(p, alpha=tau)
+            else:
+                p_t.copy_(p)
+
+
+class QMIXTorchLearner(TorchLearner):
+    def build(self) -> None:
+        super().build()
+        self.module.foreach_module(
+            lambda mid, mod: mod.make_target_networks() if isinstance(mod, TargetNetworkAPI) else None
+        )
+
+    def configure_optimizers_for_module(self, module_id, config=None) -> None:
+        module = self._module[module_id]
+        params = [p for p in module.parameters() if p.requires_grad]  # agent net + mixer
+        self.register_optimizer(
+            module_id=module_id,
+            optimizer=torch.optim.Adam(params),
+            params=params,
+            lr_or_lr_schedule=config.lr,
+        )
+
+    def compute_loss_for_module(self, *, module_id, config, batch: Dict[str, Any], fwd_out: Dict[str, Any]):
+        rewards = batch[Columns.REWARDS].float()
+        q_tot = fwd_out[Q_TOT]
+        y = nstep_targets(rewards, fwd_out[TARGET_Q_TOT_NEXT].detach(), batch[TERMINATED], config.gamma, config.n_step)
+        td = q_tot - y
+        loss = (td**2).mean()
+        self.metrics.log_dict(
+            {
+                TD_LOSS: loss.detach(),
+                "td_error_abs_mean": td.detach().abs().mean(),
+                "q_taken_mean": fwd_out[Q_TAKEN].detach().mean(),
+                "q_tot_mean": q_tot.detach().mean(),
+                "target_mean": y.mean(),
+            },
+            key=module_id,
+            window=1,
+        )
+        return loss
+
+    def after_gradient_based_update(self, *, timesteps: Dict[str, Any]) -> None:
+        super().after_gradient_based_update(timesteps=timesteps)
+        for module_id, module in self.module._rl_modules.items():
+            mod = module.unwrapped()
+            if not isinstance(mod, TargetNetworkAPI):
+                continue
+            tau = self.config.get_config_for_module(module_id).tau
+            for main, target in mod.get_target_network_pairs():
+                soft_update(main, target, tau)
+            self.metrics.log_value((module_id, NUM_TARGET_UPDATES), 1, reduce="lifetime_sum")
+
+    @classmethod
+    def rl_module_required_apis(cls) -> list[type]:
+        return [QNetAPI, TargetNetworkAPI]

@@ -1,0 +1,250 @@
+"""The QMIX/VDN RLModule: recurrent per-UAV Q-network, mixer, and their target copies.
+
+Shapes (one team = one row of the batch; U UAVs, d = obs_dim, A = actions per UAV, S = state_dim):
+  obs     [B, T, U, d]   each UAV's LOCAL observation (row u of the team view)
+  state   [B, T, S]      global state (mixer only, never read by the agent network)
+  h       [B, U, H]      GRU hidden state, H = gru_hidden
+  q       [B, T, U, A]   per-UAV Q-values
+
+Agent network (one per team, shared by the UAVs unless share_agent_net=False):
+  [o_u ; one-hot(u)] -> Linear(fc_hidden) -> ReLU -> GRU(gru_hidden) -> Linear(A)
+The one-hot id is only appended when the network is shared.
+
+Mixers (Rashid et al. 2018/2020):
+  vdn:  Q_tot = sum_u Q_u
+  qmix: Q_tot = |W2(s)|^T ELU(|W1(s)|^T q + b1(s)) + V(s); W1, W2 from 2-layer hypernetworks
+        (hypernet_embed_dim), b1 from one linear layer, V(s) a 2-layer MLP (mixing_embed_dim).
+        Absolute weights make dQ_tot/dQ_u >= 0 (monotonic).
+
+On env runners the module is built inference-only: the mixer and every target network are
+dropped (InferenceOnlyAPI), so decentralised execution only ever holds the agent network.
+Env runners call it one step at a time with the GRU state carried by RLlib's connectors
+(Columns.STATE_IN/STATE_OUT, zero at every episode start: `get_initial_state`).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Dict, List, Tuple
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ray.rllib.core.columns import Columns
+from ray.rllib.core.learner.utils import make_target_network
+from ray.rllib.core.rl_module.apis import InferenceOnlyAPI, QNetAPI, TargetNetworkAPI
+from ray.rllib.core.rl_module.torch import TorchRLModule
+
+STATE = "state"  # batch column: global state [B, T+1, S] (learner only)
+HIDDEN = "h"  # key of the GRU state in Columns.STATE_IN / STATE_OUT
+Q_ALL = "q_all"  # [B, T+1, U, A] online Qs over the whole sequence
+Q_TAKEN = "q_taken"  # [B, T, U] online Q of the action taken
+Q_TOT = "q_tot"  # [B, T] mixed online Q of the joint action taken
+TARGET_Q_TOT_NEXT = "target_q_tot_next"  # [B, T] target Q_tot at s_{t+1} (double-Q action)
+
+
+def linear_epsilon(t: int | float, start: float, end: float, anneal_steps: int | float) -> float:
+    """Epsilon after t env steps: linear from start to end over anneal_steps, then end."""
+    if anneal_steps <= 0:
+        return float(end)
+    frac = min(max(float(t) / float(anneal_steps), 0.0), 1.0)
+    return float(start + frac * (end - start))
+
+
+class AgentQNet(nn.Module):
+    """Per-UAV recurrent Q-network over local observations (shared weights or one per UAV)."""
+
+    def __init__(self, n_agents: int, obs_dim: int, n_actions: int, fc_hidden: int, gru_hidden: int, share: bool):
+        super().__init__()
+        self.n_agents, self.n_actions, self.share = n_agents, n_actions, share
+        self.gru_hidden = gru_hidden
+        n_nets = 1 if share else n_agents
+        in_dim = obs_dim + (n_agents if share else 0)
+        self.fc_in = nn.ModuleList(nn.Linear(in_dim, fc_hidden) for _ in range(n_nets))
+        self.gru = nn.ModuleList(nn.GRU(fc_hidden, gru_hidden, batch_first=True) for _ in range(n_nets))
+        self.fc_out = nn.ModuleList(nn.Linear(gru_hidden, n_actions) for _ in range(n_nets))
+
+    def _one(self, k: int, x: torch.Tensor, h0: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        """x [M, T, in], h0 [M, H] -> q [M, T, A], h_T [M, H]."""
+        z = F.relu(self.fc_in[k](x))
+        out, h_t = self.gru[k](z, h0.unsqueeze(0).contiguous())
+        return self.fc_out[k](out), h_t.squeeze(0)
+
+    def forward(self, obs: torch.Tensor, h0: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        """obs [B, T, U, d], h0 [B, U, H] -> q [B, T, U, A], h_T [B, U, H]. The GRU starts
+        from h0 at t = 0 of every row: rows never share a hidden state."""
+        b, t, u, _ = obs.shape
+        if self.share:
+            ids = torch.eye(u, dtype=obs.dtype, device=obs.device).expand(b, t, u, u)
+            x = torch.cat([obs, ids], dim=-1).permute(0, 2, 1, 3).reshape(b * u, t, -1)
+            q, h_t = self._one(0, x, h0.reshape(b * u, -1))
+            return q.reshape(b, u, t, -1).permute(0, 2, 1, 3), h_t.reshape(b, u, -1)
+        qs, hs = [], []
+        for k in range(u):
+            q, h_t = self._one(k, obs[:, :, k], h0[:, k])
+            qs.append(q)
+            hs.append(h_t)
+        return torch.stack(qs, dim=2), torch.stack(hs, dim=1)
+
+
+class VDNMixer(nn.Module):
+    def forward(self, q: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        """q [B, T, U] -> Q_tot [B, T] (state unused)."""
+        return q.sum(dim=-1)
+
+
+class QMixer(nn.Module):
+    """Monotonic mixing network with hypernetworks on the global state."""
+
+    def __init__(self, n_agents: int, state_dim: int, embed_dim: int = 32, hypernet_embed: int = 64):
+        super().__init__()
+        self.n_agents, self.embed_dim = n_agents, embed_dim
+        self.hyper_w1 = nn.Sequential(
+            nn.Linear(state_dim, hypernet_embed), nn.ReLU(), nn.Linear(hypernet_embed, n_agents * embed_dim)
+        )
+        self.hyper_b1 = nn.Linear(state_dim, embed_dim)
+        self.hyper_w2 = nn.Sequential(nn.Linear(state_dim, hypernet_embed), nn.ReLU(), nn.Linear(hypernet_embed, embed_dim))
+        self.v = nn.Sequential(nn.Linear(state_dim, embed_dim), nn.ReLU(), nn.Linear(embed_dim, 1))
+
+    def forward(self, q: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        """q [B, T, U], state [B, T, S] -> Q_tot [B, T]."""
+        lead = q.shape[:-1]
+        qf = q.reshape(-1, 1, self.n_agents)
+        s = state.reshape(-1, state.shape[-1])
+        w1 = self.hyper_w1(s).abs().view(-1, self.n_agents, self.embed_dim)
+        b1 = self.hyper_b1(s).view(-1, 1, self.embed_dim)
+        hidden = F.elu(torch.bmm(qf, w1) + b1)
+        w2 = self.hyper_w2(s).abs().view(-1, self.embed_dim, 1)
+        y = torch.bmm(hidden, w2).view(-1) + self.v(s).view(-1)
+        return y.view(lead)
+
+
+def make_mixer(kind: str, n_agents: int, state_dim: int, embed_dim: int, hypernet_embed: int) -> nn.Module:
+    if kind == "vdn":
+        return VDNMixer()
+    if kind == "qmix":
+        return QMixer(n_agents, state_dim, embed_dim, hypernet_embed)
+    raise ValueError(f"mixer: expected 'qmix' or 'vdn', got {kind!r}")
+
+
+class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
+    """model_config keys: n_agents, obs_dim, n_actions, state_dim, fc_hidden, gru_hidden,
+    share_agent_net, mixer, mixing_embed_dim, hypernet_embed_dim, double_q, epsilon_start,
+    epsilon_end, epsilon_anneal_env_steps, torch_threads."""
+
+    def setup(self) -> None:
+        mc = self.model_config
+        threads = mc.get("torch_threads")
+        if threads:
+            torch.set_num_threads(int(threads))
+        self.n_agents = int(mc["n_agents"])
+        self.n_actions = int(mc["n_actions"])
+        self.gru_hidden = int(mc.get("gru_hidden", 128))
+        self.double_q = bool(mc.get("double_q", True))
+        self.agent = AgentQNet(
+            self.n_agents,
+            int(mc["obs_dim"]),
+            self.n_actions,
+            int(mc.get("fc_hidden", 128)),
+            self.gru_hidden,
+            bool(mc.get("share_agent_net", True)),
+        )
+        # The mixer is built here and removed again on inference-only (env runner) copies.
+        self.mixer = make_mixer(
+            str(mc.get("mixer", "qmix")),
+            self.n_agents,
+            int(mc["state_dim"]),
+            int(mc.get("mixing_embed_dim", 32)),
+            int(mc.get("hypernet_embed_dim", 64)),
+        )
+        self._eps = (
+            float(mc.get("epsilon_start", 1.0)),
+            float(mc.get("epsilon_end", 0.05)),
+            float(mc.get("epsilon_anneal_env_steps", 100_000)),
+        )
+
+    # ------------------------------------------------------------------ recurrent state
+    def get_initial_state(self) -> Dict[str, Any]:
+        return {HIDDEN: torch.zeros(self.n_agents, self.gru_hidden)}
+
+    def epsilon(self, t: int | float) -> float:
+        return linear_epsilon(t, *self._eps)
+
+    # ------------------------------------------------------------------ acting (env runners)
+    def _step(self, batch: Dict[str, Any]) -> Tuple[torch.Tensor, torch.Tensor]:
+        """Greedy-ready Qs of one step: obs [B, 1, U, d] (or [B, U, d]) -> q [B, U, A], h [B, U, H]."""
+        obs = batch[Columns.OBS].float()
+        if obs.dim() == 3:
+            obs = obs.unsqueeze(1)
+        h0 = batch[Columns.STATE_IN][HIDDEN]
+        q, h = self.agent(obs, h0)
+        return q[:, -1], h
+
+    def _forward_inference(self, batch: Dict[str, Any], **kwargs) -> Dict[str, Any]:
+        with torch.no_grad():
+            q, h = self._step(batch)
+            return {Columns.ACTIONS: q.argmax(-1).unsqueeze(1), Columns.STATE_OUT: {HIDDEN: h}}
+
+    def _forward_exploration(self, batch: Dict[str, Any], t: int = 0, **kwargs) -> Dict[str, Any]:
+        with torch.no_grad():
+            q, h = self._step(batch)
+            greedy = q.argmax(-1)
+            eps = self.epsilon(t)
+            rand = torch.randint(0, self.n_actions, greedy.shape, device=greedy.device)
+            explore = torch.rand(greedy.shape, device=greedy.device) < eps  # each UAV on its own
+            actions = torch.where(explore, rand, greedy)
+            return {Columns.ACTIONS: actions.unsqueeze(1), Columns.STATE_OUT: {HIDDEN: h}}
+
+    # ------------------------------------------------------------------ learning
+    def _zero_h(self, obs: torch.Tensor) -> torch.Tensor:
+        return obs.new_zeros(obs.shape[0], self.n_agents, self.gru_hidden)
+
+    def compute_q_values(self, batch: Dict[str, Any]) -> Dict[str, Any]:
+        """Online per-UAV Qs over whole sequences, GRU started at zero: obs [B, T, U, d]."""
+        obs = batch[Columns.OBS].float()
+        q, _ = self.agent(obs, self._zero_h(obs))
+        return {Q_ALL: q}
+
+    def _forward_train(self, batch: Dict[str, Any], **kwargs) -> Dict[str, Any]:
+        """Batch of whole episodes: obs [B, T+1, U, d], actions [B, T, U], state [B, T+1, S]."""
+        q_all = self.compute_q_values(batch)[Q_ALL]
+        actions = batch[Columns.ACTIONS].long()
+        n_t = actions.shape[1]
+        q_taken = q_all[:, :n_t].gather(-1, actions.unsqueeze(-1)).squeeze(-1)
+        state = batch[STATE].float()
+        q_tot = self.mixer(q_taken, state[:, :n_t])
+        out = {Q_ALL: q_all, Q_TAKEN: q_taken, Q_TOT: q_tot}
+        with torch.no_grad():
+            out[TARGET_Q_TOT_NEXT] = self.forward_target({**batch, Q_ALL: q_all.detach()})[TARGET_Q_TOT_NEXT]
+        return out
+
+    # ------------------------------------------------------------------ target networks
+    def make_target_networks(self) -> None:
+        self._target_agent = make_target_network(self.agent)
+        self._target_mixer = make_target_network(self.mixer)
+
+    def get_target_network_pairs(self) -> List[Tuple[nn.Module, nn.Module]]:
+        return [(self.agent, self._target_agent), (self.mixer, self._target_mixer)]
+
+    def forward_target(self, batch: Dict[str, Any]) -> Dict[str, Any]:
+        """Target Q_tot at s_{t+1}, t = 0..T-1. Double Q: the ONLINE agent net picks the
+        argmax at t+1 (batch[Q_ALL] if given), the target agent net evaluates it, and the
+        target mixer mixes on s_{t+1}. The last transition bootstraps from the final
+        observation/state (truncation is not termination)."""
+        obs = batch[Columns.OBS].float()
+        state = batch[STATE].float()
+        tq_all, _ = self._target_agent(obs, self._zero_h(obs))
+        nxt = tq_all[:, 1:]
+        if self.double_q:
+            online = batch.get(Q_ALL)
+            if online is None:
+                online = self.compute_q_values(batch)[Q_ALL]
+            a_star = online[:, 1:].argmax(-1, keepdim=True)
+            tq_next = nxt.gather(-1, a_star).squeeze(-1)
+        else:
+            tq_next = nxt.max(-1).values
+        return {TARGET_Q_TOT_NEXT: self._target_mixer(tq_next, state[:, 1:])}
+
+    # ------------------------------------------------------------------ inference-only
+    def get_non_inference_attributes(self) -> List[str]:
+        return ["mixer", "_target_agent", "_target_mixer"]
