@@ -1,0 +1,315 @@
+"""COMA's networks (Foerster et al., AAAI 2018) as one RLlib RLModule, and its pure maths.
+
+Layout of the team view (uavlora_rllib/team_env.py): observation [U, obs_dim] (row u is UAV
+u's LOCAL observation), action MultiDiscrete([A] * U) with A = 90 (per_uav), shared reward,
+global state under info["state"].
+
+* Actor (decentralised, shared by all UAVs): row u of the observation, concatenated with
+  the one-hot id of u, -> Linear + ReLU (actor_hidden) -> GRU (gru_hidden) -> Linear -> A
+  logits; with `actor_agent_heads` each UAV adds its own linear output layer to the shared
+  one's logits (everything before the output layer stays shared). Why: the UAVs must pick
+  DIFFERENT SFs (same-SF EDs interfere), and with a fully shared net the two argmaxes kept
+  landing on the same SF (greedy EE ~0.35x random on the small scenario, 3 seeds, up to
+  120k steps) although the sampled policy had learned to spread; with per-UAV output
+  layers greedy EE is ~2x random after 40k steps. The GRU state is [U, gru_hidden] per
+  scenario; it is the only thing env runners carry between steps. An actor never sees the
+  global state or another UAV's row.
+* Critic (centralised, learner only): Q_u(s, a_-u, .) -> A values, one per action of UAV u.
+  Input per (scenario, step, u): global state s, the one-hot actions of the OTHER U - 1
+  UAVs in id order (u's own action is never an input), the one-hot id of u and, if
+  `critic_use_obs`, u's own observation row. A target copy of the critic (Polyak or hard
+  updates, see coma_learner.py) gives the TD(lambda) targets.
+
+`InferenceOnlyAPI`: env runners build the module with inference_only=True and hold the actor
+alone (no critic, no target critic; RLlib also drops them from the weights it syncs).
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import Any
+
+import numpy as np
+import torch
+from ray.rllib.core.columns import Columns
+from ray.rllib.core.distribution.torch.torch_distribution import TorchMultiCategorical
+from ray.rllib.core.rl_module.apis import InferenceOnlyAPI
+from ray.rllib.core.rl_module.torch import TorchRLModule
+from torch import nn
+
+# Batch columns of the learner's episode batch (coma_learner.COMAEpisodeBatch).
+OBS = Columns.OBS  # [B, T + 1, U, obs_dim]
+ACTIONS = Columns.ACTIONS  # [B, T, U] int64
+REWARDS = Columns.REWARDS  # [B, T]
+GLOBAL_STATE = "global_state"  # [B, T + 1, state_dim]
+# Outputs of forward_train.
+LOGITS = "coma_logits"  # [B, T + 1, U, A] actor logits (the last step only for bootstrapping)
+Q_VALUES = "coma_q"  # [B, T, U, A] critic: Q_u(s_t, a_t,-u, .)
+Q_TARGET = "coma_q_target"  # [B, T, U, A] target critic, same inputs
+BOOTSTRAP = "coma_bootstrap"  # [B, U] target-critic value of the final state, expectation under pi_u
+
+
+# ------------------------------------------------------------------ pure maths (tested by hand)
+def other_actions_onehot(actions: torch.Tensor, n_actions: int) -> torch.Tensor:
+    """[..., U] int actions -> [..., U, (U - 1) A]: row u holds the one-hot actions of every
+    agent except u, in id order. Agent u's own action appears nowhere in row u."""
+    n_agents = actions.shape[-1]
+    onehot = nn.functional.one_hot(actions.long(), n_actions).to(torch.float32)  # [..., U, A]
+    rows = []
+    for u in range(n_agents):
+        others = [k for k in range(n_agents) if k != u]
+        rows.append(onehot[..., others, :].flatten(-2))  # [..., (U - 1) A]
+    return torch.stack(rows, dim=-2)
+
+
+def factor_onehot(actions: torch.Tensor, factors: tuple[int, ...]) -> torch.Tensor:
+    """[..., U] joint indices -> [..., U, sum(factors)]: one-hot of each factor of the index
+    (mixed radix, last factor fastest; for per_uav (n_sf, n_tp, n_bw) this is the SF, TP and
+    BW of core.decode_joint_action)."""
+    parts, rest = [], actions.long()
+    for size in reversed(factors):
+        parts.append(nn.functional.one_hot(rest % size, size).to(torch.float32))
+        rest = rest // size
+    return torch.cat(parts[::-1], dim=-1)
+
+
+def critic_inputs(
+    state: torch.Tensor,
+    obs: torch.Tensor | None,
+    actions: torch.Tensor,
+    n_actions: int,
+    factors: tuple[int, ...] = (),
+) -> torch.Tensor:
+    """The critic's input rows [..., U, in_dim] = [s, one-hot a_-u, (factors of a_-u), one-hot id u, (o_u)].
+
+    state [..., S], obs [..., U, obs_dim] or None (critic_use_obs=False), actions [..., U];
+    `factors` (e.g. (n_sf, n_tp, n_bw)) adds the one-hot SF/TP/BW of every OTHER agent."""
+    n_agents = actions.shape[-1]
+    lead = actions.shape[:-1]
+    parts = [state.unsqueeze(-2).expand(*lead, n_agents, state.shape[-1]), other_actions_onehot(actions, n_actions)]
+    if factors:
+        fac = factor_onehot(actions, factors)  # [..., U, F]
+        rows = [fac[..., [k for k in range(n_agents) if k != u], :].flatten(-2) for u in range(n_agents)]
+        parts.append(torch.stack(rows, dim=-2))
+    parts.append(torch.eye(n_agents, dtype=torch.float32, device=actions.device).expand(*lead, n_agents, n_agents))
+    if obs is not None:
+        parts.append(obs)
+    return torch.cat(parts, dim=-1)
+
+
+def critic_input_dim(
+    state_dim: int, obs_dim: int, n_agents: int, n_actions: int, use_obs: bool, factors: tuple[int, ...] = ()
+) -> int:
+    per_other = n_actions + sum(factors)
+    return state_dim + (n_agents - 1) * per_other + n_agents + (obs_dim if use_obs else 0)
+
+
+def counterfactual_advantage(
+    q: torch.Tensor, pi: torch.Tensor, actions: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """COMA's counterfactual baseline and advantage (Foerster et al., Eq. 4).
+
+    q [..., A]: Q_u(s, (a_-u, a')) for every a' of agent u; pi [..., A]: pi_u(a' | tau_u);
+    actions [...]: the action a_u taken. Returns (advantage, baseline, q_taken) with
+    baseline = sum_a' pi(a') Q(s, (a_-u, a')) and advantage = Q(s, a)[a_u] - baseline.
+    No gradient flows through pi or q (the actor's loss multiplies this with log pi)."""
+    q, pi = q.detach(), pi.detach()
+    q_taken = torch.gather(q, -1, actions.long().unsqueeze(-1)).squeeze(-1)
+    baseline = (pi * q).sum(-1)
+    return q_taken - baseline, baseline, q_taken
+
+
+def td_lambda_targets(
+    rewards: torch.Tensor, q_taken_next: torch.Tensor, bootstrap: torch.Tensor, gamma: float, lam: float
+) -> torch.Tensor:
+    """TD(lambda) returns for a truncated (never terminated) episode, per agent.
+
+    rewards [B, T]; q_taken_next [B, T, U]: target-critic Q of the taken joint action at steps
+    0..T-1 (entry t is used as the one-step bootstrap of step t - 1); bootstrap [B, U]: the
+    value of the final state s_T (truncation: bootstrap through it, never zero). Recursion
+      G_{T-1} = r_{T-1} + gamma V(s_T)
+      G_t     = r_t + gamma ((1 - lam) Q_tgt(s_{t+1}, a_{t+1}) + lam G_{t+1}).
+    Returns [B, T, U]."""
+    steps = rewards.shape[1]
+    out = torch.empty_like(q_taken_next)
+    g = rewards[:, steps - 1, None] + gamma * bootstrap
+    out[:, steps - 1] = g
+    for t in range(steps - 2, -1, -1):
+        g = rewards[:, t, None] + gamma * ((1.0 - lam) * q_taken_next[:, t + 1] + lam * g)
+        out[:, t] = g
+    return out
+
+
+# ------------------------------------------------------------------ networks
+def mlp(in_dim: int, hidden: tuple[int, ...] | list[int], out_dim: int) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for width in hidden:
+        layers += [nn.Linear(in_dim, width), nn.ReLU()]
+        in_dim = width
+    layers.append(nn.Linear(in_dim, out_dim))
+    return nn.Sequential(*layers)
+
+
+class QHead(nn.Module):
+    """Critic MLP with A outputs (one per action of agent u).
+
+    `dueling`: Q = V + (D - mean_a D), V and D from one trunk. Every sample trains V, so an
+    action that is rarely taken starts at the state's value rather than at the network's
+    initial output (about 0): with large positive returns a plain head makes every untried
+    action look bad and the policy collapses onto whatever it happened to sample first.
+    `factors` (n_sf, n_tp, n_bw): D[a] = free[a] + sum_f g_f[factor_f(a)], the g_f shared by
+    all actions with the same SF (TP, BW). A sample of one action then also teaches the
+    values of the actions that share its SF, which is what the critic needs to learn the
+    interference between UAVs on the same SF (a plain 90-way head sees each action ~1/90 of
+    the time and learned that interaction far too slowly on the small scenario)."""
+
+    def __init__(self, in_dim: int, hidden: tuple[int, ...], n_actions: int, dueling: bool, factors=()):
+        super().__init__()
+        self.dueling = dueling
+        self.trunk = mlp(in_dim, hidden[:-1], hidden[-1]) if hidden else nn.Identity()
+        width = hidden[-1] if hidden else in_dim
+        self.act = nn.ReLU() if hidden else nn.Identity()
+        self.out = nn.Linear(width, n_actions + (1 if dueling else 0))
+        self.factor_out = nn.Linear(width, sum(factors)) if factors else None
+        if factors:
+            self.register_buffer("factor_map", factor_onehot(torch.arange(n_actions), tuple(factors)))  # [A, F]
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h = self.act(self.trunk(x))
+        y = self.out(h)
+        value, diff = (y[..., :1], y[..., 1:]) if self.dueling else (None, y)
+        if self.factor_out is not None:
+            diff = diff + self.factor_out(h) @ self.factor_map.T
+        if value is None:
+            return diff
+        return value + diff - diff.mean(-1, keepdim=True)
+
+
+class COMAActor(nn.Module):
+    """Shared recurrent actor: (o_u, one-hot u) -> ReLU MLP -> GRU -> logits over A actions."""
+
+    def __init__(
+        self, obs_dim: int, n_agents: int, n_actions: int, hidden: int, gru_hidden: int, agent_heads: bool = False
+    ):
+        super().__init__()
+        self.n_agents, self.n_actions, self.gru_hidden = n_agents, n_actions, gru_hidden
+        self.input_dim = obs_dim + n_agents
+        self.fc_in = nn.Sequential(nn.Linear(self.input_dim, hidden), nn.ReLU())
+        self.gru = nn.GRU(hidden, gru_hidden, batch_first=True)
+        self.head = nn.Linear(gru_hidden, n_actions)
+        # agent_heads: each UAV adds its own linear output layer to the shared head's logits.
+        self.agent_head = None
+        if agent_heads:
+            bound = 1.0 / np.sqrt(gru_hidden)
+            self.agent_head = nn.Parameter(torch.empty(n_agents, gru_hidden, n_actions).uniform_(-bound, bound))
+
+    def initial_state(self, batch: int) -> torch.Tensor:
+        return torch.zeros(batch, self.n_agents, self.gru_hidden)
+
+    def inputs(self, obs: torch.Tensor) -> torch.Tensor:
+        """obs [B, T, U, obs_dim] -> [B, T, U, obs_dim + U] (each row gets its agent id)."""
+        eye = torch.eye(self.n_agents, dtype=obs.dtype, device=obs.device)
+        return torch.cat([obs, eye.expand(*obs.shape[:-2], self.n_agents, self.n_agents)], dim=-1)
+
+    def forward(self, obs: torch.Tensor, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """obs [B, T, U, obs_dim], h [B, U, H] -> logits [B, T, U, A], h' [B, U, H]."""
+        b, t, u, _ = obs.shape
+        x = self.fc_in(self.inputs(obs))  # [B, T, U, hidden]
+        x = x.permute(0, 2, 1, 3).reshape(b * u, t, -1)  # one sequence per (scenario, agent)
+        y, h_out = self.gru(x, h.reshape(1, b * u, -1))
+        logits = self.head(y)  # [B U, T, A]
+        if self.agent_head is not None:
+            y4 = y.reshape(b, u, t, -1)
+            logits = logits + torch.einsum("buth,uha->buta", y4, self.agent_head).reshape(b * u, t, -1)
+        logits = logits.reshape(b, u, t, -1).permute(0, 2, 1, 3)
+        return logits, h_out.reshape(b, u, -1)
+
+
+class COMATorchRLModule(TorchRLModule, InferenceOnlyAPI):
+    """Actor on env runners; actor + critic + target critic on the learner.
+
+    model_config: state_dim (required), actor_hidden, gru_hidden, critic_hidden,
+    critic_use_obs, critic_dueling, action_factors, torch_threads."""
+
+    def setup(self) -> None:
+        mc = self.model_config
+        if mc.get("torch_threads"):
+            torch.set_num_threads(int(mc["torch_threads"]))
+        self.n_agents, self.obs_dim = self.observation_space.shape
+        nvec = np.asarray(self.action_space.nvec)
+        if nvec.ndim != 1 or not (nvec == nvec[0]).all():
+            raise ValueError(f"COMA needs MultiDiscrete([A] * U) actions (per_uav), got nvec {nvec.tolist()}")
+        self.n_actions = int(nvec[0])
+        self.state_dim = int(mc["state_dim"])
+        self.use_obs = bool(mc.get("critic_use_obs", True))
+        self.factors = tuple(int(f) for f in mc.get("action_factors", ()) or ())
+        if self.factors and int(np.prod(self.factors)) != self.n_actions:
+            raise ValueError(f"action_factors {self.factors} do not multiply to {self.n_actions} actions")
+        self.actor = COMAActor(
+            self.obs_dim,
+            self.n_agents,
+            self.n_actions,
+            int(mc.get("actor_hidden", 128)),
+            int(mc.get("gru_hidden", 128)),
+            bool(mc.get("actor_agent_heads", False)),
+        )
+        if not self.inference_only:
+            in_dim = critic_input_dim(
+                self.state_dim, self.obs_dim, self.n_agents, self.n_actions, self.use_obs, self.factors
+            )
+            self.critic = QHead(
+                in_dim,
+                tuple(mc.get("critic_hidden", (128, 128))),
+                self.n_actions,
+                bool(mc.get("critic_dueling", True)),
+                self.factors,
+            )
+            self.target_critic = copy.deepcopy(self.critic)
+            for p in self.target_critic.parameters():
+                p.requires_grad_(False)
+
+    # -- InferenceOnlyAPI
+    def get_non_inference_attributes(self) -> list[str]:
+        return ["critic", "target_critic"]
+
+    # -- stateful module
+    def get_initial_state(self) -> dict[str, Any]:
+        return {"h": torch.zeros(self.n_agents, self.actor.gru_hidden)}
+
+    def get_exploration_action_dist_cls(self):
+        return TorchMultiCategorical.get_partial_dist_cls(input_lens=[self.n_actions] * self.n_agents)
+
+    def get_inference_action_dist_cls(self):
+        return self.get_exploration_action_dist_cls()
+
+    def get_train_action_dist_cls(self):
+        return self.get_exploration_action_dist_cls()
+
+    def _forward(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
+        """Env runners: obs [N, 1, U, d] (RLlib adds the time axis for stateful modules)."""
+        obs = batch[Columns.OBS]
+        if obs.dim() == 3:  # no time axis (e.g. called by hand): add it
+            obs = obs.unsqueeze(1)
+        logits, h = self.actor(obs, batch[Columns.STATE_IN]["h"])
+        return {Columns.ACTION_DIST_INPUTS: logits.flatten(-2), Columns.STATE_OUT: {"h": h}}
+
+    # -- learner
+    def critic_q(self, net: nn.Module, state: torch.Tensor, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        return net(critic_inputs(state, obs if self.use_obs else None, actions, self.n_actions, self.factors))
+
+    def _forward_train(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
+        """Whole episodes: obs [B, T+1, U, d], actions [B, T, U], global_state [B, T+1, S]."""
+        obs, actions, state = batch[OBS], batch[ACTIONS].long(), batch[GLOBAL_STATE]
+        steps = actions.shape[1]
+        logits, _ = self.actor(obs, self.actor.initial_state(obs.shape[0]).to(obs.device))
+        q = self.critic_q(self.critic, state[:, :steps], obs[:, :steps], actions)
+        with torch.no_grad():
+            q_target = self.critic_q(self.target_critic, state[:, :steps], obs[:, :steps], actions)
+            # Truncation at T: bootstrap with the target critic on the final state s_T; the
+            # other UAVs play actions sampled from their policies at o_T, UAV u is averaged
+            # over its own policy: V_u(s_T) = sum_a' pi_u(a' | tau_T) Q_tgt(s_T, (a_T,-u, a')).
+            pi_last = torch.softmax(logits[:, steps], dim=-1)  # [B, U, A]
+            a_last = torch.distributions.Categorical(probs=pi_last).sample()  # [B, U]
+            q_last = self.critic_q(self.target_critic, state[:, steps], obs[:, steps], a_last)
+            bootstrap = (pi_last * q_last).sum(-1)
+        return {LOGITS: logits, Q_VALUES: q, Q_TARGET: q_target, BOOTSTRAP: bootstrap}
