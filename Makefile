@@ -1,0 +1,26 @@
+# Fresh-machine entry points; both install everything first (pinned by constraints.txt).
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: install demo test bench
+
+$(STAMP): pyproject.toml constraints.txt
+	python3 -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -c constraints.txt -e ".[test]"
+	touch $(STAMP)
+
+install: $(STAMP)
+
+# Main job on the embedded default: the smoke grid (all algorithms + baselines, local MLflow
+# on SQLite), then the report with the paper's figures and tables in reports/smoke/.
+demo: install
+	$(PY) -m uavlora_rllib.tune tune_configs/smoke.yaml
+	$(PY) -m analysis.report --experiment smoke --tracking-uri sqlite:///mlflow.db --out reports/smoke
+
+test: install
+	$(PY) -m pytest -q
+
+bench: install
+	$(PY) -m uavlora_rllib.bench env
