@@ -38,7 +38,7 @@ class Resources:
     """How one trial samples and learns (grid YAML `resources:`)."""
 
     num_env_runners: int = Field(0, ge=0)  # 0: sample in the trial's own process
-    num_envs_per_env_runner: int = Field(1, ge=1)
+    num_envs_per_env_runner: int = Field(16, ge=1)  # scenarios per runner, all in one BatchCore
     num_cpus_per_env_runner: float = Field(1.0, gt=0)
     num_cpus_per_learner: float = Field(1.0, gt=0)
     torch_threads: int = Field(1, ge=1)

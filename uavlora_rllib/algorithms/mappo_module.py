@@ -1,0 +1,165 @@
+"""MAPPO / IPPO RLModule over the team view: GRU actors on local rows, critic for training only.
+
+Spaces (team view, `uavlora_rllib.team_env`): observation Box [U, obs_dim]; action
+MultiDiscrete [U] (per_uav) or [U, 2 quota + 1] (per_device).
+
+* `actor` (`GRUActor`): decentralised; reads row u of the observation only (plus the agent
+  id one-hot when shared). Its GRU state [U, gru_hidden] per scenario is RLlib's
+  `STATE_IN/STATE_OUT` {"h": ...}; RLlib resets it to zeros at every episode start.
+* `critic`: centralised V(s, u) on the GLOBAL state (train-batch column "state", filled by
+  `mappo_learner.AddGlobalStateToBatch` from info["state"]) with the agent id one-hot
+  (input state_dim + U) for `critic="central"` (MAPPO); V(o_u, u) on the agent's own
+  observation row (input obs_dim + U) for `critic="local"` (IPPO). Output [B, T, U]. It
+  also holds the running value-normalisation statistics.
+
+The module implements `InferenceOnlyAPI`: env runners build it with `inference_only=True`
+and the critic (parameters and value-norm buffers) is deleted there, so env runners carry
+and receive only the actor.
+
+Env runner outputs (exploration): ACTIONS [B, 1, U(, L)] sampled here, ACTION_LOGP
+[B, 1, U] (the per-agent log-probabilities; the loss clips each agent's ratio separately),
+STATE_OUT. Inference: ACTIONS = argmax per agent (component).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Dict, List
+
+import numpy as np
+import torch
+from ray.rllib.core.columns import Columns
+from ray.rllib.core.rl_module.apis import InferenceOnlyAPI, ValueFunctionAPI
+from ray.rllib.core.rl_module.torch import TorchRLModule
+from torch import nn
+
+from uavlora_rllib.algorithms.gru_actor import ActionHead, GRUActor
+
+STATE_COL = "state"  # global state column in the train batch (env.STATE_KEY)
+VF_PREDS_COL = "mappo_vf_preds"  # old (normalised) value predictions, for value clipping
+
+
+class ValueNorm(nn.Module):
+    """Running mean / std of the value targets (MAPPO's ValueNorm, a PopArt without the
+    output-layer rescaling): debiased exponential moving averages of x and x^2."""
+
+    def __init__(self, beta: float = 0.99, eps: float = 1e-5):
+        super().__init__()
+        self.beta, self.eps = beta, eps
+        self.register_buffer("mean", torch.zeros(()))
+        self.register_buffer("mean_sq", torch.zeros(()))
+        self.register_buffer("debias", torch.zeros(()))
+
+    def stats(self) -> tuple[torch.Tensor, torch.Tensor]:
+        d = self.debias.clamp(min=self.eps)
+        mean, mean_sq = self.mean / d, self.mean_sq / d
+        var = (mean_sq - mean**2).clamp(min=1e-2)
+        return mean, var.sqrt()
+
+    @torch.no_grad()
+    def update(self, x: torch.Tensor) -> None:
+        x = x.detach().to(self.mean.dtype)
+        self.mean.mul_(self.beta).add_((1 - self.beta) * x.mean())
+        self.mean_sq.mul_(self.beta).add_((1 - self.beta) * (x**2).mean())
+        self.debias.mul_(self.beta).add_(1 - self.beta)
+
+    def normalize(self, x: torch.Tensor) -> torch.Tensor:
+        mean, std = self.stats()
+        return (x - mean) / std
+
+    def denormalize(self, x: torch.Tensor) -> torch.Tensor:
+        mean, std = self.stats()
+        return x * std + mean
+
+
+class Critic(nn.Module):
+    def __init__(self, in_dim: int, hidden: int, n_agents: int, value_norm: bool):
+        super().__init__()
+        self.in_dim = in_dim + n_agents  # per-agent input + agent-id one-hot
+        self.net = nn.Sequential(
+            nn.Linear(self.in_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, 1)
+        )
+        self.register_buffer("agent_ids", torch.eye(n_agents), persistent=False)
+        self.value_norm = ValueNorm() if value_norm else None
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """x [..., U, d] (per-agent input without id) -> values [..., U] (normalised space)."""
+        ids = self.agent_ids.to(x.dtype).expand(*x.shape[:-1], self.agent_ids.shape[-1])
+        return self.net(torch.cat([x, ids], dim=-1)).squeeze(-1)
+
+
+class MAPPOTorchRLModule(TorchRLModule, ValueFunctionAPI, InferenceOnlyAPI):
+    """See module docstring. model_config keys: gru_hidden, fc_hidden, critic_hidden,
+    share_actor, critic ("central" | "local"), state_dim, value_norm, max_seq_len, torch_threads."""
+
+    def setup(self):
+        mc = self.model_config
+        if mc.get("torch_threads"):
+            torch.set_num_threads(int(mc["torch_threads"]))
+        n_agents, obs_dim = self.observation_space.shape
+        nvec = np.asarray(self.action_space.nvec)
+        self.n_agents, self.obs_dim = int(n_agents), int(obs_dim)
+        row = nvec.reshape(self.n_agents, -1)[0]
+        self.per_device = nvec.ndim == 2
+        self.head = ActionHead(row.tolist())
+        self.actor = GRUActor(
+            self.obs_dim,
+            self.n_agents,
+            self.head.n_logits,
+            gru_hidden=int(mc.get("gru_hidden", 128)),
+            fc_hidden=int(mc.get("fc_hidden", 128)),
+            share_actor=bool(mc.get("share_actor", True)),
+        )
+        self.critic_kind = mc.get("critic", "central")
+        if not self.inference_only:  # TorchRLModule would delete it anyway (InferenceOnlyAPI)
+            in_dim = int(mc["state_dim"]) if self.critic_kind == "central" else self.obs_dim
+            self.critic = Critic(in_dim, int(mc.get("critic_hidden", 128)), self.n_agents, bool(mc.get("value_norm", True)))
+
+    # ---------------------------------------------------------------- RLModule API
+    def get_initial_state(self) -> Dict[str, Any]:
+        return {"h": np.zeros((self.n_agents, self.actor.gru_hidden), dtype=np.float32)}
+
+    def get_non_inference_attributes(self) -> List[str]:
+        return ["critic"]
+
+    def _actor(self, batch: Dict[str, Any]) -> tuple[torch.Tensor, Dict[str, torch.Tensor]]:
+        obs = batch[Columns.OBS]
+        if obs.dim() == 3:  # no time rank (direct calls): [B, U, d]
+            obs = obs.unsqueeze(1)
+        logits, h = self.actor(obs.float(), batch[Columns.STATE_IN]["h"].float())
+        return logits, {"h": h}
+
+    def _forward_inference(self, batch: Dict[str, Any], **kwargs) -> Dict[str, Any]:
+        logits, state = self._actor(batch)
+        return {Columns.ACTIONS: self.head.greedy(logits), Columns.STATE_OUT: state}
+
+    def _forward_exploration(self, batch: Dict[str, Any], **kwargs) -> Dict[str, Any]:
+        logits, state = self._actor(batch)
+        actions, logp = self.head.sample(logits)
+        return {Columns.ACTIONS: actions, Columns.ACTION_LOGP: logp, Columns.STATE_OUT: state}
+
+    def _forward(self, batch: Dict[str, Any], **kwargs) -> Dict[str, Any]:
+        return self._forward_inference(batch, **kwargs)
+
+    def _forward_train(self, batch: Dict[str, Any], **kwargs) -> Dict[str, Any]:
+        logits, state = self._actor(batch)
+        return {Columns.ACTION_DIST_INPUTS: logits, Columns.STATE_OUT: state}
+
+    # ---------------------------------------------------------------- critic
+    def critic_input(self, batch: Dict[str, Any]) -> torch.Tensor:
+        """[..., U, d]: the global state repeated per agent (central) or each agent's row (local)."""
+        if self.critic_kind == "central":
+            s = batch[STATE_COL].float()
+            return s.unsqueeze(-2).expand(*s.shape[:-1], self.n_agents, s.shape[-1])
+        return batch[Columns.OBS].float()
+
+    def compute_values(self, batch: Dict[str, Any], embeddings: Any = None) -> torch.Tensor:
+        """Per-agent values [B, T, U] in the critic's (normalised, if value_norm) space."""
+        return self.critic(self.critic_input(batch))
+
+    def denormalize(self, values: torch.Tensor) -> torch.Tensor:
+        vn = self.critic.value_norm
+        return values if vn is None else vn.denormalize(values)
+
+    def normalize(self, values: torch.Tensor) -> torch.Tensor:
+        vn = self.critic.value_norm
+        return values if vn is None else vn.normalize(values)

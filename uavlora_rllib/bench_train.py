@@ -1,0 +1,144 @@
+"""Training-throughput benchmark for any registered algorithm.
+
+    python -m uavlora_rllib.bench_train ALGO [--iterations K] [--n-eds V --n-uavs U]
+        [--episode-len T] [--envs-per-runner N] [--env-runners R] [--torch-threads K]
+        [--set key=value ...]
+
+Builds ALGO from the registry (hyperparameter overrides with --set, validated like the grid
+YAML), trains K iterations after one warm-up iteration, and prints env steps per second end
+to end (env steps sampled / wall-clock of the timed iterations) and how each iteration's
+time splits between sampling and learning (RLlib's `timers`: env_runner_sampling_timer,
+learner_update_timer, synch_weights). Also the wall-clock this rate implies for the paper's
+T_max = 2M env steps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import yaml
+
+T_MAX = 2_000_000
+TIMER_KEYS = {"env_runner_sampling_timer": "sample_s", "learner_update_timer": "learn_s", "synch_weights": "sync_s"}
+EMA_COEFF = 0.01  # RLlib's default for `metrics.log_time` (Stats with ema_coeff=0.01)
+
+
+def _timers(result: dict) -> dict:
+    return dict(result.get("timers", {}))
+
+
+def _this_iteration(ema_now: float | None, ema_before: float | None) -> float:
+    """RLlib reports timers as an EMA (coefficient 0.01) over all iterations; recover this
+    iteration's own value: x = (ema_now - (1 - c) ema_before) / c."""
+    if ema_now is None:
+        return float("nan")
+    if ema_before is None:
+        return float(ema_now)
+    return max(0.0, (ema_now - (1.0 - EMA_COEFF) * ema_before) / EMA_COEFF)
+
+
+def _parse_set(items: list[str]) -> dict:
+    out = {}
+    for item in items:
+        if "=" not in item:
+            raise SystemExit(f"--set: expected key=value, got {item!r}")
+        key, value = item.split("=", 1)
+        out[key] = yaml.safe_load(value)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m uavlora_rllib.bench_train", description=__doc__.split("\n")[0])
+    p.add_argument("algo")
+    p.add_argument("--iterations", type=int, default=5)
+    p.add_argument("--n-eds", type=int, default=10)
+    p.add_argument("--n-uavs", type=int, default=2)
+    p.add_argument("--episode-len", type=int, default=150)
+    p.add_argument("--action-mode", default="per_uav")
+    p.add_argument("--envs-per-runner", type=int, default=8)
+    p.add_argument("--env-runners", type=int, default=0)
+    p.add_argument("--torch-threads", type=int, default=1)
+    p.add_argument("--num-cpus", type=int, default=None, help="ray.init(num_cpus=...)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="hyperparameter overrides")
+    p.add_argument("--json", action="store_true", help="print one JSON line as well")
+    args = p.parse_args(argv)
+
+    import torch
+
+    torch.set_num_threads(args.torch_threads)
+    import ray
+
+    from uavlora_rllib.algorithms import registry
+    from uavlora_rllib.config_errors import ConfigError
+    from uavlora_rllib.scenario import ScenarioConfig
+
+    try:
+        entry = registry.get(args.algo)
+        scenario = ScenarioConfig.from_dict(
+            {"n_eds": args.n_eds, "n_uavs": args.n_uavs, "episode_len": args.episode_len, "action_mode": args.action_mode}
+        )
+        entry.check_scenario(scenario)
+        hparams = entry.hparams(_parse_set(args.set))
+        resources = registry.Resources(
+            num_env_runners=args.env_runners,
+            num_envs_per_env_runner=args.envs_per_runner,
+            torch_threads=args.torch_threads,
+        )
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+    ray.init(num_cpus=args.num_cpus, include_dashboard=False, log_to_driver=False)
+    try:
+        t0 = time.perf_counter()
+        algo = entry.build(scenario, hparams, resources, args.seed).build_algo()
+        t_build = time.perf_counter() - t0
+        prev = _timers(algo.train())  # warm-up: first sampling, connector setup, optimizer state
+        rows = []
+        start = time.perf_counter()
+        for _ in range(args.iterations):
+            t = time.perf_counter()
+            res = algo.train()
+            wall = time.perf_counter() - t
+            cur = _timers(res)
+            row = {"wall_s": wall, "env_steps": res["env_runners"].get("num_env_steps_sampled", 0)}
+            for key, name in TIMER_KEYS.items():
+                row[name] = _this_iteration(cur.get(key), prev.get(key))
+            prev = cur
+            rows.append(row)
+        total = time.perf_counter() - start
+        algo.stop()
+    finally:
+        ray.shutdown()
+
+    env_steps = sum(r["env_steps"] for r in rows)
+    rate = env_steps / total
+    # Sum of the timed iterations' own timer values.
+    last = {k: sum(r[k] for r in rows) for k in ("wall_s", "env_steps", "sample_s", "learn_s", "sync_s")}
+    share = {k: last[k] / max(last["wall_s"], 1e-9) for k in ("sample_s", "learn_s", "sync_s")}
+    print(
+        f"{args.algo}: V={args.n_eds} U={args.n_uavs} T={args.episode_len} {args.action_mode} "
+        f"runners={args.env_runners} envs/runner={args.envs_per_runner} hparams={_parse_set(args.set)}"
+    )
+    print(f"  build {t_build:.1f} s; {args.iterations} timed iterations, {env_steps} env steps in {total:.2f} s")
+    print(f"  end to end: {rate:,.0f} env steps/s  -> 2M env steps in {T_MAX / rate / 3600:.2f} h")
+    print(
+        f"  per iteration: {total / args.iterations:.2f} s = sampling {last['sample_s'] / args.iterations:.2f} s "
+        f"({share['sample_s']:.0%}), learning {last['learn_s'] / args.iterations:.2f} s ({share['learn_s']:.0%}), "
+        f"weight sync {last['sync_s'] / args.iterations:.3f} s"
+    )
+    print(
+        f"  sampling alone: {last['env_steps'] / max(last['sample_s'], 1e-9):,.0f} env steps/s; "
+        f"learning alone: {last['env_steps'] / max(last['learn_s'], 1e-9):,.0f} env steps/s"
+    )
+    if args.json:
+        print(json.dumps({"algo": args.algo, "env_steps_per_s": rate, "rows": rows, "build_s": t_build}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
