@@ -99,13 +99,21 @@ class BatchCore:
         self.prev_alloc = np.full((n_envs, v, 3), -1, dtype=np.int64)
         self._rngs: list[np.random.Generator] = [np.random.default_rng() for _ in range(n_envs)]
         self._gauss = np.zeros((n_envs, NOISE_CHUNK, v, 2))
-        self._resample = np.zeros((n_envs, NOISE_CHUNK, v))
-        self._new_mean = np.zeros((n_envs, NOISE_CHUNK, v, 2))
+        # One row of uniform [0, 1) draws per scenario: first the v-bar re-draw tests, then the
+        # raw new v-bar values (mapped to [-v_max, v_max) when used); both are views into it.
+        self._uniform = np.zeros((n_envs, 3 * NOISE_CHUNK * v))
+        self._resample = self._uniform[:, : NOISE_CHUNK * v].reshape(n_envs, NOISE_CHUNK, v)
+        self._new_mean_raw = self._uniform[:, NOISE_CHUNK * v :].reshape(n_envs, NOISE_CHUNK, v, 2)
         self._cursor = np.zeros(n_envs, dtype=np.int64)
         self._seed_source = np.random.SeedSequence()
         self._ready = False
         self.serving = np.full((n_envs, v), UNASSOCIATED, dtype=np.int64)
         self._env_idx = np.arange(n_envs)
+        # Flat index of (scenario e, UAV 0, ED v) in a C-contiguous [N, U, V] array; adding
+        # u * V picks UAV u. Used to gather "the value at the serving UAV" with one np.take.
+        self._flat_base = (self._env_idx[:, None] * (u * v) + np.arange(v)[None, :]).astype(np.int64)
+        self._positions = np.broadcast_to(np.arange(v), (n_envs, v))
+        self._obs_extra_xy = 2.0 * self.uav_xy / cfg.area_m - 1.0  # [U, 2], constant
 
     # ------------------------------------------------------------------ reset
     def reset(self, seed: int | Sequence[int | None] | None = None, mask: np.ndarray | None = None) -> np.ndarray:
@@ -141,17 +149,22 @@ class BatchCore:
         return [s if s is not None else self._seed_source.spawn(1)[0] for s in seeds]
 
     def _refill(self, i: int) -> None:
-        rng, v, vmax = self._rngs[i], self.cfg.n_eds, self.cfg.mobility.v_max_mps
-        self._gauss[i] = rng.standard_normal((NOISE_CHUNK, v, 2))
-        self._resample[i] = rng.random((NOISE_CHUNK, v))
-        self._new_mean[i] = rng.uniform(-vmax, vmax, (NOISE_CHUNK, v, 2))
+        # The stream is: standard_normal(NOISE_CHUNK, v, 2), random(NOISE_CHUNK, v), then
+        # uniform(-v_max, v_max, (NOISE_CHUNK, v, 2)). Generator.uniform(low, high) is
+        # low + (high - low) * next_double, the same doubles random() yields, so the last two
+        # are drawn as one random() call and the affine map is applied in _move (bit-identical).
+        rng = self._rngs[i]
+        rng.standard_normal(out=self._gauss[i])
+        rng.random(out=self._uniform[i])
         self._cursor[i] = 0
 
     # ------------------------------------------------------------------ dynamics
     def _clip_speed(self, vel: np.ndarray) -> np.ndarray:
         vmax = self.cfg.mobility.v_max_mps
         speed = np.sqrt(np.einsum("...k,...k->...", vel, vel))
-        factor = np.minimum(1.0, vmax / np.maximum(speed, 1e-12))
+        np.maximum(speed, 1e-12, out=speed)
+        factor = np.divide(vmax, speed, out=speed)
+        np.minimum(factor, 1.0, out=factor)
         return vel * factor[..., None]
 
     def _move(self) -> None:
@@ -160,63 +173,87 @@ class BatchCore:
         for i in np.flatnonzero(self._cursor >= NOISE_CHUNK):
             self._refill(i)
         c = self._cursor
-        gauss = self._gauss[self._env_idx, c]
-        redraw = self._resample[self._env_idx, c] < mob.mean_resample_prob
-        self.ed_mean_vel = np.where(redraw[..., None], self._new_mean[self._env_idx, c], self.ed_mean_vel)
+        if (c == c[0]).all():  # the usual case (no partial reset): views, no gather copies
+            k = int(c[0])
+            gauss, resample, new_raw = self._gauss[:, k], self._resample[:, k], self._new_mean_raw[:, k]
+        else:
+            gauss = self._gauss[self._env_idx, c]
+            resample, new_raw = self._resample[self._env_idx, c], self._new_mean_raw[self._env_idx, c]
+        redraw = resample < mob.mean_resample_prob
+        if redraw.any():
+            low = -mob.v_max_mps
+            new_mean = low + (mob.v_max_mps - low) * new_raw  # Generator.uniform's own formula
+            self.ed_mean_vel = np.where(redraw[..., None], new_mean, self.ed_mean_vel)
         self._cursor += 1
         eth = mob.memory
-        vel = eth * self.ed_vel + (1.0 - eth) * self.ed_mean_vel + mob.sigma * np.sqrt(1.0 - eth * eth) * gauss
+        # vel = eth v + (1 - eth) v-bar + sigma sqrt(1 - eth^2) w, in this order, in place.
+        vel = eth * self.ed_vel
+        vel += (1.0 - eth) * self.ed_mean_vel
+        vel += mob.sigma * np.sqrt(1.0 - eth * eth) * gauss
         vel = self._clip_speed(vel)
-        pos = self.ed_xy + vel * mob.dt_s
+        pos = vel * mob.dt_s
+        pos += self.ed_xy
         low, high = pos < 0.0, pos > area
-        pos = np.where(low, -pos, np.where(high, 2.0 * area - pos, pos))
-        vel = np.where(low | high, -vel, vel)
-        self.ed_xy = np.clip(pos, 0.0, area)  # guards a step longer than the area itself
+        np.negative(pos, out=pos, where=low)
+        np.subtract(2.0 * area, pos, out=pos, where=high)
+        np.negative(vel, out=vel, where=low | high)
+        self.ed_xy = np.clip(pos, 0.0, area, out=pos)  # guards a step longer than the area itself
         self.ed_vel = vel
 
     def _observe(self) -> None:
         """Channels, association and the observations of the current slot."""
         cfg = self.cfg
         self.d_h = physics.horizontal_distance(self.ed_xy, self.uav_xy)  # [N, U, V]
-        self.gain_db = -physics.path_loss_db(self.d_h, cfg)
-        self.gains = np.power(10.0, self.gain_db / 10.0)
+        path_loss = physics.path_loss_db(self.d_h, cfg)
+        self.gain_db = np.negative(path_loss, out=path_loss)
+        gains = self.gain_db / 10.0
+        self.gains = np.power(10.0, gains, out=gains)
         self.serving = associate(self.gains, self.d_h, cfg.comm_range_m, self.quota, cfg.association)
         self.associated = self.serving != UNASSOCIATED
         self._serving_idx = np.where(self.associated, self.serving, 0)
-        # Slot of each served ED in its UAV's observation: rank by gain among that UAV's EDs.
-        g_serving = np.take_along_axis(self.gain_db, self._serving_idx[:, None, :], axis=1)[:, 0, :]
+        self._serving_flat = self._flat_base + self._serving_idx * cfg.n_eds  # into [N, U, V]
+        g_serving = self.gain_db.reshape(-1).take(self._serving_flat)
+        # Slot of each served ED in its UAV's observation: rank by gain among that UAV's EDs
+        # (ties by ED id). Sort by gain (stable), then stably by serving UAV: each UAV's EDs
+        # form a run in gain order and an ED's slot is its offset within the run.
         key = np.where(self.associated, g_serving, -np.inf)
         order = np.argsort(-key, axis=-1, kind="stable")  # [N, V] best first
-        serving_sorted = np.take_along_axis(self.serving, order, axis=-1)
-        onehot = serving_sorted[:, None, :] == np.arange(cfg.n_uavs)[None, :, None]  # [N, U, V']
-        slot_sorted = (np.cumsum(onehot, axis=-1) * onehot).sum(axis=1) - 1  # -1 when unserved
-        self.slot_of_ed = np.empty_like(slot_sorted)
-        np.put_along_axis(self.slot_of_ed, order, slot_sorted, axis=-1)
+        serving_sorted = physics.take_last(self.serving, order)
+        # U <= 64 (ScenarioConfig), so the ids fit in int8, for which the stable sort is a radix sort.
+        by_uav = np.argsort(serving_sorted.astype(np.int8), axis=-1, kind="stable")
+        grouped = physics.take_last(serving_sorted, by_uav)  # non-decreasing
+        pos = self._positions
+        run_start = np.where(grouped != np.concatenate([grouped[:, :1] - 1, grouped[:, :-1]], axis=-1), pos, 0)
+        slot = pos - np.maximum.accumulate(run_start, axis=-1)
+        slot[grouped == UNASSOCIATED] = -1
+        self.slot_of_ed = np.empty_like(slot)
+        self.slot_of_ed[self._env_idx[:, None], physics.take_last(order, by_uav)] = slot
         self.obs = self._build_obs(g_serving)
 
     def _gain_feature(self, gain_db: np.ndarray) -> np.ndarray:
         return (gain_db - self._gain_db_mid) / self._gain_db_half
 
     def _build_obs(self, g_serving_db: np.ndarray) -> np.ndarray:
-        cfg, n = self.cfg, self.n
-        rows = np.zeros((n, cfg.n_uavs, self.quota, OBS_ROW))
-        d_serving = np.take_along_axis(self.d_h, self._serving_idx[:, None, :], axis=1)[:, 0, :]
-        feats = np.stack(
-            [
-                2.0 * self.ed_xy[..., 0] / cfg.area_m - 1.0,
-                2.0 * self.ed_xy[..., 1] / cfg.area_m - 1.0,
-                d_serving / cfg.comm_range_m,
-                self._gain_feature(g_serving_db),
-            ],
-            axis=-1,
-        )  # [N, V, 4]
+        cfg, n, q, n_u = self.cfg, self.n, self.quota, self.cfg.n_uavs
+        width = q * OBS_ROW + OBS_EXTRA
+        obs = np.zeros((n, n_u, width))
+        flat = obs.reshape(-1)  # a view
         e, v = np.nonzero(self.associated)
-        rows[e, self.serving[e, v], self.slot_of_ed[e, v]] = feats[e, v]
-        counts = (self.serving[:, None, :] == np.arange(cfg.n_uavs)[None, :, None]).sum(axis=-1)
-        extra = np.empty((n, cfg.n_uavs, OBS_EXTRA))
-        extra[..., 0] = counts / self.quota
-        extra[..., 1:] = 2.0 * self.uav_xy[None] / cfg.area_m - 1.0
-        return np.concatenate([rows.reshape(n, cfg.n_uavs, -1), extra], axis=-1)
+        u = self.serving[e, v]
+        # Row (e, u, slot) starts at flat offset (e U + u) width + OBS_ROW slot; one column at a time.
+        start = (e * n_u + u) * width + OBS_ROW * self.slot_of_ed[e, v]
+        xy = self.ed_xy[e, v]
+        xy *= 2.0
+        xy /= cfg.area_m
+        xy -= 1.0
+        flat[start] = xy[:, 0]
+        flat[start + 1] = xy[:, 1]
+        flat[start + 2] = self.d_h.reshape(-1).take(self._serving_flat[e, v]) / cfg.comm_range_m
+        flat[start + 3] = self._gain_feature(g_serving_db[e, v])
+        counts = np.bincount(e * n_u + u, minlength=n * n_u).reshape(n, n_u)
+        obs[..., q * OBS_ROW] = counts / self.quota
+        obs[..., q * OBS_ROW + 1 :] = self._obs_extra_xy
+        return obs
 
     # ------------------------------------------------------------------ actions
     def allocations(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -225,9 +262,7 @@ class BatchCore:
         actions = np.asarray(actions)
         if cfg.action_mode == "per_uav":
             self._check_range(actions, (self.n, cfg.n_uavs), cfg.n_joint_actions)
-            sf_u, tp_u, bw_u = decode_joint_action(actions, cfg)  # [N, U]
-            pick = lambda x: np.take_along_axis(x, self._serving_idx, axis=-1)  # noqa: E731
-            return pick(sf_u), pick(tp_u), pick(bw_u)
+            return decode_joint_action(physics.take_last(actions, self._serving_idx), cfg)
         length = per_device_action_len(cfg)
         highs = np.array([cfg.n_sf, cfg.n_tp] * self.quota + [cfg.n_bw])
         self._check_range(actions, (self.n, cfg.n_uavs, length), highs)
@@ -240,8 +275,10 @@ class BatchCore:
     def _check_range(self, actions: np.ndarray, shape: tuple[int, ...], high) -> None:
         if actions.shape != shape:
             raise ActionError(f"actions: expected shape {shape}, got {actions.shape}")
-        if not np.issubdtype(actions.dtype, np.integer):
+        if actions.dtype.kind not in "iu":  # signed or unsigned integers
             raise ActionError(f"actions: expected integers, got dtype {actions.dtype}")
+        if np.isscalar(high) and actions.size and 0 <= actions.min() and actions.max() < high:
+            return
         bad = (actions < 0) | (actions >= high)
         if bad.any():
             idx = tuple(int(i) for i in np.argwhere(bad)[0])
@@ -256,7 +293,10 @@ class BatchCore:
             raise RuntimeError("call reset() before step()")
         sf, tp, bw = self.allocations(actions)
         metrics = physics.slot_metrics(self.gains, self._serving_idx, self.associated, sf, tp, bw, self.cfg, self.tables)
-        self.prev_alloc = np.where(self.associated[..., None], np.stack([sf, tp, bw], axis=-1), -1)
+        prev = np.empty(sf.shape + (3,), dtype=np.int64)
+        prev[..., 0], prev[..., 1], prev[..., 2] = sf, tp, bw
+        prev[~self.associated] = -1
+        self.prev_alloc = prev
         self.t += 1
         self._move()
         self._observe()

@@ -19,6 +19,24 @@ from uavlora_rllib.scenario import SNR_THRESHOLD_TABLE_DB, RewardWeights, Scenar
 
 # Floor used wherever a ratio is shown in dB, so that "no signal" is a finite, very low value.
 DB_FLOOR = -200.0
+_DEG_PER_RAD = 180.0 / np.pi
+
+
+# ---------------------------------------------------------------- gathers
+def take_last(arr: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """np.take_along_axis(arr, idx, axis=-1); for 2-D operands with the same number of rows,
+    the same gather as one fancy index (without take_along_axis's Python-level set-up)."""
+    if arr.ndim == 2 and idx.ndim == 2 and arr.shape[0] == idx.shape[0]:
+        return arr[np.arange(arr.shape[0])[:, None], idx]
+    return np.take_along_axis(arr, idx, axis=-1)
+
+
+def at_serving(per_uav: np.ndarray, serving_uav: np.ndarray) -> np.ndarray:
+    """per_uav [..., U, V] at each ED's serving UAV serving_uav [..., V] -> [..., V]."""
+    if per_uav.ndim == 3 and serving_uav.ndim == 2 and per_uav.shape[0] == serving_uav.shape[0]:
+        n, _, v = per_uav.shape
+        return per_uav[np.arange(n)[:, None], serving_uav, np.arange(v)[None, :]]
+    return np.take_along_axis(per_uav, serving_uav[..., None, :], axis=-2)[..., 0, :]
 
 
 # ---------------------------------------------------------------- unit conversions
@@ -36,13 +54,21 @@ def lin_to_db(x: np.ndarray | float) -> np.ndarray:
 # ---------------------------------------------------------------- channel, Eqs. (plos), (a2g_pl)
 def elevation_deg(d_h: np.ndarray | float, cfg: ScenarioConfig) -> np.ndarray:
     """theta = atan(h / d_h) in degrees (90 deg right under the UAV)."""
-    return np.degrees(np.arctan2(cfg.altitude_m, np.asarray(d_h, dtype=np.float64)))
+    theta = np.arctan2(cfg.altitude_m, np.asarray(d_h, dtype=np.float64))
+    # x * (180 / pi) is exactly what np.degrees computes, without its per-element call.
+    return np.multiply(theta, _DEG_PER_RAD, out=theta if isinstance(theta, np.ndarray) else None)
 
 
 def los_probability(theta_deg: np.ndarray | float, cfg: ScenarioConfig) -> np.ndarray:
     """Eq. (plos): P_LoS = 1 / (1 + a exp(-b (theta - a))), theta in degrees (Al-Hourani)."""
-    theta = np.asarray(theta_deg, dtype=np.float64)
-    return 1.0 / (1.0 + cfg.los_a * np.exp(-cfg.los_b * (theta - cfg.los_a)))
+    x = np.subtract(np.asarray(theta_deg, dtype=np.float64), cfg.los_a)
+    if not isinstance(x, np.ndarray):  # 0-d input: plain scalar arithmetic, same operations
+        return 1.0 / (1.0 + cfg.los_a * np.exp(-cfg.los_b * x))
+    x *= -cfg.los_b  # in place, same operations and order as the formula
+    np.exp(x, out=x)
+    x *= cfg.los_a
+    x += 1.0
+    return np.divide(1.0, x, out=x)
 
 
 def path_loss_db(d_h: np.ndarray | float, cfg: ScenarioConfig) -> np.ndarray:
@@ -52,10 +78,23 @@ def path_loss_db(d_h: np.ndarray | float, cfg: ScenarioConfig) -> np.ndarray:
     d_h there, which diverges under the UAV).
     """
     d_h = np.asarray(d_h, dtype=np.float64)
-    d3_sq = d_h * d_h + cfg.altitude_m**2
-    fspl = 10.0 * np.log10(d3_sq) + 20.0 * np.log10(4.0 * np.pi * cfg.carrier_hz / cfg.speed_of_light_mps)
+    const = 20.0 * np.log10(4.0 * np.pi * cfg.carrier_hz / cfg.speed_of_light_mps)
+    if d_h.ndim == 0:
+        return path_loss_db(d_h.reshape(1), cfg)[0]
+    # fspl = 10 log10(d_h^2 + h^2) + const, then + eta_LoS P + eta_NLoS (1 - P), evaluated in
+    # place in exactly the formula's order (the results are bit-identical to the plain form).
+    fspl = np.multiply(d_h, d_h)
+    fspl += cfg.altitude_m**2
+    np.log10(fspl, out=fspl)
+    fspl *= 10.0
+    fspl += const
     p_los = los_probability(elevation_deg(d_h, cfg), cfg)
-    return fspl + cfg.eta_los_db * p_los + cfg.eta_nlos_db * (1.0 - p_los)
+    nlos = np.subtract(1.0, p_los)
+    nlos *= cfg.eta_nlos_db
+    p_los *= cfg.eta_los_db
+    fspl += p_los
+    fspl += nlos
+    return fspl
 
 
 def channel_gain(d_h: np.ndarray | float, cfg: ScenarioConfig) -> np.ndarray:
@@ -65,8 +104,13 @@ def channel_gain(d_h: np.ndarray | float, cfg: ScenarioConfig) -> np.ndarray:
 
 def horizontal_distance(ed_xy: np.ndarray, uav_xy: np.ndarray) -> np.ndarray:
     """d_h between every UAV and every ED: ed_xy [..., V, 2], uav_xy [U, 2] -> [..., U, V]."""
-    diff = ed_xy[..., None, :, :] - uav_xy[:, None, :]
-    return np.sqrt(np.einsum("...k,...k->...", diff, diff))
+    ed_xy = np.asarray(ed_xy, dtype=np.float64)
+    dx = np.subtract(ed_xy[..., None, :, 0], uav_xy[:, None, 0])  # [..., U, V], contiguous
+    dy = np.subtract(ed_xy[..., None, :, 1], uav_xy[:, None, 1])
+    dx *= dx
+    dy *= dy
+    dx += dy
+    return np.sqrt(dx, out=dx)
 
 
 def uav_positions(cfg: ScenarioConfig) -> np.ndarray:
@@ -122,7 +166,7 @@ def sinr_paper(snr_serving: np.ndarray, sf_idx: np.ndarray, associated: np.ndarr
     onehot = _same_sf_onehot(sf_idx, associated, n_sf)
     s_tx = np.where(associated, snr_serving, 0.0)
     total = np.einsum("...vn,...v->...n", onehot, s_tx)
-    same = np.take_along_axis(total, sf_idx, axis=-1)
+    same = take_last(total, sf_idx)
     interference = np.maximum(same - s_tx, 0.0)
     return np.where(associated, s_tx / (interference + 1.0), 0.0)
 
@@ -256,7 +300,7 @@ def slot_metrics(
     gains [..., U, V]; the other inputs [..., V] (serving_uav is any valid index where the ED
     is unassociated). Returns the keys of SLOT_METRICS, each shaped [...].
     """
-    g_serving = np.take_along_axis(gains, serving_uav[..., None, :], axis=-2)[..., 0, :]
+    g_serving = at_serving(gains, serving_uav)
     p_w = tables.tp_w[tp_idx]
     bw_hz = tables.bw_hz[bw_idx]
     thr_db = tables.threshold_db[sf_idx, bw_idx]

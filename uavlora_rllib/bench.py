@@ -1,0 +1,218 @@
+"""Simulator benchmark: env steps per second on one core's worth of threads.
+
+    python -m uavlora_rllib.bench env [--quick] [--repeats R] [--write FILE]
+
+Measures, for the paper scenario (V=10, U=2) and a large one (V=100, U=8):
+* the single env through the PettingZoo ParallelEnv API (dict actions, random per_uav
+  actions drawn in advance so that sampling is not timed; resets included);
+* the batch core (`BatchCore.step`) at N = 1, 64, 1024 scenarios; env-steps/s = N * steps / time.
+BLAS/OpenMP pools are limited to one thread before NumPy is imported. Each figure is the
+best of R timed runs after a warm-up, both in wall-clock time and in this process's CPU
+time (the machine may be shared; CPU time is the steadier figure then). With --write, the
+results replace the "## Simulator" section of FILE (other sections are kept).
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
+    os.environ[_var] = "1"
+
+import argparse  # noqa: E402
+import platform  # noqa: E402
+import re  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from uavlora_rllib.core import BatchCore  # noqa: E402
+from uavlora_rllib.scenario import ScenarioConfig  # noqa: E402
+
+SCENARIOS = ((10, 2), (100, 8))
+BATCH_SIZES = (1, 64, 1024)
+# Targets on one core (issue 2): env-steps/s.
+TARGETS = {("core", 10, 2): 500_000, ("core", 100, 8): 100_000, ("api", 10, 2): 10_000}
+
+
+@dataclass
+class Row:
+    kind: str  # "api" (single env, PettingZoo) or "core" (BatchCore)
+    n_eds: int
+    n_uavs: int
+    n_envs: int
+    steps: int
+    seconds: float  # wall clock, best run
+    cpu_seconds: float  # this process's CPU time, best run (robust when the machine is busy)
+
+    @property
+    def rate(self) -> float:
+        return self.n_envs * self.steps / self.seconds
+
+    @property
+    def cpu_rate(self) -> float:
+        return self.n_envs * self.steps / self.cpu_seconds
+
+
+def _timed(body) -> tuple[float, float]:
+    w0, c0 = time.perf_counter(), time.process_time()
+    body()
+    return time.perf_counter() - w0, time.process_time() - c0
+
+
+def _best(run, repeats: int) -> tuple[float, float]:
+    """(best wall seconds, best CPU seconds) over `repeats` runs after a warm-up run."""
+    run()  # warm-up (allocations, caches, first reset)
+    times = [run() for _ in range(repeats)]
+    return min(t[0] for t in times), min(t[1] for t in times)
+
+
+def bench_core(cfg: ScenarioConfig, n_envs: int, env_steps: int, repeats: int) -> Row:
+    steps = max(10, min(env_steps // n_envs, 3000))
+    core = BatchCore(cfg, n_envs)
+    actions = np.random.default_rng(0).integers(0, cfg.n_joint_actions, (steps, n_envs, cfg.n_uavs))
+
+    def body() -> None:
+        for k in range(steps):
+            core.step(actions[k])
+
+    def run() -> tuple[float, float]:
+        core.reset(0)
+        return _timed(body)
+
+    return Row("core", cfg.n_eds, cfg.n_uavs, n_envs, steps, *_best(run, repeats))
+
+
+def bench_api(cfg: ScenarioConfig, steps: int, repeats: int) -> Row:
+    from uavlora_rllib.env import UavLoraParallelEnv
+
+    env = UavLoraParallelEnv(cfg)
+    agents = env.possible_agents
+    draws = np.random.default_rng(0).integers(0, cfg.n_joint_actions, (steps, len(agents)))
+    actions = [dict(zip(agents, (int(x) for x in row))) for row in draws]
+
+    def body() -> None:
+        for k in range(steps):
+            env.step(actions[k])
+            if not env.agents:
+                env.reset(seed=k)
+
+    def run() -> tuple[float, float]:
+        env.reset(seed=0)
+        return _timed(body)
+
+    return Row("api", cfg.n_eds, cfg.n_uavs, 1, steps, *_best(run, repeats))
+
+
+def machine() -> dict[str, str]:
+    model = "unknown"
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    model = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return {
+        "nproc": str(os.cpu_count()),
+        "cpu": model,
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "threads": "OMP/MKL/OPENBLAS_NUM_THREADS=1",
+    }
+
+
+def run_env_bench(quick: bool, repeats: int) -> list[Row]:
+    rows: list[Row] = []
+    for v, u in SCENARIOS:
+        cfg = ScenarioConfig(n_eds=v, n_uavs=u)
+        api_steps = 300 if quick else 2000
+        rows.append(bench_api(cfg, api_steps if v <= 10 else api_steps // 2, repeats))
+        print(_fmt(rows[-1]), flush=True)
+        for n in BATCH_SIZES:
+            env_steps = (20_000 if quick else 150_000) if v <= 10 else (2_000 if quick else 25_000)
+            rows.append(bench_core(cfg, n, env_steps, repeats))
+            print(_fmt(rows[-1]), flush=True)
+    return rows
+
+
+def _target_text(row: Row) -> str:
+    target = TARGETS.get((row.kind, row.n_eds, row.n_uavs))
+    if target is None or (row.kind == "core" and row.n_envs != max(BATCH_SIZES)):
+        return ""
+    verdict = "met" if row.rate >= target else f"missed (wall clock at {row.rate / target:.0%} of it)"
+    return f"target {target:,}: {verdict}"
+
+
+def _fmt(row: Row) -> str:
+    what = "single env, PettingZoo API" if row.kind == "api" else f"BatchCore N={row.n_envs}"
+    return (
+        f"V={row.n_eds:<4d} U={row.n_uavs:<2d} {what:<28s} {row.rate:>12,.0f} env-steps/s "
+        f"({row.cpu_rate:,.0f} per CPU-s; {1e6 * row.seconds / row.steps:,.1f} us per step call)  {_target_text(row)}"
+    )
+
+
+def markdown(rows: list[Row], command: str, repeats: int = 3) -> str:
+    m = machine()
+    lines = [
+        "## Simulator",
+        "",
+        f"Command: `{command}` (best of {repeats} timed runs after a warm-up; "
+        f"{m['threads']}; per_uav mode, random actions drawn in advance; the PettingZoo loop "
+        "includes its reset every 150 steps).",
+        "",
+        f"Machine: {m['nproc']} CPUs ({m['cpu']}), Python {m['python']}, NumPy {m['numpy']}. "
+        "The machine is shared with other jobs: env-steps/s is wall clock; env-steps per CPU-second "
+        "(this process's CPU time) is the steadier figure when the machine is busy.",
+        "",
+        "| scenario | what | env-steps/s | env-steps per CPU-s | us per step call | target (one core) |",
+        "|---|---|---:|---:|---:|---|",
+    ]
+    for r in rows:
+        what = "single env, PettingZoo API" if r.kind == "api" else f"BatchCore, N = {r.n_envs}"
+        lines.append(
+            f"| V={r.n_eds}, U={r.n_uavs} | {what} | {r.rate:,.0f} | {r.cpu_rate:,.0f} | {1e6 * r.seconds / r.steps:,.1f} | "
+            f"{_target_text(r) or '-'} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def write_section(path: str, section: str) -> None:
+    """Replace (or append) the '## Simulator' section of a markdown file."""
+    text = open(path).read() if os.path.exists(path) else "# Benchmarks\n\n"
+    pattern = re.compile(r"^## Simulator\n.*?(?=^## |\Z)", re.S | re.M)
+    if pattern.search(text):
+        text = pattern.sub(lambda _: section + "\n", text, count=1)
+    else:
+        text = text.rstrip("\n") + "\n\n" + section
+    with open(path, "w") as fh:
+        fh.write(text.rstrip("\n") + "\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m uavlora_rllib.bench", description="simulator benchmarks")
+    sub = p.add_subparsers(dest="what", required=True)
+    env = sub.add_parser("env", help="env steps per second (single env API and batch core)")
+    env.add_argument("--quick", action="store_true", help="fewer steps (a smoke run, noisier)")
+    env.add_argument("--repeats", type=int, default=None, help="timed runs per figure (default 3, 2 with --quick)")
+    env.add_argument("--write", metavar="FILE", default=None, help="write the results into FILE's Simulator section")
+    args = p.parse_args(argv)
+    m = machine()
+    print(f"machine: {m['nproc']} CPUs ({m['cpu']}), Python {m['python']}, NumPy {m['numpy']}, {m['threads']}")
+    repeats = args.repeats or (2 if args.quick else 3)
+    if repeats < 1:
+        p.error(f"--repeats: must be >= 1, got {repeats}")
+    rows = run_env_bench(args.quick, repeats)
+    if args.write:
+        command = "python -m uavlora_rllib.bench env" + (" --quick" if args.quick else "")
+        command += f" --repeats {args.repeats}" if args.repeats else ""
+        write_section(args.write, markdown(rows, command, repeats))
+        print(f"wrote the Simulator section of {args.write}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
