@@ -9,13 +9,15 @@ That is a serial dictatorship with one common priority order over the EDs, and w
 common priority order the ED-proposing deferred-acceptance algorithm yields exactly the
 serial-dictatorship matching. Deferred acceptance runs in rounds that are vectorised over
 the batch, the EDs and the UAVs: each round every unmatched ED proposes to its next
-preferred UAV, and each UAV keeps its Lambda_max highest-priority candidates. When no
-quota binds (the default layout) it ends after one round. At most V * U rounds, usually
+preferred UAV, and each UAV keeps its Lambda_max highest-priority candidates. Scenarios
+where no quota binds (the default layout) skip it: there every ED simply takes its best
+in-range UAV (one argmax). At most V * U rounds, usually
 <= U. Cost per round O(N U V), plus one O(N V log V) sort.
 
 optimal (extension): the assignment that maximises the total linear gain under the quota,
-solved per scenario with scipy's linear_sum_assignment on Lambda_max replicated slots per
-UAV plus one "unassociated" slot per ED.
+solved per scenario with scipy's linear_sum_assignment on min(Lambda_max, V) replicated
+slots per UAV (a rectangular problem: EDs left without a slot, or given an out-of-range
+one, which is worth 0, stay unassociated).
 """
 
 from __future__ import annotations
@@ -31,9 +33,24 @@ def in_range_mask(d_h: np.ndarray, comm_range_m: float) -> np.ndarray:
 
 
 def greedy_association(gains: np.ndarray, d_h: np.ndarray, comm_range_m: float, quota: int) -> np.ndarray:
-    n, n_uavs, n_eds = gains.shape
     ok = in_range_mask(d_h, comm_range_m)  # [N, U, V]
     g = np.where(ok, gains, -np.inf)
+    # Fast path: where every ED's first choice fits in its UAV's quota, the matching is just
+    # the per-ED argmax (first index on ties, as the stable sort below) and no order matters.
+    first = np.argmax(g, axis=1)  # [N, V]
+    reachable = ok.any(axis=1)
+    n_uavs = gains.shape[1]
+    counts = ((first[:, None, :] == np.arange(n_uavs)[None, :, None]) & reachable[:, None, :]).sum(axis=-1)
+    serving = np.where(reachable, first, UNASSOCIATED)
+    binding = (counts > quota).any(axis=-1)
+    if binding.any():
+        serving[binding] = _deferred_acceptance(g[binding], ok[binding], quota)
+    return serving
+
+
+def _deferred_acceptance(g: np.ndarray, ok: np.ndarray, quota: int) -> np.ndarray:
+    """ED-proposing deferred acceptance with the common priority order (see module docstring)."""
+    n, n_uavs, n_eds = g.shape
     # Priority: descending best in-range gain; ties by ED index (stable sort).
     order = np.argsort(-g.max(axis=1), axis=-1, kind="stable")  # [N, V] ED ids, best first
     g_sorted = np.take_along_axis(g, order[:, None, :], axis=-1)  # [N, U, V'] in priority order

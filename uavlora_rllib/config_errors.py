@@ -42,6 +42,8 @@ def _describe(err: Mapping[str, Any], prefix: str, root: type | None) -> str:
     if kind in ("missing", "missing_argument"):
         return f"{path}: required field is missing"
     msg = str(err.get("msg", "invalid value")).removeprefix("Value error, ")
+    if kind == "value_error":  # our validators already quote the value
+        return f"{path}: {msg}"
     return f"{path}: {msg} (got {err.get('input')!r})"
 
 
