@@ -1,0 +1,213 @@
+"""Grid YAML: validation messages name the YAML path, nothing starts on a bad grid, and the
+trial product / dry-run table are right. No Ray here (fast)."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import textwrap
+
+import pytest
+import yaml
+
+import tune_stock_ppo  # noqa: F401  (registers stock_ppo, stock_ppo_b)
+from uavlora_rllib import tune as tune_cli
+from uavlora_rllib.config_errors import ConfigError
+from uavlora_rllib.grid import baseline_runs, load_grid, parse_grid, trials
+
+TESTS_DIR = os.path.dirname(os.path.abspath(__file__))
+REPO = os.path.dirname(TESTS_DIR)
+
+
+def base_grid(tmp_path) -> dict:
+    return {
+        "experiment": "g",
+        "plugins": ["tune_stock_ppo"],
+        "algorithms": {"stock_ppo": {"lr": 1e-3}, "stock_ppo_b": None},
+        "baselines": ["random", "greedy"],
+        "seeds": [0, 42, 2021],
+        "n_eds": [5, 10],
+        "n_uavs": [1, 2],
+        "scenario": {"episode_len": 10},
+        "stop": {"env_steps": 1000},
+        "checkpoint_every": 2,
+        "evaluation": {"episodes": 2},
+        "storage": str(tmp_path / "ray_results"),
+        "mlflow": {"tracking_uri": f"sqlite:///{tmp_path / 'mlflow.db'}"},
+    }
+
+
+def write(tmp_path, data, name="grid.yaml") -> str:
+    path = tmp_path / name
+    path.write_text(data if isinstance(data, str) else yaml.safe_dump(data, sort_keys=False))
+    return str(path)
+
+
+def run_cli(argv, capsys):
+    rc = tune_cli.main(argv)
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+# --------------------------------------------------------------------------- valid grids
+def test_valid_grid_and_trial_product(tmp_path):
+    grid = load_grid(write(tmp_path, base_grid(tmp_path)))
+    specs = trials(grid)
+    assert len(specs) == 2 * 3 * 2 * 2
+    keys = {(s.algorithm, s.seed, s.n_eds, s.n_uavs) for s in specs}
+    assert len(keys) == len(specs)
+    assert {s.algorithm for s in specs} == {"stock_ppo", "stock_ppo_b"}
+    for s in specs:
+        assert s.scenario.n_eds == s.n_eds and s.scenario.n_uavs == s.n_uavs
+        assert s.scenario.episode_len == 10
+    assert next(s for s in specs if s.algorithm == "stock_ppo").hparams.lr == 1e-3
+    assert next(s for s in specs if s.algorithm == "stock_ppo_b").hparams.lr == 3e-4  # default
+    assert specs[0].name == "stock_ppo-V5-U1-s0"
+    base = baseline_runs(grid)
+    assert len(base) == 2 * 3 * 2 * 2
+    assert {b.name for b in base} >= {"random-V5-U1-s0", "greedy-V10-U2-s2021"}
+
+
+def test_defaults(tmp_path):
+    data = base_grid(tmp_path)
+    for key in ("baselines", "scenario", "checkpoint_every", "evaluation", "storage", "mlflow"):
+        data.pop(key)
+    grid = load_grid(write(tmp_path, data))
+    assert grid.baselines == [] and grid.scenario == {}
+    assert grid.mlflow.tracking_uri == "sqlite:///mlflow.db"
+    assert grid.evaluation.episodes == 10
+    assert grid.storage == "./ray_results"
+    assert grid.max_concurrent_trials is None
+
+
+def test_algorithms_as_list(tmp_path):
+    data = base_grid(tmp_path)
+    data["algorithms"] = ["stock_ppo"]
+    assert len(trials(load_grid(write(tmp_path, data)))) == 3 * 2 * 2
+
+
+# --------------------------------------------------------------------------- bad grids
+def _mutate(tmp_path, **changes):
+    data = base_grid(tmp_path)
+    for key, value in changes.items():
+        if value is None:
+            data.pop(key)
+        else:
+            data[key] = value
+    return data
+
+
+BAD = [
+    # (id, mutation or raw text, regex the message must match after "<file>: ")
+    ("unknown_top_level_key", {"epochs": 3}, r"epochs: unknown field; allowed: .*algorithms"),
+    ("unknown_algorithm", {"algorithms": {"nosuch": None}}, r"algorithms\.nosuch: unknown algorithm 'nosuch'"),
+    ("bad_override_value", {"algorithms": {"stock_ppo": {"lr": -1}}}, r"algorithms\.stock_ppo\.lr: Input should be greater than 0 \(got -1\)"),
+    ("unknown_override", {"algorithms": {"stock_ppo": {"learning_rate": 1}}}, r"algorithms\.stock_ppo\.learning_rate: unknown field"),
+    ("override_not_mapping", {"algorithms": {"stock_ppo": 5}}, r"algorithms\.stock_ppo: "),
+    ("bad_scenario_value", {"scenario": {"sf_set": [5]}}, r"scenario\.sf_set: must be distinct values"),
+    ("unknown_scenario_field", {"scenario": {"n_gateways": 3}}, r"scenario\.n_gateways: unknown field"),
+    ("scenario_sets_n_eds", {"scenario": {"n_eds": 3}}, r"scenario\.n_eds: set by the top-level 'n_eds' list"),
+    ("action_mode_mismatch", {"scenario": {"action_mode": "per_device"}}, r"scenario\.action_mode: algorithm 'stock_ppo' supports action modes \['per_uav'\]"),
+    ("empty_seeds", {"seeds": []}, r"seeds: List should have at least 1 item"),
+    ("empty_n_eds", {"n_eds": []}, r"n_eds: List should have at least 1 item"),
+    ("empty_algorithms", {"algorithms": {}}, r"algorithms: Dictionary should have at least 1 item"),
+    ("bad_n_uavs", {"n_uavs": [2, 0]}, r"n_uavs\.1: Input should be greater than or equal to 1"),
+    ("repeated_seed", {"seeds": [1, 1]}, r"seeds: values must be distinct"),
+    ("missing_stop", {"stop": None}, r"stop: required field is missing"),
+    ("bad_stop", {"stop": {"env_steps": 0}}, r"stop\.env_steps: Input should be greater than 0"),
+    ("bad_resources", {"resources": {"num_env_runners": -1}}, r"resources\.num_env_runners: Input should be greater than or equal to 0"),
+    ("unknown_baseline", {"baselines": ["random", "oracle"]}, r"baselines\.1: unknown baseline 'oracle'"),
+    ("baseline_scenario_mismatch", {"baselines": ["optimal"], "n_uavs": [4]}, r"baselines\.0: 'optimal' \(with n_eds=5, n_uavs=4\)"),
+    ("entry_build_check", {"algorithms": {"stock_ppo": {"train_batch_size": 10, "minibatch_size": 50}}}, r"algorithms\.stock_ppo\.minibatch_size: 50 is larger than the train batch \(10\) \(with n_eds=5, n_uavs=1\)"),
+    ("file_store_uri", {"mlflow": {"tracking_uri": "file:./mlruns"}}, r"mlflow\.tracking_uri: must be a database or server URI"),
+    ("bad_evaluation", {"evaluation": {"episodes": 0}}, r"evaluation\.episodes: Input should be greater than or equal to 1"),
+    ("bad_plugin", {"plugins": ["no_such_module_xyz"]}, r"plugins\.0: cannot import module 'no_such_module_xyz'"),
+    ("yaml_syntax", "experiment: g\nalgorithms: {stock_ppo: null\nseeds: [0]\n", r"line 3, column \d+: YAML syntax error"),
+    ("not_a_mapping", "- just\n- a list\n", r"<top level>: expected a mapping"),
+]
+
+
+@pytest.mark.parametrize("case_id,change,pattern", BAD, ids=[b[0] for b in BAD])
+def test_bad_grid_names_the_yaml_path(tmp_path, capsys, case_id, change, pattern):
+    import ray
+
+    data = change if isinstance(change, str) else _mutate(tmp_path, **change)
+    path = write(tmp_path, data)
+    with pytest.raises(ConfigError) as info:
+        load_grid(path)
+    msg = str(info.value)
+    assert msg.startswith(f"{path}: "), msg
+    assert re.search(pattern, msg[len(path) + 2 :]), msg
+
+    # the CLI: one line on stderr, exit 2, nothing started or written
+    rc, out, err = run_cli([path], capsys)
+    assert rc == 2
+    assert err.strip().count("\n") == 0 and err.startswith("error: ") and "Traceback" not in err
+    assert re.search(pattern, err), err
+    assert not ray.is_initialized()
+    assert not (tmp_path / "ray_results").exists()
+    assert not (tmp_path / "mlflow.db").exists()
+
+
+def test_missing_file(tmp_path, capsys):
+    rc, _, err = run_cli([str(tmp_path / "nope.yaml")], capsys)
+    assert rc == 2 and "cannot read the grid file" in err
+
+
+def test_bad_cli_flag(tmp_path, capsys):
+    rc, _, err = run_cli([write(tmp_path, base_grid(tmp_path)), "--num-cpus", "0"], capsys)
+    assert rc == 2 and err.startswith("error: ") and "--num-cpus" in err
+
+
+def test_bad_grid_subprocess_no_traceback(tmp_path):
+    path = write(tmp_path, _mutate(tmp_path, algorithms={"stock_ppo": {"lr": -1}}))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([TESTS_DIR, REPO, os.environ.get("PYTHONPATH", "")]))
+    proc = subprocess.run(
+        [sys.executable, "-m", "uavlora_rllib.tune", path], capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == f"error: {path}: algorithms.stock_ppo.lr: Input should be greater than 0 (got -1)"
+    assert proc.stdout == ""
+    assert not (tmp_path / "ray_results").exists() and not (tmp_path / "mlflow.db").exists()
+
+
+# --------------------------------------------------------------------------- dry run
+def test_dry_run_prints_one_row_per_trial(tmp_path, capsys):
+    import ray
+
+    path = write(tmp_path, base_grid(tmp_path))
+    rc, out, err = run_cli([path, "--dry-run"], capsys)
+    assert rc == 0, err
+    trial_rows = [ln for ln in out.splitlines() if re.match(r"^\s*\d+\s+stock_ppo(_b)?\s", ln)]
+    assert len(trial_rows) == 2 * 3 * 2 * 2
+    assert len(set(trial_rows)) == len(trial_rows)
+    fields = {tuple(ln.split()[1:]) for ln in trial_rows}
+    assert ("stock_ppo", "2021", "10", "2", "1000") in fields  # algorithm seed n_eds n_uavs budget
+    base_rows = [ln for ln in out.splitlines() if re.match(r"^\s*\d+\s+(random|greedy)\s", ln)]
+    assert len(base_rows) == 2 * 3 * 2 * 2
+    assert "24 trials" in out and "24 baseline evaluations" in out
+    assert not ray.is_initialized()
+    assert not (tmp_path / "ray_results").exists() and not (tmp_path / "mlflow.db").exists()
+
+
+def test_shipped_grids_are_valid():
+    """Every YAML in tune_configs/ loads (algorithms still to come are commented out there)."""
+    folder = os.path.join(REPO, "tune_configs")
+    names = sorted(n for n in os.listdir(folder) if n.endswith(".yaml"))
+    assert {"smoke.yaml", "paper_fig3a.yaml", "paper_fig3b.yaml", "paper_fig3c.yaml"} <= set(names)
+    for name in names:
+        grid = load_grid(os.path.join(folder, name))
+        assert trials(grid)
+    fig3b = load_grid(os.path.join(folder, "paper_fig3b.yaml"))
+    assert fig3b.n_eds == [10, 20, 40, 60, 80, 100] and fig3b.n_uavs == [2] and fig3b.seeds == [0, 42, 2021]
+    fig3c = load_grid(os.path.join(folder, "paper_fig3c.yaml"))
+    assert fig3c.n_eds == [60] and fig3c.n_uavs == [2, 4, 6, 8]
+    fig3a = load_grid(os.path.join(folder, "paper_fig3a.yaml"))
+    assert fig3a.stop.env_steps == 2_000_000 and fig3a.n_eds == [10] and fig3a.n_uavs == [2]
+
+
+def test_parse_grid_without_file(tmp_path):
+    with pytest.raises(ConfigError, match=r"^stop: required field is missing$"):
+        parse_grid(_mutate(tmp_path, stop=None))

@@ -1,0 +1,255 @@
+"""The Tune entry point end to end, with MLflow: a two-trial grid, and an interrupted grid resumed.
+
+A real learner trains (the project's MAPPO on a tiny scenario, a few iterations); Ray runs
+with 2 CPUs in this process, and the interrupted run is a second driver (a subprocess that
+connects to it with --address, and receives SIGINT once its first trial has a checkpoint).
+"""
+
+from __future__ import annotations
+
+import glob
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import yaml
+
+from uavlora_rllib import tune as tune_cli
+from uavlora_rllib.evaluation import EPISODE_METRICS
+from uavlora_rllib.tracking import git_commit
+
+pytestmark = pytest.mark.slow
+
+TESTS_DIR = os.path.dirname(os.path.abspath(__file__))
+REPO = os.path.dirname(TESTS_DIR)
+ALGO = "mappo"
+TINY_MAPPO = {
+    "lr": 3e-4,
+    "batch_episodes": 2,
+    "num_epochs": 1,
+    "num_minibatches": 1,
+    "gru_hidden": 8,
+    "fc_hidden": 8,
+    "critic_hidden": 8,
+    "max_seq_len": 10,
+}
+EPISODE_LEN = 10  # 2 episodes of 10 slots = 20 env steps per training iteration
+
+
+@pytest.fixture(scope="module")
+def ray_address():
+    import ray
+
+    from uavlora_rllib.algorithms import registry
+
+    if ALGO not in registry.available():
+        pytest.skip(f"{ALGO} is not implemented yet")
+    # workers must import the test plugins too (test_grid registers stock_ppo in this process)
+    old = os.environ.get("PYTHONPATH")
+    os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (TESTS_DIR, REPO, old) if p)
+    started = not ray.is_initialized()
+    if started:
+        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray.get_runtime_context().gcs_address
+    if started:
+        ray.shutdown()
+    if old is None:
+        os.environ.pop("PYTHONPATH", None)
+    else:
+        os.environ["PYTHONPATH"] = old
+
+
+def make_grid(tmp_path, name: str, budget: int, max_concurrent: int | None = None) -> str:
+    grid = {
+        "experiment": name,
+        "algorithms": {ALGO: TINY_MAPPO},
+        "baselines": ["random", "fixed"],
+        "seeds": [0, 1],
+        "n_eds": [6],
+        "n_uavs": [2],
+        "scenario": {"episode_len": EPISODE_LEN},
+        "stop": {"env_steps": budget},
+        "checkpoint_every": 1,
+        "evaluation": {"episodes": 2},
+        "resources": {"num_env_runners": 0, "num_envs_per_env_runner": 2, "torch_threads": 1},
+        "storage": str(tmp_path / "ray_results"),
+        "mlflow": {"tracking_uri": f"sqlite:///{tmp_path / 'mlflow.db'}"},
+    }
+    if max_concurrent:
+        grid["max_concurrent_trials"] = max_concurrent
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(grid, sort_keys=False))
+    return str(path)
+
+
+def mlflow_runs(tmp_path, experiment: str) -> list:
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    exp = client.get_experiment_by_name(experiment)
+    assert exp is not None
+    return client, client.search_runs([exp.experiment_id], max_results=1000)
+
+
+def steps_of(client, run, key: str) -> list[int]:
+    return [m.step for m in sorted(client.get_metric_history(run.info.run_id, key), key=lambda m: m.timestamp)]
+
+
+def check_train_run(client, run, grid_file: str, budget: int) -> None:
+    tags, params, metrics = run.data.tags, run.data.params, run.data.metrics
+    assert run.info.status == "FINISHED"
+    seed = tags["seed"]
+    assert run.info.run_name == f"{ALGO}-V6-U2-s{seed}"
+    assert tags["kind"] == "train" and tags["algorithm"] == ALGO
+    assert (tags["n_eds"], tags["n_uavs"]) == ("6", "2") and seed in ("0", "1")
+    assert tags["git_commit"] == git_commit() and tags["git_commit"] != ""
+    assert tags["grid_file"] == grid_file
+    assert tags["budget_env_steps"] == str(budget)
+    assert tags["trial_id"]
+    assert os.path.basename(tags["checkpoint"]).startswith("checkpoint_") and os.path.isdir(tags["checkpoint"])
+    assert f"{ALGO}-V6-U2-s{seed}_{tags['trial_id']}" in tags["checkpoint"]
+    # params
+    assert params["algo.lr"] == "0.0003" and params["algo.batch_episodes"] == "2"
+    assert params["algo.num_epochs"] == "1" and "algo.gamma" in params  # defaults too
+    assert params["scenario.n_eds"] == "6" and params["scenario.n_uavs"] == "2"
+    assert params["scenario.episode_len"] == str(EPISODE_LEN) and params["scenario.mobility.memory"] == "0.85"
+    assert params["resources.num_env_runners"] == "0" and params["resources.torch_threads"] == "1"
+    assert params["resources.num_envs_per_env_runner"] == "2"
+    assert params["stop.env_steps"] == str(budget) and params["eval.episodes"] == "2"
+    # training metrics, step = env steps sampled
+    steps = steps_of(client, run, "episode_return_mean")
+    assert steps == sorted(set(steps)) and steps[-1] >= budget and steps[0] > 0
+    assert steps[0] % (2 * EPISODE_LEN) == 0
+    for key in ("ee_sys_mean", "success_rate", "env_steps_per_s"):
+        assert key in metrics, key
+    assert metrics["env_steps_per_s"] > 0 and metrics["ee_sys_mean"] > 0 and 0 <= metrics["success_rate"] <= 1
+    learner = [k for k in metrics if k.startswith("learner/")]
+    assert "learner/policy_loss" in learner and "learner/entropy" in learner, learner
+    assert steps_of(client, run, "learner/policy_loss")[-1] == steps[-1]
+    # execution-phase evaluation
+    check_eval(client, run)
+    assert steps_of(client, run, "eval/ee_sys_mean") == [steps[-1]]
+
+
+def check_eval(client, run) -> None:
+    metrics = run.data.metrics
+    for k in EPISODE_METRICS:
+        assert f"eval/{k}" in metrics and f"eval/{k}_ci95" in metrics, k
+    assert metrics["eval/episodes"] == 2
+    assert metrics["eval/ee_sys_mean"] > 0
+    assert metrics["eval/ee_sys_episode_sum"] == pytest.approx(EPISODE_LEN * metrics["eval/ee_sys_mean"])
+
+
+def check_baseline_runs(runs, budget: int) -> None:
+    base = [r for r in runs if r.data.tags.get("kind") == "baseline"]
+    assert sorted(r.info.run_name for r in base) == sorted(
+        f"{b}-V6-U2-s{s}" for b in ("random", "fixed") for s in (0, 1)
+    )
+    for r in base:
+        assert r.info.status == "FINISHED"
+        assert r.data.tags["algorithm"] in ("random", "fixed") and r.data.tags["budget_env_steps"] == str(budget)
+        assert r.data.tags["git_commit"] and r.data.tags["grid_file"]
+        assert not any(k.startswith("algo.") for k in r.data.params)
+        assert r.data.params["scenario.episode_len"] == str(EPISODE_LEN) and r.data.params["eval.episodes"] == "2"
+        assert "eval/ee_sys_mean" in r.data.metrics and r.data.metrics["eval/episodes"] == 2
+
+
+def last_result(trial_dir: str) -> dict:
+    with open(os.path.join(trial_dir, "result.json")) as fh:
+        return json.loads(fh.read().strip().splitlines()[-1])
+
+
+def test_two_trial_grid_end_to_end(ray_address, tmp_path, capsys):
+    budget = 60  # 3 iterations
+    grid_file = make_grid(tmp_path, "e2e", budget)
+    t0 = time.perf_counter()
+    rc = tune_cli.main([grid_file])
+    out, err = capsys.readouterr()
+    assert rc == 0, err[-3000:]
+    assert "2/2 trials finished, 0 failed" in out
+    assert str(tmp_path / "mlflow.db") in out and str(tmp_path / "ray_results" / "e2e") in out
+    client, runs = mlflow_runs(tmp_path, "e2e")
+    train = [r for r in runs if r.data.tags.get("kind") == "train"]
+    assert len(train) == 2
+    assert {r.data.tags["seed"] for r in train} == {"0", "1"}
+    assert len({r.data.tags["trial_id"] for r in train}) == 2
+    for r in train:
+        check_train_run(client, r, grid_file, budget)
+    check_baseline_runs(runs, budget)
+    assert not [r for r in runs if r.info.status == "RUNNING"]
+    print(f"end-to-end grid: {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+
+    # a second plain run of the same grid is refused (it would duplicate the MLflow runs) ...
+    rc = tune_cli.main([grid_file])
+    _, err = capsys.readouterr()
+    assert rc == 2 and "exists already" in err and "--resume" in err
+    # ... and --resume of a finished grid reruns nothing and logs nothing new
+    history = {r.info.run_id: len(client.get_metric_history(r.info.run_id, "episode_return_mean")) for r in train}
+    rc = tune_cli.main([grid_file, "--resume"])
+    out, err = capsys.readouterr()
+    assert rc == 0, err[-3000:]
+    assert out.count("already in MLflow, skipped") == 4
+    client, runs2 = mlflow_runs(tmp_path, "e2e")
+    assert sorted(r.info.run_id for r in runs2) == sorted(r.info.run_id for r in runs)
+    assert all(r.info.status == "FINISHED" for r in runs2)
+    assert {r.info.run_id: len(client.get_metric_history(r.info.run_id, "episode_return_mean")) for r in train} == history
+
+
+def test_interrupted_grid_resumes_with_one_run_per_trial(ray_address, tmp_path, capsys):
+    budget = 600  # 30 iterations: the first trial is still training when SIGINT arrives
+    grid_file = make_grid(tmp_path, "resume", budget, max_concurrent=1)
+    env = dict(os.environ)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "uavlora_rllib.tune", grid_file, "--address", ray_address],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    pattern = str(tmp_path / "ray_results" / "resume" / f"{ALGO}-V6-U2-s0_*" / "checkpoint_*")
+    deadline = time.monotonic() + 180
+    try:
+        while not glob.glob(pattern):
+            assert proc.poll() is None, proc.stdout.read()[-3000:]
+            assert time.monotonic() < deadline, "no checkpoint within 180 s"
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, out[-3000:]
+    assert "--resume" in out
+
+    client, runs = mlflow_runs(tmp_path, "resume")
+    assert not [r for r in runs if r.info.status == "RUNNING"], "a run was left RUNNING after the interrupt"
+    first = [r for r in runs if r.data.tags.get("kind") == "train" and r.data.tags["seed"] == "0"]
+    assert len(first) == 1 and first[0].info.status == "KILLED", "interrupt came too late to test resume"
+    interrupted_run_id = first[0].info.run_id
+
+    rc = tune_cli.main([grid_file, "--resume"])
+    out, err = capsys.readouterr()
+    assert rc == 0, err[-3000:]
+    assert "2/2 trials finished" in out
+
+    client, runs = mlflow_runs(tmp_path, "resume")
+    train = [r for r in runs if r.data.tags.get("kind") == "train"]
+    assert len(train) == 2, [(r.info.run_name, r.info.status) for r in train]
+    assert len({r.data.tags["trial_id"] for r in train}) == 2
+    assert not [r for r in runs if r.info.status != "FINISHED"]
+    for r in train:
+        check_train_run(client, r, grid_file, budget)
+    resumed = next(r for r in train if r.data.tags["seed"] == "0")
+    assert resumed.info.run_id == interrupted_run_id  # the same MLflow run continued
+    check_baseline_runs(runs, budget)  # not redone on resume
+
+    # the interrupted trial continued from its checkpoint instead of starting again
+    (trial_dir,) = glob.glob(str(tmp_path / "ray_results" / "resume" / f"{ALGO}-V6-U2-s0_*"))
+    last = last_result(trial_dir)
+    assert last["env_steps"] >= budget and last["done"]
+    assert last["iterations_since_restore"] < last["training_iteration"]
