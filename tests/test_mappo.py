@@ -19,7 +19,7 @@ from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.core import BatchCore, obs_dim, state_dim
 from uavlora_rllib.evaluation import run_episodes
 from uavlora_rllib.scenario import ScenarioConfig
-from uavlora_rllib.team_env import make_team_env, team_action_space, team_observation_space
+from uavlora_rllib.team_env import UavLoraTeamEnv, team_action_space, team_observation_space
 
 torch.set_num_threads(1)
 
@@ -84,7 +84,7 @@ def test_too_many_minibatches_is_a_config_error():
 def test_build_sets_env_batch_and_seed():
     entry = registry.get("mappo")
     cfg = entry.build(SMALL, entry.hparams({"batch_episodes": 3, "num_minibatches": 2}), RES, 42)
-    assert cfg.env is make_team_env
+    assert cfg.env is UavLoraTeamEnv
     assert cfg.env_config["uavlora_algorithm"] == "mappo"
     assert ScenarioConfig.from_dict(cfg.env_config["scenario"]) == SMALL
     assert cfg.train_batch_size_per_learner == 3 * SMALL.episode_len

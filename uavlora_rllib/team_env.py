@@ -48,9 +48,22 @@ def _obs32(obs: np.ndarray) -> np.ndarray:
 
 
 class UavLoraTeamEnv(gym.Env):
-    """One scenario, all UAVs as one agent-team (a thin view of BatchCore with N = 1)."""
+    """One scenario, all UAVs as one agent-team (a thin view of BatchCore with N = 1).
+
+    The class is also the env specifier the algorithms give RLlib
+    (`config.environment(UavLoraTeamEnv, ...)`): when RLlib's env runner asks for a vector
+    env it calls the class with `num_envs` in the config, and gets a `UavLoraTeamVectorEnv`
+    (one BatchCore for all N scenarios). Passing the class rather than a registered name
+    keeps working across Ray sessions in one process, where Tune's env registry does not.
+    """
 
     metadata = {"render_modes": []}
+
+    def __new__(cls, config: Mapping[str, Any] | ScenarioConfig | None = None, *args: Any, **kwargs: Any):
+        if isinstance(config, Mapping) and config.get("num_envs") is not None:
+            settings = dict(config)
+            return UavLoraTeamVectorEnv(settings, num_envs=int(settings.pop("num_envs")))
+        return super().__new__(cls)
 
     def __init__(self, config: Mapping[str, Any] | ScenarioConfig | None = None):
         self.scenario = scenario_from(config)
@@ -132,12 +145,8 @@ class UavLoraTeamVectorEnv(gym.vector.VectorEnv):
 
 
 def make_team_env(config: Mapping[str, Any] | None = None):
-    """Env creator registered with Tune: a vector env when RLlib asks for `num_envs`."""
-    config = dict(config or {})
-    num_envs = config.pop("num_envs", None)
-    if num_envs is None:
-        return UavLoraTeamEnv(config)
-    return UavLoraTeamVectorEnv(config, num_envs=num_envs)
+    """Env creator (registered with Tune as "uavlora_team"): a vector env when `num_envs` is given."""
+    return UavLoraTeamEnv(dict(config or {}))
 
 
 register_env(TEAM_ENV_NAME, make_team_env)

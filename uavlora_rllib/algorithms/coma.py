@@ -47,7 +47,7 @@ from uavlora_rllib.algorithms.registry import AlgorithmEntry, Resources, registe
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.core import BatchCore, obs_dim, state_dim
 from uavlora_rllib.scenario import ScenarioConfig
-from uavlora_rllib.team_env import make_team_env
+from uavlora_rllib.team_env import UavLoraTeamEnv
 
 NAME = "coma"
 
@@ -218,7 +218,7 @@ def build(scenario: ScenarioConfig, hparams: COMAHParams | dict | None, resource
         )
     return (
         COMAConfig()
-        .environment(make_team_env, env_config={"scenario": scenario.to_dict(), "uavlora_algorithm": NAME})
+        .environment(UavLoraTeamEnv, env_config={"scenario": scenario.to_dict(), "uavlora_algorithm": NAME})
         .framework("torch")
         .env_runners(
             num_env_runners=resources.num_env_runners,

@@ -41,7 +41,7 @@ from uavlora_rllib.algorithms.registry import AlgorithmEntry, Resources, registe
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.core import BatchCore, state_dim
 from uavlora_rllib.scenario import ScenarioConfig
-from uavlora_rllib.team_env import make_team_env, team_action_space, team_observation_space
+from uavlora_rllib.team_env import UavLoraTeamEnv, team_action_space, team_observation_space
 
 
 @typed_dataclass(config=ConfigDict(extra="forbid", frozen=True))
@@ -156,7 +156,7 @@ def _build(name: str):
             )
         cfg = (
             MAPPOConfig()
-            .environment(make_team_env, env_config={"scenario": scenario.to_dict(), "uavlora_algorithm": name})
+            .environment(UavLoraTeamEnv, env_config={"scenario": scenario.to_dict(), "uavlora_algorithm": name})
             .framework("torch")
             .env_runners(
                 num_env_runners=resources.num_env_runners,

@@ -335,7 +335,7 @@ def _build(name: str, config_cls: type):
 
         config = (
             config_cls()
-            .environment(team_env.make_team_env, env_config={"scenario": scenario.to_dict(), "uavlora_algorithm": name})
+            .environment(team_env.UavLoraTeamEnv, env_config={"scenario": scenario.to_dict(), "uavlora_algorithm": name})
             .env_runners(
                 num_env_runners=resources.num_env_runners,
                 num_envs_per_env_runner=resources.num_envs_per_env_runner,
