@@ -198,6 +198,19 @@ def test_two_trial_grid_end_to_end(ray_address, tmp_path, capsys):
     assert all(r.info.status == "FINISHED" for r in runs2)
     assert {r.info.run_id: len(client.get_metric_history(r.info.run_id, "episode_return_mean")) for r in train} == history
 
+    # the evaluate CLI on a trial's final checkpoint replays that trial's execution phase exactly
+    from uavlora_rllib import evaluate as evaluate_cli
+
+    run = train[0]
+    seed = run.data.tags["seed"]
+    rc = evaluate_cli.main(["--policy", run.data.tags["checkpoint"], "--episodes", "2", "--seed", seed, "--json"])
+    out, err = capsys.readouterr()
+    assert rc == 0, err[-3000:]
+    result = json.loads(out)
+    assert result["episodes"] == 2
+    assert result["ee_sys_mean"] == pytest.approx(run.data.metrics["eval/ee_sys_mean"], rel=1e-9)
+    assert result["success_rate"] == pytest.approx(run.data.metrics["eval/success_rate"], rel=1e-9)
+
 
 def test_interrupted_grid_resumes_with_one_run_per_trial(ray_address, tmp_path, capsys):
     budget = 600  # 30 iterations: the first trial is still training when SIGINT arrives
