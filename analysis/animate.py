@@ -20,43 +20,19 @@ from typing import Sequence
 
 import numpy as np
 
-
-class UsageError(Exception):
-    pass
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:
-        raise UsageError(message)
-
-
-def _positive(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {v}")
-    return v
-
-
-def _int(text: str) -> int:
-    try:
-        return int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+from uavlora_rllib.cli_args import Parser, UsageError, integer, positive_int
 
 
 def build_parser() -> argparse.ArgumentParser:
     from uavlora_rllib.baselines import BASELINES
 
-    p = _Parser(prog="python -m analysis.animate", description=__doc__.split("\n\n")[0])
+    p = Parser(prog="python -m analysis.animate", description=__doc__.split("\n\n")[0])
     p.add_argument("--policy", required=True, help=f"one of {', '.join(BASELINES)}, or a checkpoint directory")
-    p.add_argument("--n-eds", type=_positive, default=None, help="V (default: the scenario's)")
-    p.add_argument("--n-uavs", type=_positive, default=None, help="U (default: the scenario's)")
-    p.add_argument("--seed", type=_int, default=0, help="episode seed (default 0)")
-    p.add_argument("--steps", type=_positive, default=None, help="slots to play, <= episode_len (default: all)")
-    p.add_argument("--fps", type=_positive, default=8, help="frames per second (default 8)")
+    p.add_argument("--n-eds", type=positive_int, default=None, help="V (default: the scenario's)")
+    p.add_argument("--n-uavs", type=positive_int, default=None, help="U (default: the scenario's)")
+    p.add_argument("--seed", type=integer, default=0, help="episode seed (default 0)")
+    p.add_argument("--steps", type=positive_int, default=None, help="slots to play, <= episode_len (default: all)")
+    p.add_argument("--fps", type=positive_int, default=8, help="frames per second (default 8)")
     p.add_argument("--out", default="animation.gif", help="output GIF (default animation.gif)")
     return p
 

@@ -23,6 +23,7 @@ import yaml
 from uavlora_rllib.baselines import BASELINES, OBJECTIVES, make_baseline
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.scenario import ScenarioConfig
+from uavlora_rllib.cli_args import Parser, UsageError, integer, positive_int
 
 # (key in the JSON output, label, unit)
 REPORTED = (
@@ -36,36 +37,13 @@ REPORTED = (
 )
 
 
-class UsageError(Exception):
-    """Bad command-line input; the message is printed as one line."""
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # argparse's own errors, as one line, exit 2
-        raise UsageError(message)
-
-
-def _positive_int(text: str) -> int:
-    value = _int(text)
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
-    return value
-
-
-def _int(text: str) -> int:
-    try:
-        return int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-
-
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="python -m uavlora_rllib.evaluate", description=__doc__.split("\n\n")[0])
+    p = Parser(prog="python -m uavlora_rllib.evaluate", description=__doc__.split("\n\n")[0])
     p.add_argument("--policy", required=True, help=f"one of {', '.join(BASELINES)}, or a checkpoint directory")
-    p.add_argument("--n-eds", type=_positive_int, default=None, help="V (default: scenario's, 10)")
-    p.add_argument("--n-uavs", type=_positive_int, default=None, help="U (default: scenario's, 2)")
-    p.add_argument("--episodes", type=_positive_int, default=10, help="episodes (default 10)")
-    p.add_argument("--seed", type=_int, default=0, help="evaluation seed (episode seeds derive from it)")
+    p.add_argument("--n-eds", type=positive_int, default=None, help="V (default: scenario's, 10)")
+    p.add_argument("--n-uavs", type=positive_int, default=None, help="U (default: scenario's, 2)")
+    p.add_argument("--episodes", type=positive_int, default=10, help="episodes (default 10)")
+    p.add_argument("--seed", type=integer, default=0, help="evaluation seed (episode seeds derive from it)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--scenario-yaml", default=None, help="YAML file of scenario fields (or with a 'scenario:' key)")
     p.add_argument("--objective", choices=OBJECTIVES, default="ee", help="greedy/optimal objective (default ee)")
