@@ -42,6 +42,7 @@ from ray import tune
 
 from uavlora_rllib.algorithms import registry
 from uavlora_rllib.config_errors import ConfigError
+from uavlora_rllib.cli_args import Parser, UsageError, positive_int
 from uavlora_rllib.grid import (
     GridConfig,
     algorithm_overrides,
@@ -57,33 +58,14 @@ from uavlora_rllib.grid import (
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 
 
-class UsageError(Exception):
-    """Bad command-line input; printed as one line."""
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:
-        raise UsageError(message)
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
-    return value
-
-
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="python -m uavlora_rllib.tune", description=__doc__.split("\n\n")[0])
+    p = Parser(prog="python -m uavlora_rllib.tune", description=__doc__.split("\n\n")[0])
     p.add_argument("grid", help="grid YAML (see tune_configs/)")
     p.add_argument("--resume", action="store_true", help="continue the grid's Tune experiment")
     p.add_argument("--dry-run", action="store_true", help="print the trials and baseline runs, start nothing")
     p.add_argument("--address", default=None, help="Ray cluster address (default: start a local Ray)")
     p.add_argument("--storage", default=None, help="Ray results directory (overrides the grid's storage)")
-    p.add_argument("--num-cpus", type=_positive_int, default=None, help="CPUs of the local Ray (default: all)")
+    p.add_argument("--num-cpus", type=positive_int, default=None, help="CPUs of the local Ray (default: all)")
     return p
 
 
