@@ -43,9 +43,10 @@ from ray.rllib.utils.metrics import (
 
 from uavlora_rllib.algorithms.coma_learner import COMAEpisodeBatch, COMATorchLearner
 from uavlora_rllib.algorithms.coma_module import COMAActor, COMATorchRLModule
+from uavlora_rllib.algorithms.recurrent_policy import RecurrentPolicy, argmax_actions
 from uavlora_rllib.algorithms.registry import AlgorithmEntry, Resources, register
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.core import BatchCore, obs_dim, state_dim
+from uavlora_rllib.core import obs_dim, state_dim
 from uavlora_rllib.scenario import ScenarioConfig
 from uavlora_rllib.team_env import UavLoraTeamEnv
 
@@ -248,33 +249,24 @@ def build(scenario: ScenarioConfig, hparams: COMAHParams | dict | None, resource
     )
 
 
-class COMAGreedyPolicy:
+class COMAGreedyPolicy(RecurrentPolicy):
     """evaluation.Policy: a CPU copy of the trained actor, argmax actions, GRU state per episode.
 
     `sample_seed` given: sample from the policy instead (the stochastic policy COMA trains),
     from a torch Generator seeded with it; used for diagnostics, not by the registry."""
 
     def __init__(self, actor: COMAActor, cfg: ScenarioConfig, name: str = NAME, sample_seed: int | None = None):
-        self.name = name
-        self.cfg = cfg
-        self.actor = actor.eval()
-        self.h: torch.Tensor | None = None
-        self._gen = None if sample_seed is None else torch.Generator().manual_seed(sample_seed)
+        pick = argmax_actions if sample_seed is None else _sampler(torch.Generator().manual_seed(sample_seed))
+        super().__init__(actor, pick, actor.initial_state, name)
+        self.actor, self.cfg = actor, cfg
 
-    def reset(self, core: BatchCore) -> None:
-        self.h = self.actor.initial_state(core.n)
 
-    def act(self, core: BatchCore) -> np.ndarray:
-        if self.h is None or self.h.shape[0] != core.n:
-            self.reset(core)
-        obs = torch.as_tensor(np.clip(core.obs, -1.0, 1.0), dtype=torch.float32).unsqueeze(1)  # [N, 1, U, d]
-        with torch.no_grad():
-            logits, self.h = self.actor(obs, self.h)
-            if self._gen is not None:
-                probs = torch.softmax(logits[:, 0], dim=-1).reshape(-1, logits.shape[-1])
-                picks = torch.multinomial(probs, 1, generator=self._gen).reshape(logits.shape[0], -1)
-                return picks.numpy().astype(np.int64)
-        return logits[:, 0].argmax(-1).numpy().astype(np.int64)
+def _sampler(gen: torch.Generator):
+    def pick(logits: torch.Tensor) -> torch.Tensor:
+        probs = torch.softmax(logits, dim=-1).reshape(-1, logits.shape[-1])
+        return torch.multinomial(probs, 1, generator=gen).reshape(logits.shape[:-1])
+
+    return pick
 
 
 def actor_from_algo(algo: Algorithm, scenario: ScenarioConfig) -> COMAActor:

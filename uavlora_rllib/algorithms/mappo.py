@@ -23,23 +23,21 @@ clip_fraction, approx_kl.
 from __future__ import annotations
 
 import copy
-from typing import Any, Literal
+from typing import Literal
 
-import numpy as np
-import torch
 from pydantic import ConfigDict, Field
 from pydantic.dataclasses import dataclass as typed_dataclass
 from ray.rllib.algorithms.ppo import PPO, PPOConfig
 from ray.rllib.core import DEFAULT_MODULE_ID
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 
-from uavlora_rllib import team_env  # noqa: F401  (registers "uavlora_team")
 from uavlora_rllib.algorithms.gru_actor import ActionHead, GRUActor
 from uavlora_rllib.algorithms.mappo_learner import MAPPOTorchLearner
 from uavlora_rllib.algorithms.mappo_module import MAPPOTorchRLModule
+from uavlora_rllib.algorithms.recurrent_policy import RecurrentPolicy
 from uavlora_rllib.algorithms.registry import AlgorithmEntry, Resources, register
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.core import BatchCore, state_dim
+from uavlora_rllib.core import state_dim
 from uavlora_rllib.scenario import ScenarioConfig
 from uavlora_rllib.team_env import UavLoraTeamEnv, team_action_space, team_observation_space
 
@@ -208,27 +206,12 @@ def _build(name: str):
 
 
 # ------------------------------------------------------------------ execution
-class RecurrentGreedyPolicy:
+class RecurrentGreedyPolicy(RecurrentPolicy):
     """evaluation.Policy running a copy of the trained actor (CPU, no grad, argmax)."""
 
     def __init__(self, actor: GRUActor, head: ActionHead, cfg: ScenarioConfig, name: str):
-        self.name = name
-        self.cfg = cfg
-        self.actor = actor.eval()
-        self.head = head
-        self.h: torch.Tensor | None = None
-
-    def reset(self, core: BatchCore) -> None:
-        self.h = self.actor.initial_state(core.n)
-
-    def act(self, core: BatchCore) -> np.ndarray:
-        if self.h is None or self.h.shape[0] != core.n:
-            self.reset(core)
-        obs = torch.as_tensor(np.clip(core.obs, -1.0, 1.0), dtype=torch.float32).unsqueeze(1)  # [N, 1, U, d]
-        with torch.no_grad():
-            logits, self.h = self.actor(obs, self.h)
-            actions = self.head.greedy(logits[:, 0])
-        return actions.numpy().astype(np.int64)
+        super().__init__(actor, head.greedy, actor.initial_state, name)
+        self.actor, self.head, self.cfg = actor, head, cfg
 
 
 def actor_from_module(module: MAPPOTorchRLModule) -> tuple[GRUActor, ActionHead]:

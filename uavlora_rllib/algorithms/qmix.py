@@ -57,6 +57,7 @@ from uavlora_rllib.algorithms import registry
 from uavlora_rllib.algorithms.qmix_learner import QMIXTorchLearner
 from uavlora_rllib.algorithms.qmix_module import AgentQNet, QMixModule, linear_epsilon
 from uavlora_rllib.algorithms.qmix_replay import EpisodeReplay
+from uavlora_rllib.algorithms.recurrent_policy import RecurrentPolicy, argmax_actions
 from uavlora_rllib.core import obs_dim, state_dim
 from uavlora_rllib.env import STATE_KEY, scenario_from
 from uavlora_rllib.scenario import ScenarioConfig
@@ -291,24 +292,14 @@ class VDN(QMIX):
 
 
 # ---------------------------------------------------------------------- registry glue
-class GreedyQPolicy:
+class GreedyQPolicy(RecurrentPolicy):
     """Decentralised greedy execution: each UAV's argmax Q over its own observation history."""
 
     def __init__(self, agent: AgentQNet, name: str):
-        self.name = name
-        self.agent = copy.deepcopy(agent).cpu().eval()
-        self.h: torch.Tensor | None = None
-
-    def reset(self, core) -> None:
-        self.h = torch.zeros(core.n, self.agent.n_agents, self.agent.gru_hidden)
-
-    def act(self, core) -> np.ndarray:
-        obs = torch.as_tensor(np.clip(core.obs, -1.0, 1.0).astype(np.float32))  # as the team env sends it
-        if self.h is None or self.h.shape[0] != obs.shape[0]:
-            self.reset(core)
-        with torch.no_grad():
-            q, self.h = self.agent(obs.unsqueeze(1), self.h)
-        return q[:, 0].argmax(-1).numpy().astype(np.int64)
+        agent = copy.deepcopy(agent).cpu()
+        zeros = lambda n: torch.zeros(n, agent.n_agents, agent.gru_hidden)  # noqa: E731
+        super().__init__(agent, argmax_actions, zeros, name)
+        self.agent = agent
 
 
 def agent_network(algo: Algorithm) -> AgentQNet:
