@@ -206,8 +206,7 @@ class BatchCore:
         self.d_h = physics.horizontal_distance(self.ed_xy, self.uav_xy)  # [N, U, V]
         path_loss = physics.path_loss_db(self.d_h, cfg)
         self.gain_db = np.negative(path_loss, out=path_loss)
-        gains = self.gain_db / 10.0
-        self.gains = np.power(10.0, gains, out=gains)
+        self.gains = physics.db_to_lin(self.gain_db)
         self.serving = associate(self.gains, self.d_h, cfg.comm_range_m, self.quota, cfg.association)
         self.associated = self.serving != UNASSOCIATED
         self._serving_idx = np.where(self.associated, self.serving, 0)

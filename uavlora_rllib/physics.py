@@ -44,6 +44,12 @@ def dbm_to_w(p_dbm: np.ndarray | float) -> np.ndarray:
     return np.power(10.0, (np.asarray(p_dbm, dtype=np.float64) - 30.0) / 10.0)
 
 
+def db_to_lin(x_db: np.ndarray | float) -> np.ndarray:
+    """10^(x/10), on a new array (the input is left untouched)."""
+    y = np.divide(x_db, 10.0)
+    return np.power(10.0, y, out=y) if isinstance(y, np.ndarray) else np.power(10.0, y)
+
+
 def lin_to_db(x: np.ndarray | float) -> np.ndarray:
     """10 log10(x), floored at DB_FLOOR for x <= 0."""
     x = np.asarray(x, dtype=np.float64)
@@ -99,7 +105,7 @@ def path_loss_db(d_h: np.ndarray | float, cfg: ScenarioConfig) -> np.ndarray:
 
 def channel_gain(d_h: np.ndarray | float, cfg: ScenarioConfig) -> np.ndarray:
     """G = 10^(-L/10), linear power gain."""
-    return np.power(10.0, -path_loss_db(d_h, cfg) / 10.0)
+    return db_to_lin(-path_loss_db(d_h, cfg))
 
 
 def horizontal_distance(ed_xy: np.ndarray, uav_xy: np.ndarray) -> np.ndarray:
