@@ -38,7 +38,6 @@ def _build(name: str, scenario, hp: StockPPOHparams, resources: registry.Resourc
     from ray.rllib.algorithms.ppo import PPOConfig
     from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig
 
-    import uavlora_rllib.env  # noqa: F401  (registers env "uavlora")
     from uavlora_rllib.config_errors import ConfigError
 
     if hp.minibatch_size > hp.train_batch_size:
