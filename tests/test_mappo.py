@@ -124,6 +124,56 @@ def test_critic_reads_global_state_and_actor_only_local_rows():
     assert torch.allclose(out2[:, :, 0], out[:, :, 0]) and not torch.allclose(out2[:, :, 1], out[:, :, 1])
 
 
+@pytest.mark.parametrize("critic", ["central", "local"])
+def test_first_layers_equal_the_concatenated_one_hot_form(critic):
+    """Actor and critic evaluate W [x; one-hot(u)] + b as W_x x + b + W_e[:, u]: the result must
+    be the plain concatenated network's, values and gradients alike."""
+    cfg = ScenarioConfig(n_eds=6, n_uavs=3, episode_len=20)
+    u, d, s_dim = cfg.n_uavs, obs_dim(cfg), state_dim(cfg)
+    m = _module(cfg, critic)
+    torch.manual_seed(3)
+    for p in m.parameters():
+        p.data.normal_(0, 0.3)
+    b, t = 2, 4
+    obs = torch.rand(b, t, u, d) * 2 - 1
+    state = torch.rand(b, t, s_dim)
+    h = torch.rand(b, u, m.actor.gru_hidden)
+    ids = torch.eye(u)
+
+    logits, h_out = m.actor(obs, h)
+    x = torch.cat([obs, ids.expand(b, t, u, u)], dim=-1)  # [B, T, U, d + U]
+    ref_logits, ref_h = m.actor.net(x.permute(0, 2, 1, 3).reshape(b * u, t, d + u), h.reshape(b * u, -1))
+    ref_logits = ref_logits.reshape(b, u, t, -1).permute(0, 2, 1, 3)
+    assert torch.allclose(logits, ref_logits, atol=1e-5) and torch.allclose(h_out, ref_h.reshape(b, u, -1), atol=1e-5)
+
+    batch = {"obs": obs, "state": state}
+    per_agent = state.unsqueeze(-2).expand(b, t, u, s_dim) if critic == "central" else obs
+    ref_v = m.critic.net(torch.cat([per_agent, ids.expand(b, t, u, u)], dim=-1)).squeeze(-1)
+    v = m.compute_values(batch)
+    assert v.shape == (b, t, u) and torch.allclose(v, ref_v, atol=1e-5)
+    w = m.critic.net[0].weight
+    (g,) = torch.autograd.grad(v.square().sum(), w)
+    (g_ref,) = torch.autograd.grad(ref_v.square().sum(), w)
+    assert torch.allclose(g, g_ref, atol=1e-4)
+
+
+@pytest.mark.parametrize("nvec", [[90], [6, 5, 6, 5, 3]])
+def test_action_head_logp_and_entropy_match_torch_categoricals(nvec):
+    from uavlora_rllib.algorithms.gru_actor import ActionHead
+
+    head = ActionHead(nvec)
+    torch.manual_seed(4)
+    logits = torch.randn(3, 4, 2, sum(nvec)) * 2  # [B, T, U, logits]
+    actions, logp_sampled = head.sample(logits)
+    logp, ent = head.logp_and_entropy(logits, actions)
+    parts = torch.split(logits, nvec, dim=-1)
+    acts = [actions] if len(nvec) == 1 else list(actions.unbind(-1))
+    dists = [torch.distributions.Categorical(logits=p) for p in parts]
+    assert torch.allclose(logp, sum(d.log_prob(a) for d, a in zip(dists, acts)), atol=1e-5)
+    assert torch.allclose(ent, sum(d.entropy() for d in dists), atol=1e-5)
+    assert torch.allclose(logp_sampled, logp, atol=1e-6) and logp.shape == (3, 4, 2)
+
+
 def test_inference_only_module_has_no_critic():
     m = _module(SMALL, "central", inference_only=True)
     assert not hasattr(m, "critic")

@@ -8,7 +8,9 @@ GRU carrying the agent's history:
 Shapes: observations [B, T, U, obs_dim], GRU state [B, U, hidden], logits [B, T, U, n_logits].
 With `share_actor=True` (default) one network serves every UAV and the agent id is appended
 as a one-hot (input obs_dim + U); all agents run in ONE GRU call by folding the agent axis
-into the batch ([B, T, U, d] -> [B*U, T, d]). With `share_actor=False` each UAV has its own
+into the batch ([B, T, U, d] -> [B*U, T, d]). The first layer never builds the concatenated
+input: W [o; e_u] + b = W_o o + b + W_e[:, u], so the one-hot part is a per-agent bias (same
+parameters, same function and gradients, no [B, T, U, d + U] copy on the learner's hot path). With `share_actor=False` each UAV has its own
 network (input obs_dim, no id), run one after the other.
 
 `ActionHead` turns the logits into per-agent distributions: one categorical per agent
@@ -38,8 +40,12 @@ class _ActorNet(nn.Module):
 
     def forward(self, x: torch.Tensor, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """x [N, T, in_dim], h [N, hidden] -> logits [N, T, n_logits], h_out [N, hidden]."""
-        z, h_out = self.gru(self.pre(x), h.unsqueeze(0).contiguous())
-        return self.post(z), h_out.squeeze(0)
+        return self.recurrent(self.pre(x), h)
+
+    def recurrent(self, z: torch.Tensor, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The part after the first layer: z [N, T, fc_hidden] (post-ReLU), h [N, hidden]."""
+        out, h_out = self.gru(z, h.unsqueeze(0).contiguous())
+        return self.post(out), h_out.squeeze(0)
 
 
 class GRUActor(nn.Module):
@@ -60,7 +66,6 @@ class GRUActor(nn.Module):
         if share_actor:
             self.in_dim = obs_dim + n_agents
             self.net = _ActorNet(self.in_dim, fc_hidden, gru_hidden, n_logits)
-            self.register_buffer("agent_ids", torch.eye(n_agents), persistent=False)
         else:
             self.in_dim = obs_dim
             self.nets = nn.ModuleList(_ActorNet(obs_dim, fc_hidden, gru_hidden, n_logits) for _ in range(n_agents))
@@ -75,10 +80,11 @@ class GRUActor(nn.Module):
         if u != self.n_agents or d != self.obs_dim:
             raise ValueError(f"obs: expected [B, T, {self.n_agents}, {self.obs_dim}], got {tuple(obs.shape)}")
         if self.share_actor:
-            x = obs.permute(0, 2, 1, 3)  # [B, U, T, d]
-            ids = self.agent_ids.to(obs.dtype)[None, :, None, :].expand(b, u, t, u)
-            x = torch.cat([x, ids], dim=-1).reshape(b * u, t, self.in_dim)
-            logits, h_out = self.net(x, h.reshape(b * u, self.gru_hidden))
+            first = self.net.pre[0]
+            z = nn.functional.linear(obs, first.weight[:, :d], first.bias)  # [B, T, U, fc]
+            z = torch.relu(z + first.weight[:, d:].t())  # + the agent-id column of each agent
+            z = z.permute(0, 2, 1, 3).reshape(b * u, t, z.shape[-1])
+            logits, h_out = self.net.recurrent(z, h.reshape(b * u, self.gru_hidden))
             logits = logits.reshape(b, u, t, self.n_logits).permute(0, 2, 1, 3)
             return logits, h_out.reshape(b, u, self.gru_hidden)
         outs, hs = [], []
@@ -118,19 +124,14 @@ class ActionHead:
         acts = [part.argmax(dim=-1) for part in self._split(logits)]
         return torch.stack(acts, dim=-1) if self.multi else acts[0]
 
-    def logp(self, logits: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """Per-agent log-probability [..., U] of actions [..., U] or [..., U, L]."""
+    def logp_and_entropy(self, logits: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-agent log-probability [..., U] of actions [..., U] or [..., U, L], and per-agent
+        entropy [..., U] (both summed over an agent's components), from one log-softmax."""
         actions = actions.long()
-        total = 0.0
+        logp, ent = 0.0, 0.0
         for k, part in enumerate(self._split(logits)):
-            a = actions[..., k] if self.multi else actions
-            total = total + self._log_softmax(part).gather(-1, a.unsqueeze(-1)).squeeze(-1)
-        return total
-
-    def entropy(self, logits: torch.Tensor) -> torch.Tensor:
-        """Per-agent entropy [..., U] (sum over an agent's components)."""
-        total = 0.0
-        for part in self._split(logits):
             lp = self._log_softmax(part)
-            total = total - (lp.exp() * lp).sum(-1)
-        return total
+            a = actions[..., k] if self.multi else actions
+            logp = logp + lp.gather(-1, a.unsqueeze(-1)).squeeze(-1)
+            ent = ent - (lp.exp() * lp).sum(-1)
+        return logp, ent

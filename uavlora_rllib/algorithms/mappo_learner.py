@@ -166,12 +166,11 @@ class MAPPOTorchLearner(TorchLearner):
             return (x * mask).sum() / n_valid.clamp(min=1.0)
 
         logits = fwd_out[Columns.ACTION_DIST_INPUTS]
-        logp = module.head.logp(logits, batch[Columns.ACTIONS])  # [B, T, U]
+        logp, entropy = module.head.logp_and_entropy(logits, batch[Columns.ACTIONS])  # [B, T, U] each
         ratio = torch.exp(logp - batch[Columns.ACTION_LOGP])
         adv = batch[Postprocessing.ADVANTAGES]
         eps = config.clip_param
         surrogate = torch.min(ratio * adv, torch.clamp(ratio, 1 - eps, 1 + eps) * adv)
-        entropy = module.head.entropy(logits)
 
         values = module.compute_values(batch)
         targets = module.normalize(batch[Postprocessing.VALUE_TARGETS])

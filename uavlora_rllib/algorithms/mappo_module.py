@@ -72,19 +72,29 @@ class ValueNorm(nn.Module):
 
 
 class Critic(nn.Module):
+    """V(x, u): an MLP on [x; one-hot(u)]. The first layer is evaluated as W_x x + b + W_e[:, u]
+    (the same parameters and function as on the concatenated input): a global state shared by
+    all agents goes through W_x once per time step instead of once per agent."""
+
     def __init__(self, in_dim: int, hidden: int, n_agents: int, value_norm: bool):
         super().__init__()
         self.in_dim = in_dim + n_agents  # per-agent input + agent-id one-hot
+        self.n_agents = n_agents
         self.net = nn.Sequential(
             nn.Linear(self.in_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, 1)
         )
-        self.register_buffer("agent_ids", torch.eye(n_agents), persistent=False)
         self.value_norm = ValueNorm() if value_norm else None
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """x [..., U, d] (per-agent input without id) -> values [..., U] (normalised space)."""
-        ids = self.agent_ids.to(x.dtype).expand(*x.shape[:-1], self.agent_ids.shape[-1])
-        return self.net(torch.cat([x, ids], dim=-1)).squeeze(-1)
+    def forward(self, x: torch.Tensor, shared: bool = False) -> torch.Tensor:
+        """x [..., U, d] per agent, or [..., d] the same for every agent (shared=True), without
+        the id -> values [..., U] (normalised space)."""
+        first = self.net[0]
+        d = self.in_dim - self.n_agents
+        z = nn.functional.linear(x, first.weight[:, :d], first.bias)
+        if shared:
+            z = z.unsqueeze(-2)  # broadcast over the agent axis
+        z = z + first.weight[:, d:].t()  # [U, hidden]: the agent-id column of each agent
+        return self.net[1:](z).squeeze(-1)
 
 
 class MAPPOTorchRLModule(TorchRLModule, ValueFunctionAPI, InferenceOnlyAPI):
@@ -146,15 +156,15 @@ class MAPPOTorchRLModule(TorchRLModule, ValueFunctionAPI, InferenceOnlyAPI):
 
     # ---------------------------------------------------------------- critic
     def critic_input(self, batch: Dict[str, Any]) -> torch.Tensor:
-        """[..., U, d]: the global state repeated per agent (central) or each agent's row (local)."""
+        """The global state [..., S] (central; the same for every agent) or each agent's own
+        observation row [..., U, d] (local)."""
         if self.critic_kind == "central":
-            s = batch[STATE_COL].float()
-            return s.unsqueeze(-2).expand(*s.shape[:-1], self.n_agents, s.shape[-1])
+            return batch[STATE_COL].float()
         return batch[Columns.OBS].float()
 
     def compute_values(self, batch: Dict[str, Any], embeddings: Any = None) -> torch.Tensor:
         """Per-agent values [B, T, U] in the critic's (normalised, if value_norm) space."""
-        return self.critic(self.critic_input(batch))
+        return self.critic(self.critic_input(batch), shared=self.critic_kind == "central")
 
     def denormalize(self, values: torch.Tensor) -> torch.Tensor:
         vn = self.critic.value_norm
