@@ -56,16 +56,15 @@ class MAPPOHParams:
     num_epochs       15     passes over each train batch (paper)
     batch_episodes   16     train batch in EPISODES: train_batch_size = 16 x episode_len env
                             steps (paper's "batch 16"); each env step holds all U agents
-    num_minibatches  1      minibatches per epoch [-] (decision: MAPPO's reference implementation,
-                            whose defaults the paper's 15 epochs / clip 0.2 are, uses one:
-                            15 Adam steps per batch; minibatch_size = train_batch_size /
-                            num_minibatches env steps)
-    max_seq_len      10     GRU BPTT window [slots] (decision: the reference implementation's
+    num_minibatches  4      minibatches per epoch [-] (decision: 15 x 4 = 60 Adam steps per batch;
+                            minibatch_size = train_batch_size / num_minibatches env steps. One
+                            minibatch, MAPPO's reference default, runs ~1.3x faster per env step
+                            but at lr 1e-4 learned far less in 150k env steps: BENCHMARKS.md)
+    max_seq_len      10     GRU BPTT window [slots] (decision: MAPPO's reference
                             data_chunk_length; each window starts from the GRU state recorded
                             during the rollout, so only gradients are truncated; the per-slot
                             optimum is memoryless, SPEC.md, so longer credit paths buy nothing,
-                            and short windows give the GRU wide matrix products: ~2x faster
-                            learning than 32 on 2 CPUs, BENCHMARKS.md)
+                            and short windows give the GRU wider matrix products than 32 did)
     gru_hidden       128    GRU width (paper)
     fc_hidden        128    ReLU layer before and after the GRU (paper: ReLU; width a decision)
     critic_hidden    128    width of the critic's two ReLU layers (decision)
@@ -85,7 +84,7 @@ class MAPPOHParams:
     clip_param: float = Field(0.2, gt=0.0)
     num_epochs: int = Field(15, ge=1)
     batch_episodes: int = Field(16, ge=1)
-    num_minibatches: int = Field(1, ge=1)
+    num_minibatches: int = Field(4, ge=1)
     max_seq_len: int = Field(10, ge=1)
     gru_hidden: int = Field(128, ge=1)
     fc_hidden: int = Field(128, ge=1)

@@ -156,6 +156,14 @@ class MAPPOTorchLearner(TorchLearner):
     def rl_module_required_apis(cls) -> list[type]:
         return [ValueFunctionAPI]
 
+    def configure_optimizers_for_module(self, module_id, config=None) -> None:
+        # RLlib's default Adam, but with the multi-tensor ("foreach") step: on CPU torch picks
+        # the per-parameter loop, ~1 ms of small ops per minibatch update here (60 per batch).
+        params = self.get_parameters(self._module[module_id])
+        self.register_optimizer(
+            module_id=module_id, optimizer=torch.optim.Adam(params, foreach=True), params=params, lr_or_lr_schedule=config.lr
+        )
+
     def compute_loss_for_module(self, *, module_id, config, batch: Dict[str, Any], fwd_out: Dict[str, Any]):
         module = self.module[module_id].unwrapped()
         lcd = config.learner_config_dict
