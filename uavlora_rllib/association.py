@@ -22,8 +22,12 @@ one, which is worth 0, stay unassociated).
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+
+from uavlora_rllib import physics
 
 UNASSOCIATED = -1
 
@@ -76,6 +80,48 @@ def _deferred_acceptance(g: np.ndarray, ok: np.ndarray, quota: int) -> np.ndarra
         rank = rank + rejected  # proposers and displaced EDs move on to their next choice
     serving = np.empty_like(held)
     np.put_along_axis(serving, order, held, axis=-1)
+    return serving
+
+
+def nearest_uav(ed_xy: np.ndarray, uav_xy: np.ndarray) -> np.ndarray:
+    """Index of each ED's horizontally nearest UAV [..., V] (ties: the lowest index)."""
+    return np.argmin(physics.horizontal_distance_sq(ed_xy, uav_xy), axis=-2)
+
+
+def nearest_uav_on_line(ed_x: np.ndarray, spacing: float, n_uavs: int) -> np.ndarray:
+    """`nearest_uav` for UAVs at x_i = (i + 0.5) spacing on one horizontal line (SPEC.md's
+    layout), from the ED x coordinates alone: UAV i is nearest for x in (i s, (i + 1) s], the
+    lower index on the boundary tie, i.e. i = ceil(x / s) - 1 clipped to [0, U - 1]. O(V)."""
+    i = np.divide(ed_x, spacing)
+    np.ceil(i, out=i)
+    i -= 1.0
+    np.clip(i, 0.0, n_uavs - 1.0, out=i)
+    return i.astype(np.int64)
+
+
+def greedy_from_nearest(
+    nearest: np.ndarray,
+    d_h_nearest: np.ndarray,
+    comm_range_m: float,
+    quota: int,
+    n_uavs: int,
+    full_problem: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+) -> np.ndarray:
+    """`greedy_association` where the max-gain UAV is the nearest one (gain strictly decreasing
+    in d_h, `physics.gain_decreases_with_distance`), without the per-pair gains.
+
+    Each ED's first choice is its nearest UAV if that one is in range, and no UAV is in range
+    otherwise (all others are farther). Where those first choices fit in every quota (the
+    default layout) that IS the greedy matching. Scenarios where a quota binds get the full
+    `greedy_association` on (gains, d_h) = full_problem(mask of those scenarios)."""
+    reachable = d_h_nearest <= comm_range_m
+    serving = np.where(reachable, nearest, UNASSOCIATED)
+    if quota < nearest.shape[-1]:  # otherwise no quota can bind
+        counts = physics.group_sum(reachable, nearest, n_uavs)
+        binding = (counts > quota).any(axis=-1)
+        if binding.any():
+            g, d = full_problem(binding)
+            serving[binding] = greedy_association(g, d, comm_range_m, quota)
     return serving
 
 

@@ -31,7 +31,7 @@ from typing import Sequence
 import numpy as np
 
 from uavlora_rllib import physics
-from uavlora_rllib.association import UNASSOCIATED, associate
+from uavlora_rllib.association import UNASSOCIATED, associate, greedy_association, greedy_from_nearest, nearest_uav_on_line
 from uavlora_rllib.scenario import ScenarioConfig
 
 NOISE_CHUNK = 32  # steps of mobility noise drawn per refill
@@ -114,6 +114,32 @@ class BatchCore:
         self._flat_base = (self._env_idx[:, None] * (u * v) + np.arange(v)[None, :]).astype(np.int64)
         self._positions = np.broadcast_to(np.arange(v), (n_envs, v))
         self._obs_extra_xy = 2.0 * self.uav_xy / cfg.area_m - 1.0  # [U, 2], constant
+        # Channel/association path. "nearest": greedy association with the paper's SINR and a
+        # gain strictly decreasing in d_h, so every ED's max-gain UAV is its nearest one and
+        # the channel is needed at the serving UAV only ([N, V] work per step, not [N, U, V]);
+        # the per-pair d_h / gains / gain_db are then computed on demand (properties below).
+        # Otherwise ("pairs") every pair's channel is computed each step, as the optimal
+        # association or the cross_gain SINR need it.
+        self._nearest = (
+            cfg.association == "greedy"
+            and cfg.interference == "paper"
+            and physics.gain_decreases_with_distance(cfg)
+            and np.array_equal(self.uav_xy, physics.uav_positions(cfg))
+        )
+        self._spacing = cfg.area_m / u
+        self._row_base = (self._env_idx * v)[:, None]  # flat index of (e, 0) in an [N, V] array
+        self._act_base = (self._env_idx * u)[:, None]  # flat index of (e, 0) in an [N, U] array
+        self._grp_base = (self._env_idx * (u + 1))[:, None]  # groups: UAV 0..U-1, U = unassociated
+        width = self.obs_dim
+        self._obs_base = (self._env_idx * (u * width))[:, None]
+        self._obs_garbage = n_envs * u * width  # where the rows of unassociated EDs are written
+        template = np.zeros(n_envs * u * width + OBS_ROW)
+        template[: n_envs * u * width].reshape(n_envs, u, width)[..., self.quota * OBS_ROW + 1 :] = self._obs_extra_xy
+        self._obs_template = template
+        self._col = np.arange(OBS_ROW)
+        # per_uav action index -> (sf_idx, tp_idx, bw_idx), one row per joint action
+        self._decode = np.stack(decode_joint_action(np.arange(cfg.n_joint_actions), cfg), axis=-1).astype(np.int64)
+        self._pairs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     # ------------------------------------------------------------------ reset
     def reset(self, seed: int | Sequence[int | None] | None = None, mask: np.ndarray | None = None) -> np.ndarray:
@@ -203,55 +229,110 @@ class BatchCore:
     def _observe(self) -> None:
         """Channels, association and the observations of the current slot."""
         cfg = self.cfg
-        self.d_h = physics.horizontal_distance(self.ed_xy, self.uav_xy)  # [N, U, V]
-        path_loss = physics.path_loss_db(self.d_h, cfg)
-        self.gain_db = np.negative(path_loss, out=path_loss)
-        self.gains = physics.db_to_lin(self.gain_db)
-        self.serving = associate(self.gains, self.d_h, cfg.comm_range_m, self.quota, cfg.association)
-        self.associated = self.serving != UNASSOCIATED
-        self._serving_idx = np.where(self.associated, self.serving, 0)
-        self._serving_flat = self._flat_base + self._serving_idx * cfg.n_eds  # into [N, U, V]
-        g_serving = self.gain_db.reshape(-1).take(self._serving_flat)
-        # Slot of each served ED in its UAV's observation: rank by gain among that UAV's EDs
-        # (ties by ED id). Sort by gain (stable), then stably by serving UAV: each UAV's EDs
-        # form a run in gain order and an ED's slot is its offset within the run.
-        key = np.where(self.associated, g_serving, -np.inf)
-        order = np.argsort(-key, axis=-1, kind="stable")  # [N, V] best first
-        serving_sorted = physics.take_last(self.serving, order)
-        # U <= 64 (ScenarioConfig), so the ids fit in int8, for which the stable sort is a radix sort.
-        by_uav = np.argsort(serving_sorted.astype(np.int8), axis=-1, kind="stable")
-        grouped = physics.take_last(serving_sorted, by_uav)  # non-decreasing
-        pos = self._positions
-        run_start = np.where(grouped != np.concatenate([grouped[:, :1] - 1, grouped[:, :-1]], axis=-1), pos, 0)
-        slot = pos - np.maximum.accumulate(run_start, axis=-1)
-        slot[grouped == UNASSOCIATED] = -1
-        self.slot_of_ed = np.empty_like(slot)
-        self.slot_of_ed[self._env_idx[:, None], physics.take_last(order, by_uav)] = slot
-        self.obs = self._build_obs(g_serving)
+        self._pairs = None
+        if self._nearest:
+            near = nearest_uav_on_line(self.ed_xy[..., 0], self._spacing, cfg.n_uavs)
+            d2 = physics.horizontal_distance_sq_to(self.ed_xy, self.uav_xy, near)
+            d_h = np.sqrt(d2)
+            self._rebound = False
+            self.serving = greedy_from_nearest(near, d_h, cfg.comm_range_m, self.quota, cfg.n_uavs, self._binding_problem)
+            self.associated = self.serving != UNASSOCIATED
+            if self._rebound:  # a quota bound somewhere: some EDs are served by another UAV
+                near = np.where(self.associated, self.serving, near)
+                d2 = physics.horizontal_distance_sq_to(self.ed_xy, self.uav_xy, near)
+                d_h = np.sqrt(d2)
+            self._serving_idx = near  # unassociated EDs: their nearest UAV (any valid index)
+            self.g_serving, self.g_db_serving = physics.channel_gain_sq(d2, cfg, with_db=True)
+            self.d_h_serving = d_h
+        else:
+            d_h, gains, gain_db = self._pair_channels()
+            self.serving = associate(gains, d_h, cfg.comm_range_m, self.quota, cfg.association)
+            self.associated = self.serving != UNASSOCIATED
+            self._serving_idx = np.where(self.associated, self.serving, 0)
+            flat = (self._flat_base + self._serving_idx * cfg.n_eds).reshape(-1)  # into [N, U, V]
+            shape = self._serving_idx.shape
+            self.d_h_serving = d_h.reshape(-1).take(flat).reshape(shape)
+            self.g_serving = gains.reshape(-1).take(flat).reshape(shape)
+            self.g_db_serving = gain_db.reshape(-1).take(flat).reshape(shape)
+        self._all_associated = bool(self.associated.all())
+        self._slots()
+        self.obs = self._build_obs()
+
+    def _pair_channels(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(d_h, G, G_dB) of every UAV-ED pair [N, U, V] of the current slot (cached)."""
+        if self._pairs is None:
+            d2 = physics.horizontal_distance_sq(self.ed_xy, self.uav_xy)
+            gains, gain_db = physics.channel_gain_sq(d2, self.cfg, with_db=True)
+            self._pairs = (np.sqrt(d2, out=d2), gains, gain_db)
+        return self._pairs
+
+    def _binding_problem(self, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        self._rebound = True
+        d_h, gains, _ = self._pair_channels()
+        return gains[mask], d_h[mask]
+
+    @property
+    def d_h(self) -> np.ndarray:
+        """Horizontal distance of every UAV-ED pair [N, U, V] (current slot)."""
+        return self._pair_channels()[0]
+
+    @property
+    def gains(self) -> np.ndarray:
+        """Linear channel gain of every UAV-ED pair [N, U, V] (current slot)."""
+        return self._pair_channels()[1]
+
+    @property
+    def gain_db(self) -> np.ndarray:
+        """Channel gain in dB of every UAV-ED pair [N, U, V] (current slot)."""
+        return self._pair_channels()[2]
+
+    def _slots(self) -> None:
+        """slot_of_ed [N, V]: rank of each served ED by gain among its UAV's EDs (ties by ED id;
+        -1 if unassociated), and the served counts [N, U]. A stable sort by gain, then a stable
+        sort by serving UAV: each UAV's EDs form a run in gain order, and an ED's slot is its
+        position minus the start of its UAV's run (an exclusive cumulative sum of the counts)."""
+        n, v, u = self.n, self.cfg.n_eds, self.cfg.n_uavs
+        grp = self._serving_idx if self._all_associated else np.where(self.associated, self._serving_idx, u)
+        order = np.argsort(np.negative(self.g_serving), axis=-1, kind="stable")
+        order += self._row_base  # flat indices into [N, V]
+        grp_sorted = grp.reshape(-1).take(order)
+        # U <= 64 (ScenarioConfig): ids fit in int8, whose stable sort is a radix sort (faster for long rows).
+        by = np.argsort(grp_sorted.astype(np.int8) if v > 32 else grp_sorted, axis=-1, kind="stable")
+        by += self._row_base
+        grouped = grp_sorted.reshape(-1).take(by)  # [N, V] non-decreasing per row
+        counts = np.bincount((grouped + self._grp_base).reshape(-1), minlength=n * (u + 1)).reshape(n, u + 1)
+        start = np.cumsum(counts, axis=-1)
+        start -= counts
+        slot = self._positions - start.reshape(-1).take(grouped + self._grp_base)
+        if not self._all_associated:
+            slot[grouped == u] = -1
+        slot_of_ed = np.empty((n, v), dtype=np.int64)
+        slot_of_ed.reshape(-1)[order.reshape(-1).take(by)] = slot
+        self.slot_of_ed = slot_of_ed
+        self._counts = counts[:, :u]
 
     def _gain_feature(self, gain_db: np.ndarray) -> np.ndarray:
         return (gain_db - self._gain_db_mid) / self._gain_db_half
 
-    def _build_obs(self, g_serving_db: np.ndarray) -> np.ndarray:
+    def _build_obs(self) -> np.ndarray:
         cfg, n, q, n_u = self.cfg, self.n, self.quota, self.cfg.n_uavs
-        width = q * OBS_ROW + OBS_EXTRA
-        obs = np.zeros((n, n_u, width))
-        flat = obs.reshape(-1)  # a view
-        e, v = np.nonzero(self.associated)
-        u = self.serving[e, v]
-        # Row (e, u, slot) starts at flat offset (e U + u) width + OBS_ROW slot; one column at a time.
-        start = (e * n_u + u) * width + OBS_ROW * self.slot_of_ed[e, v]
-        xy = self.ed_xy[e, v]
-        xy *= 2.0
-        xy /= cfg.area_m
-        xy -= 1.0
-        flat[start] = xy[:, 0]
-        flat[start + 1] = xy[:, 1]
-        flat[start + 2] = self.d_h.reshape(-1).take(self._serving_flat[e, v]) / cfg.comm_range_m
-        flat[start + 3] = self._gain_feature(g_serving_db[e, v])
-        counts = np.bincount(e * n_u + u, minlength=n * n_u).reshape(n, n_u)
-        obs[..., q * OBS_ROW] = counts / self.quota
-        obs[..., q * OBS_ROW + 1 :] = self._obs_extra_xy
+        width = self.obs_dim
+        # Row (e, u, slot) of the flat observation buffer starts at (e U + u) width + OBS_ROW slot;
+        # unassociated EDs are written to a scratch row past the end.
+        start = self._serving_idx * width
+        start += self._obs_base
+        start += OBS_ROW * self.slot_of_ed
+        if not self._all_associated:
+            start = np.where(self.associated, start, self._obs_garbage)
+        feat = np.empty(self.ed_xy.shape[:-1] + (OBS_ROW,))
+        np.multiply(self.ed_xy, 2.0 / cfg.area_m, out=feat[..., :2])
+        feat[..., :2] -= 1.0
+        np.divide(self.d_h_serving, cfg.comm_range_m, out=feat[..., 2])
+        feat[..., 3] = self._gain_feature(self.g_db_serving)
+        buf = self._obs_template.copy()
+        buf[start[..., None] + self._col] = feat
+        obs = buf[: n * n_u * width].reshape(n, n_u, width)
+        np.divide(self._counts, q, out=obs[..., q * OBS_ROW])
         return obs
 
     # ------------------------------------------------------------------ actions
@@ -261,7 +342,8 @@ class BatchCore:
         actions = np.asarray(actions)
         if cfg.action_mode == "per_uav":
             self._check_range(actions, (self.n, cfg.n_uavs), cfg.n_joint_actions)
-            return decode_joint_action(physics.take_last(actions, self._serving_idx), cfg)
+            alloc = self._decode[actions.reshape(-1).take(self._serving_idx + self._act_base)]  # [N, V, 3]
+            return alloc[..., 0], alloc[..., 1], alloc[..., 2]
         length = per_device_action_len(cfg)
         highs = np.array([cfg.n_sf, cfg.n_tp] * self.quota + [cfg.n_bw])
         self._check_range(actions, (self.n, cfg.n_uavs, length), highs)
@@ -291,10 +373,13 @@ class BatchCore:
         if not self._ready:
             raise RuntimeError("call reset() before step()")
         sf, tp, bw = self.allocations(actions)
-        metrics = physics.slot_metrics(self.gains, self._serving_idx, self.associated, sf, tp, bw, self.cfg, self.tables)
-        prev = np.empty(sf.shape + (3,), dtype=np.int64)
-        prev[..., 0], prev[..., 1], prev[..., 2] = sf, tp, bw
-        prev[~self.associated] = -1
+        gains = None if self._nearest else self.gains
+        metrics = physics.slot_metrics(
+            gains, self._serving_idx, self.associated, sf, tp, bw, self.cfg, self.tables, g_serving=self.g_serving
+        )
+        prev = np.stack((sf, tp, bw), axis=-1)
+        if not self._all_associated:
+            prev[~self.associated] = -1
         self.prev_alloc = prev
         self.t += 1
         self._move()
