@@ -60,7 +60,8 @@ def _deferred_acceptance(g: np.ndarray, ok: np.ndarray, quota: int) -> np.ndarra
     g_sorted = np.take_along_axis(g, order[:, None, :], axis=-1)  # [N, U, V'] in priority order
     ok_sorted = np.take_along_axis(ok, order[:, None, :], axis=-1)
     # Each ED's preference list over UAVs (descending gain); only in-range entries are usable.
-    prefs = np.argsort(-g_sorted, axis=1, kind="stable")  # [N, U(rank), V']
+    # (sorted along a contiguous axis: [N, V', U] -> transposed back to [N, U(rank), V'])
+    prefs = np.argsort(-g_sorted.transpose(0, 2, 1), axis=-1, kind="stable").transpose(0, 2, 1)
     n_options = ok_sorted.sum(axis=1)  # [N, V']
 
     rank = np.zeros((n, n_eds), dtype=np.int64)  # next preference to try

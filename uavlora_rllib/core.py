@@ -130,13 +130,17 @@ class BatchCore:
         self._row_base = (self._env_idx * v)[:, None]  # flat index of (e, 0) in an [N, V] array
         self._act_base = (self._env_idx * u)[:, None]  # flat index of (e, 0) in an [N, U] array
         self._grp_base = (self._env_idx * (u + 1))[:, None]  # groups: UAV 0..U-1, U = unassociated
-        width = self.obs_dim
-        self._obs_base = (self._env_idx * (u * width))[:, None]
-        self._obs_garbage = n_envs * u * width  # where the rows of unassociated EDs are written
-        template = np.zeros(n_envs * u * width + OBS_ROW)
-        template[: n_envs * u * width].reshape(n_envs, u, width)[..., self.quota * OBS_ROW + 1 :] = self._obs_extra_xy
+        # Observations are written into a buffer of OBS_ROW-wide rows: per (scenario, UAV) the
+        # quota's ED rows, then one row holding the 3 extra features and one pad; obs is the
+        # [N, U, obs_dim] view of it. One more row at the end receives unassociated EDs.
+        q1 = self.quota + 1
+        self._obs_rows_base = (self._env_idx * (u * q1 * OBS_ROW))[:, None]  # flat offsets
+        self._obs_garbage = n_envs * u * q1 * OBS_ROW
+        self._xy_cols = np.arange(2)
+        template = np.zeros((n_envs * u * q1 + 1, OBS_ROW))
+        extra = template[:-1].reshape(n_envs, u, q1 * OBS_ROW)
+        extra[..., self.quota * OBS_ROW + 1 : self.quota * OBS_ROW + OBS_EXTRA] = self._obs_extra_xy
         self._obs_template = template
-        self._col = np.arange(OBS_ROW)
         # per_uav action index -> (sf_idx, tp_idx, bw_idx), one row per joint action
         self._decode = np.stack(decode_joint_action(np.arange(cfg.n_joint_actions), cfg), axis=-1).astype(np.int64)
         self._pairs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -267,9 +271,13 @@ class BatchCore:
         return self._pairs
 
     def _binding_problem(self, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(G, d_h) of every pair [M, U, V] of the scenarios in `mask` (where a quota binds)."""
         self._rebound = True
-        d_h, gains, _ = self._pair_channels()
-        return gains[mask], d_h[mask]
+        if self._pairs is not None:
+            return self._pairs[1][mask], self._pairs[0][mask]
+        d2 = physics.horizontal_distance_sq(self.ed_xy[mask], self.uav_xy)
+        gains = physics.channel_gain_sq(d2, self.cfg)
+        return gains, np.sqrt(d2, out=d2)
 
     @property
     def d_h(self) -> np.ndarray:
@@ -293,8 +301,17 @@ class BatchCore:
         position minus the start of its UAV's run (an exclusive cumulative sum of the counts)."""
         n, v, u = self.n, self.cfg.n_eds, self.cfg.n_uavs
         grp = self._serving_idx if self._all_associated else np.where(self.associated, self._serving_idx, u)
-        order = np.argsort(np.negative(self.g_serving), axis=-1, kind="stable")
-        order += self._row_base  # flat indices into [N, V]
+        key = np.negative(self.g_serving)
+        if v <= 32:
+            order = np.argsort(key, axis=-1, kind="stable")
+            order += self._row_base  # flat indices into [N, V]
+        else:  # long rows: the (SIMD) quicksort, unless a row has tied gains (then stable)
+            order = np.argsort(key, axis=-1)
+            order += self._row_base
+            ks = key.reshape(-1).take(order)
+            if (ks[:, 1:] == ks[:, :-1]).any():
+                order = np.argsort(key, axis=-1, kind="stable")
+                order += self._row_base
         grp_sorted = grp.reshape(-1).take(order)
         # U <= 64 (ScenarioConfig): ids fit in int8, whose stable sort is a radix sort (faster for long rows).
         by = np.argsort(grp_sorted.astype(np.int8) if v > 32 else grp_sorted, axis=-1, kind="stable")
@@ -316,24 +333,27 @@ class BatchCore:
 
     def _build_obs(self) -> np.ndarray:
         cfg, n, q, n_u = self.cfg, self.n, self.quota, self.cfg.n_uavs
-        width = self.obs_dim
-        # Row (e, u, slot) of the flat observation buffer starts at (e U + u) width + OBS_ROW slot;
-        # unassociated EDs are written to a scratch row past the end.
-        start = self._serving_idx * width
-        start += self._obs_base
+        q1 = q + 1
+        # Row of ED v: (e U + u) (quota + 1) + slot; unassociated EDs: the scratch row. Each
+        # feature is written by its own flat scatter from a contiguous array (NumPy's loops
+        # over a trailing axis of 2 or 4 are slow).
+        start = self._serving_idx * (q1 * OBS_ROW)
+        start += self._obs_rows_base
         start += OBS_ROW * self.slot_of_ed
         if not self._all_associated:
             start = np.where(self.associated, start, self._obs_garbage)
-        feat = np.empty(self.ed_xy.shape[:-1] + (OBS_ROW,))
-        np.multiply(self.ed_xy, 2.0 / cfg.area_m, out=feat[..., :2])
-        feat[..., :2] -= 1.0
-        np.divide(self.d_h_serving, cfg.comm_range_m, out=feat[..., 2])
-        feat[..., 3] = self._gain_feature(self.g_db_serving)
         buf = self._obs_template.copy()
-        buf[start[..., None] + self._col] = feat
-        obs = buf[: n * n_u * width].reshape(n, n_u, width)
+        flat = buf.reshape(-1)
+        xy = np.multiply(self.ed_xy, 2.0 / cfg.area_m)
+        xy -= 1.0
+        flat[start[..., None] + self._xy_cols] = xy
+        start += 2
+        flat[start] = np.divide(self.d_h_serving, cfg.comm_range_m)
+        start += 1
+        flat[start] = self._gain_feature(self.g_db_serving)
+        obs = buf[:-1].reshape(n, n_u, q1 * OBS_ROW)
         np.divide(self._counts, q, out=obs[..., q * OBS_ROW])
-        return obs
+        return obs[..., : q * OBS_ROW + OBS_EXTRA]
 
     # ------------------------------------------------------------------ actions
     def allocations(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -343,6 +363,7 @@ class BatchCore:
         if cfg.action_mode == "per_uav":
             self._check_range(actions, (self.n, cfg.n_uavs), cfg.n_joint_actions)
             alloc = self._decode[actions.reshape(-1).take(self._serving_idx + self._act_base)]  # [N, V, 3]
+            self._alloc = alloc
             return alloc[..., 0], alloc[..., 1], alloc[..., 2]
         length = per_device_action_len(cfg)
         highs = np.array([cfg.n_sf, cfg.n_tp] * self.quota + [cfg.n_bw])
@@ -372,12 +393,13 @@ class BatchCore:
     def step(self, actions: np.ndarray) -> StepResult:
         if not self._ready:
             raise RuntimeError("call reset() before step()")
+        self._alloc = None
         sf, tp, bw = self.allocations(actions)
         gains = None if self._nearest else self.gains
         metrics = physics.slot_metrics(
             gains, self._serving_idx, self.associated, sf, tp, bw, self.cfg, self.tables, g_serving=self.g_serving
         )
-        prev = np.stack((sf, tp, bw), axis=-1)
+        prev = np.stack((sf, tp, bw), axis=-1) if self._alloc is None else self._alloc
         if not self._all_associated:
             prev[~self.associated] = -1
         self.prev_alloc = prev
