@@ -53,32 +53,37 @@ def greedy_association(gains: np.ndarray, d_h: np.ndarray, comm_range_m: float, 
 
 
 def _deferred_acceptance(g: np.ndarray, ok: np.ndarray, quota: int) -> np.ndarray:
-    """ED-proposing deferred acceptance with the common priority order (see module docstring)."""
+    """ED-proposing deferred acceptance with the common priority order (see module docstring).
+
+    g: gains with -inf where out of range. Each round, every ED rejected in the previous one
+    proposes to its best in-range UAV not yet tried (argmax over the UAVs, ties: lowest index,
+    i.e. the next entry of its preference list); EDs held stay candidates of their UAV, and
+    each UAV keeps its `quota` highest-priority candidates."""
     n, n_uavs, n_eds = g.shape
     # Priority: descending best in-range gain; ties by ED index (stable sort).
-    order = np.argsort(-g.max(axis=1), axis=-1, kind="stable")  # [N, V] ED ids, best first
-    g_sorted = np.take_along_axis(g, order[:, None, :], axis=-1)  # [N, U, V'] in priority order
-    ok_sorted = np.take_along_axis(ok, order[:, None, :], axis=-1)
-    # Each ED's preference list over UAVs (descending gain); only in-range entries are usable.
-    # (sorted along a contiguous axis: [N, V', U] -> transposed back to [N, U(rank), V'])
-    prefs = np.argsort(-g_sorted.transpose(0, 2, 1), axis=-1, kind="stable").transpose(0, 2, 1)
-    n_options = ok_sorted.sum(axis=1)  # [N, V']
-
-    rank = np.zeros((n, n_eds), dtype=np.int64)  # next preference to try
-    held = np.full((n, n_eds), UNASSOCIATED, dtype=np.int64)  # UAV currently holding each ED
+    best = g.max(axis=1)  # [N, V]; -inf: no UAV in range
+    order = np.argsort(-best, axis=-1, kind="stable")  # [N, V] ED ids, best first
+    rows = np.arange(n)[:, None]
+    # [N, V', U] in priority order, contiguous along U; UAVs already tried are set to -inf
+    pref = np.ascontiguousarray(g.transpose(0, 2, 1))[rows, order]
+    candidate = np.argmax(pref, axis=-1)  # first choices
+    candidate[best[rows, order] == -np.inf] = UNASSOCIATED
     uav_ids = np.arange(n_uavs)[None, :, None]
     while True:
-        proposing = (held == UNASSOCIATED) & (rank < n_options)
-        if not proposing.any():
-            break
-        target = np.take_along_axis(prefs, np.minimum(rank, n_uavs - 1)[:, None, :], axis=1)[:, 0, :]
-        candidate_uav = np.where(proposing, target, held)  # held EDs stay candidates of their UAV
-        cand = candidate_uav[:, None, :] == uav_ids  # [N, U, V'], columns already in priority order
+        cand = candidate[:, None, :] == uav_ids  # [N, U, V'], columns already in priority order
         keep = cand & (np.cumsum(cand, axis=-1) <= quota)
         kept = keep.any(axis=1)
-        rejected = (candidate_uav != UNASSOCIATED) & ~kept
-        held = np.where(kept, candidate_uav, UNASSOCIATED)
-        rank = rank + rejected  # proposers and displaced EDs move on to their next choice
+        held = np.where(kept, candidate, UNASSOCIATED)
+        rejected = (candidate != UNASSOCIATED) & ~kept
+        if not rejected.any():
+            break
+        e, v = np.nonzero(rejected)  # proposers and displaced EDs move on to their next choice
+        pref[e, v, candidate[e, v]] = -np.inf
+        rows = pref[e, v]  # [K, U]
+        nxt = np.argmax(rows, axis=-1)
+        has_next = rows[np.arange(len(e)), nxt] > -np.inf
+        candidate = held
+        candidate[e[has_next], v[has_next]] = nxt[has_next]
     serving = np.empty_like(held)
     np.put_along_axis(serving, order, held, axis=-1)
     return serving
@@ -122,7 +127,8 @@ def greedy_from_nearest(
         binding = (counts > quota).any(axis=-1)
         if binding.any():
             g, d = full_problem(binding)
-            serving[binding] = greedy_association(g, d, comm_range_m, quota)
+            ok = in_range_mask(d, comm_range_m)
+            serving[binding] = _deferred_acceptance(np.where(ok, g, -np.inf), ok, quota)
     return serving
 
 

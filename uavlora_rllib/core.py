@@ -92,18 +92,20 @@ class BatchCore:
         self._gain_db_mid = (g_hi + g_lo) / 2.0
         self._gain_db_half = max((g_hi - g_lo) / 2.0, 1e-9)
         v, u = cfg.n_eds, cfg.n_uavs
-        self.ed_xy = np.zeros((n_envs, v, 2))
-        self.ed_vel = np.zeros((n_envs, v, 2))
-        self.ed_mean_vel = np.zeros((n_envs, v, 2))
+        # Mobility state, stored by coordinate ([2, N, V]: NumPy's loops over a trailing axis of 2
+        # are slow); ed_xy, ed_vel, ed_mean_vel are [N, V, 2] views of it (properties below).
+        self._xy = np.zeros((2, n_envs, v))
+        self._vel = np.zeros((2, n_envs, v))
+        self._mvel = np.zeros((2, n_envs, v))
         self.t = np.zeros(n_envs, dtype=np.int64)
         self.prev_alloc = np.full((n_envs, v, 3), -1, dtype=np.int64)
         self._rngs: list[np.random.Generator] = [np.random.default_rng() for _ in range(n_envs)]
-        self._gauss = np.zeros((n_envs, NOISE_CHUNK, v, 2))
+        self._gauss = np.zeros((n_envs, NOISE_CHUNK, 2, v))  # per step: (x, y) noise of every ED
         # One row of uniform [0, 1) draws per scenario: first the v-bar re-draw tests, then the
         # raw new v-bar values (mapped to [-v_max, v_max) when used); both are views into it.
         self._uniform = np.zeros((n_envs, 3 * NOISE_CHUNK * v))
         self._resample = self._uniform[:, : NOISE_CHUNK * v].reshape(n_envs, NOISE_CHUNK, v)
-        self._new_mean_raw = self._uniform[:, NOISE_CHUNK * v :].reshape(n_envs, NOISE_CHUNK, v, 2)
+        self._new_mean_raw = self._uniform[:, NOISE_CHUNK * v :].reshape(n_envs, NOISE_CHUNK, 2, v)
         self._cursor = np.zeros(n_envs, dtype=np.int64)
         self._seed_source = np.random.SeedSequence()
         self._ready = False
@@ -160,8 +162,8 @@ class BatchCore:
             self.ed_xy[i] = rng.uniform(0.0, cfg.area_m, size=(cfg.n_eds, 2))
             self.ed_vel[i] = rng.uniform(-mob.v_max_mps, mob.v_max_mps, size=(cfg.n_eds, 2))
             self._refill(i)
-        self.ed_vel[mask] = self._clip_speed(self.ed_vel[mask])
-        self.ed_mean_vel[mask] = mob.mean_velocity_init_mps
+        self._vel[:, mask] = self._clip_speed(self._vel[:, mask])
+        self._mvel[:, mask] = mob.mean_velocity_init_mps
         self.t[mask] = 0
         self.prev_alloc[mask] = -1
         self._ready = True
@@ -179,30 +181,50 @@ class BatchCore:
         return [s if s is not None else self._seed_source.spawn(1)[0] for s in seeds]
 
     def _refill(self, i: int) -> None:
-        # The stream is: standard_normal(NOISE_CHUNK, v, 2), random(NOISE_CHUNK, v), then
-        # uniform(-v_max, v_max, (NOISE_CHUNK, v, 2)). Generator.uniform(low, high) is
+        # The stream is: standard_normal(NOISE_CHUNK, 2, v), random(NOISE_CHUNK, v), then
+        # uniform(-v_max, v_max, (NOISE_CHUNK, 2, v)). Generator.uniform(low, high) is
         # low + (high - low) * next_double, the same doubles random() yields, so the last two
-        # are drawn as one random() call and the affine map is applied in _move (bit-identical).
+        # are drawn as one random() call and the affine map is applied in _move.
         rng = self._rngs[i]
         rng.standard_normal(out=self._gauss[i])
         rng.random(out=self._uniform[i])
         self._cursor[i] = 0
 
+    @property
+    def ed_xy(self) -> np.ndarray:
+        """ED positions [N, V, 2] (a view: writing into it moves the EDs)."""
+        return self._xy.transpose(1, 2, 0)
+
+    @property
+    def ed_vel(self) -> np.ndarray:
+        """ED velocities [N, V, 2] (a view)."""
+        return self._vel.transpose(1, 2, 0)
+
+    @property
+    def ed_mean_vel(self) -> np.ndarray:
+        """ED mean velocities v-bar [N, V, 2] (a view)."""
+        return self._mvel.transpose(1, 2, 0)
+
     # ------------------------------------------------------------------ dynamics
     def _clip_speed(self, vel: np.ndarray) -> np.ndarray:
+        """vel [2, ...] scaled (in place) to speed <= v_max."""
         vmax = self.cfg.mobility.v_max_mps
-        speed = np.sqrt(np.einsum("...k,...k->...", vel, vel))
+        speed = np.multiply(vel[0], vel[0])
+        speed += vel[1] * vel[1]
+        np.sqrt(speed, out=speed)
         np.maximum(speed, 1e-12, out=speed)
         factor = np.divide(vmax, speed, out=speed)
         np.minimum(factor, 1.0, out=factor)
-        return vel * factor[..., None]
+        vel *= factor
+        return vel
 
     def _move(self) -> None:
         """Eq. (gm) with SPEC.md's decisions: v-bar re-draw, speed clip, mirror reflection."""
         mob, area = self.cfg.mobility, self.cfg.area_m
-        for i in np.flatnonzero(self._cursor >= NOISE_CHUNK):
-            self._refill(i)
         c = self._cursor
+        if c[0] >= NOISE_CHUNK or not (c == c[0]).all():
+            for i in np.flatnonzero(c >= NOISE_CHUNK):
+                self._refill(i)
         if (c == c[0]).all():  # the usual case (no partial reset): views, no gather copies
             k = int(c[0])
             gauss, resample, new_raw = self._gauss[:, k], self._resample[:, k], self._new_mean_raw[:, k]
@@ -212,30 +234,31 @@ class BatchCore:
         redraw = resample < mob.mean_resample_prob
         if redraw.any():
             low = -mob.v_max_mps
-            new_mean = low + (mob.v_max_mps - low) * new_raw  # Generator.uniform's own formula
-            self.ed_mean_vel = np.where(redraw[..., None], new_mean, self.ed_mean_vel)
-        self._cursor += 1
+            new_mean = low + (mob.v_max_mps - low) * new_raw.transpose(1, 0, 2)  # Generator.uniform's formula
+            self._mvel = np.where(redraw, new_mean, self._mvel)
+        c += 1
         eth = mob.memory
-        # vel = eth v + (1 - eth) v-bar + sigma sqrt(1 - eth^2) w, in this order, in place.
-        vel = eth * self.ed_vel
-        vel += (1.0 - eth) * self.ed_mean_vel
-        vel += mob.sigma * np.sqrt(1.0 - eth * eth) * gauss
+        # vel = eth v + (1 - eth) v-bar + sigma sqrt(1 - eth^2) w, in this order.
+        vel = eth * self._vel
+        vel += (1.0 - eth) * self._mvel
+        vel += mob.sigma * np.sqrt(1.0 - eth * eth) * gauss.transpose(1, 0, 2)
         vel = self._clip_speed(vel)
         pos = vel * mob.dt_s
-        pos += self.ed_xy
+        pos += self._xy
         low, high = pos < 0.0, pos > area
         np.negative(pos, out=pos, where=low)
         np.subtract(2.0 * area, pos, out=pos, where=high)
-        np.negative(vel, out=vel, where=low | high)
-        self.ed_xy = np.clip(pos, 0.0, area, out=pos)  # guards a step longer than the area itself
-        self.ed_vel = vel
+        low |= high
+        np.negative(vel, out=vel, where=low)
+        self._xy = np.clip(pos, 0.0, area, out=pos)  # guards a step longer than the area itself
+        self._vel = vel
 
     def _observe(self) -> None:
         """Channels, association and the observations of the current slot."""
         cfg = self.cfg
         self._pairs = None
         if self._nearest:
-            near = nearest_uav_on_line(self.ed_xy[..., 0], self._spacing, cfg.n_uavs)
+            near = nearest_uav_on_line(self._xy[0], self._spacing, cfg.n_uavs)
             d2 = physics.horizontal_distance_sq_to(self.ed_xy, self.uav_xy, near)
             d_h = np.sqrt(d2)
             self._rebound = False
@@ -275,7 +298,7 @@ class BatchCore:
         self._rebound = True
         if self._pairs is not None:
             return self._pairs[1][mask], self._pairs[0][mask]
-        d2 = physics.horizontal_distance_sq(self.ed_xy[mask], self.uav_xy)
+        d2 = physics.horizontal_distance_sq(self._xy[:, mask].transpose(1, 2, 0), self.uav_xy)
         gains = physics.channel_gain_sq(d2, self.cfg)
         return gains, np.sqrt(d2, out=d2)
 
@@ -344,10 +367,12 @@ class BatchCore:
             start = np.where(self.associated, start, self._obs_garbage)
         buf = self._obs_template.copy()
         flat = buf.reshape(-1)
-        xy = np.multiply(self.ed_xy, 2.0 / cfg.area_m)
+        xy = np.multiply(self._xy, 2.0 / cfg.area_m)
         xy -= 1.0
-        flat[start[..., None] + self._xy_cols] = xy
-        start += 2
+        flat[start] = xy[0]
+        start += 1
+        flat[start] = xy[1]
+        start += 1
         flat[start] = np.divide(self.d_h_serving, cfg.comm_range_m)
         start += 1
         flat[start] = self._gain_feature(self.g_db_serving)

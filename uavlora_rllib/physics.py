@@ -53,7 +53,10 @@ def _row_offsets(lead: tuple[int, ...], n_groups: int) -> np.ndarray:
 def _group_index(groups: np.ndarray, n_groups: int, shape: tuple[int, ...]) -> np.ndarray:
     """Flat bin of each element of `groups` [..., V] (values in [0, n_groups)) in a
     [prod(shape[:-1]) * n_groups] array: row r, group g -> r * n_groups + g."""
-    return np.add(groups, _row_offsets(shape[:-1], n_groups)).reshape(-1)
+    off = _row_offsets(shape[:-1], n_groups)
+    if groups.shape != shape:
+        groups = np.broadcast_to(groups, shape)
+    return np.add(groups, off).reshape(-1)
 
 
 def group_sum(values: np.ndarray, groups: np.ndarray, n_groups: int) -> np.ndarray:
@@ -61,12 +64,12 @@ def group_sum(values: np.ndarray, groups: np.ndarray, n_groups: int) -> np.ndarr
 
     One np.bincount over the whole batch (each bin sums its elements in index order, so a
     row's result does not depend on the other rows); `groups` must lie in [0, n_groups)."""
-    shape = np.broadcast_shapes(np.shape(values), np.shape(groups))
+    values, groups = np.asarray(values), np.asarray(groups)
+    shape = values.shape if values.shape == groups.shape else np.broadcast_shapes(values.shape, groups.shape)
     idx = _group_index(groups, n_groups, shape)
-    w = np.broadcast_to(values, shape).reshape(-1)
-    return np.bincount(idx, weights=w, minlength=idx.size and (idx.size // shape[-1]) * n_groups).reshape(
-        shape[:-1] + (n_groups,)
-    )
+    w = values.reshape(-1) if values.shape == shape else np.broadcast_to(values, shape).reshape(-1)
+    n_bins = (idx.size // shape[-1]) * n_groups if idx.size else 0
+    return np.bincount(idx, weights=w, minlength=n_bins).reshape(shape[:-1] + (n_groups,))
 
 
 # ---------------------------------------------------------------- unit conversions
@@ -269,9 +272,9 @@ def _same_sf_onehot(sf_idx: np.ndarray, associated: np.ndarray, n_sf: int) -> np
 
 def _sinr_paper_tx(s_tx: np.ndarray, sf_idx: np.ndarray, n_sf: int) -> np.ndarray:
     """Eq. (sinr) given s_tx = the SNR of each ED, 0 for silent EDs (see `sinr_paper`)."""
-    shape = np.broadcast_shapes(s_tx.shape, sf_idx.shape)
+    shape = s_tx.shape if s_tx.shape == sf_idx.shape else np.broadcast_shapes(s_tx.shape, sf_idx.shape)
     idx = _group_index(sf_idx, n_sf, shape)
-    s_flat = np.broadcast_to(s_tx, shape).reshape(-1)
+    s_flat = s_tx.reshape(-1) if s_tx.shape == shape else np.broadcast_to(s_tx, shape).reshape(-1)
     total = np.bincount(idx, weights=s_flat, minlength=(idx.size // shape[-1]) * n_sf if idx.size else 0)
     interference = total.take(idx)  # sum over the ED's own SF, itself included
     interference -= s_flat
@@ -325,7 +328,7 @@ def rate_bps(
     """Eq. (shannon): R = W log2(1 + SINR), or the LoRa PHY bit rate (SPEC.md extension):
     R = SF W / 2^SF * 4 / (4 + CR), delivered only when SINR_dB >= rho_thr(SF, W)."""
     if model == "shannon":
-        return bw_hz * np.log2(1.0 + sinr)
+        return bw_hz * np.log2(np.add(sinr, 1.0))
     phy = sf * bw_hz / np.power(2.0, sf) * 4.0 / (4.0 + coding_rate)
     return np.where(lin_to_db(sinr) >= threshold_db, phy, 0.0)
 
@@ -351,7 +354,9 @@ def _ee_masked(rate: np.ndarray, p_tx: np.ndarray, serving_uav: np.ndarray, hove
 
 def success_rate(sinr_db: np.ndarray, threshold_db: np.ndarray, associated: np.ndarray) -> np.ndarray:
     """Xi[t]: share of ALL V EDs that are associated and decoded (SINR_dB >= rho_thr)."""
-    return (associated & (sinr_db >= threshold_db)).mean(axis=-1)
+    decoded = np.greater_equal(sinr_db, threshold_db)
+    decoded &= associated
+    return decoded.sum(axis=-1) / decoded.shape[-1]
 
 
 def margin_score(snr_db: np.ndarray, threshold_db: np.ndarray, associated: np.ndarray) -> np.ndarray:
@@ -359,11 +364,17 @@ def margin_score(snr_db: np.ndarray, threshold_db: np.ndarray, associated: np.nd
     min(m, 20) / 20 for m >= 0 and max(m / 2, -10) for m < 0; 0 when no ED is associated.
     (Evaluated as clip(m, -20, 20) / (20 if m >= 0 else 2): max(m / 2, -10) = max(m, -20) / 2.)"""
     m = np.subtract(snr_db, threshold_db)
-    score = np.clip(m, -20.0, 20.0)
+    score = np.maximum(m, -20.0)
+    np.minimum(score, 20.0, out=score)
     score /= np.where(m >= 0.0, 20.0, 2.0)
+    return _mean_over(score, associated, 0.0)
+
+
+def _mean_over(x: np.ndarray, associated: np.ndarray, empty: float) -> np.ndarray:
+    """Mean of x over the associated EDs (last axis); `empty` where none is associated."""
     n = associated.sum(axis=-1)
-    total = np.where(associated, score, 0.0).sum(axis=-1)
-    return np.where(n > 0, total / np.maximum(n, 1), 0.0)
+    total = np.where(associated, x, 0.0).sum(axis=-1)
+    return np.where(n > 0, total / np.maximum(n, 1), empty)
 
 
 def total_power_w(tx_power_w: np.ndarray, associated: np.ndarray, hover_w: float, n_uavs: int) -> np.ndarray:
@@ -445,14 +456,14 @@ def slot_metrics(
         sinr_lin = sinr_cross_gain(p_w, gains, serving_uav, sf_idx, associated, cfg.n_sf, tables.noise_w)
     sinr_db = lin_to_db(sinr_lin)
     # SINR = 0 for silent EDs, so their Shannon rate W log2(1) and their LoRa-PHY rate are 0.
-    rate = rate_bps(sinr_lin, bw_hz, tables.sf[sf_idx], thr_db, cfg.rate_model, cfg.lora_coding_rate)
+    sf = None if cfg.rate_model == "shannon" else tables.sf[sf_idx]
+    rate = rate_bps(sinr_lin, bw_hz, sf, thr_db, cfg.rate_model, cfg.lora_coding_rate)
     ee = _ee_masked(rate, p_tx, serving_uav, tables.hover_w, cfg.n_uavs)
     xi = success_rate(sinr_db, thr_db, associated)
     beta = margin_score(lin_to_db(s_tx), thr_db, associated)
     p_total = p_tx.sum(axis=-1)
     p_total += cfg.n_uavs * tables.hover_w
     n_assoc = associated.sum(axis=-1)
-    mean_sinr = np.where(associated, sinr_db, 0.0).sum(axis=-1)
     return {
         "reward": reward(ee, xi, beta, p_total, cfg.reward),
         "ee_sys": ee,
@@ -460,6 +471,6 @@ def slot_metrics(
         "beta": beta,
         "p_total_w": p_total,
         "rate_sum_bps": rate.sum(axis=-1),
-        "mean_sinr_db": np.where(n_assoc > 0, mean_sinr / np.maximum(n_assoc, 1), DB_FLOOR),
+        "mean_sinr_db": _mean_over(sinr_db, associated, DB_FLOOR),
         "n_unassociated": np.subtract(associated.shape[-1], n_assoc, dtype=np.float64),
     }
