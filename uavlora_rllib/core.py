@@ -77,9 +77,11 @@ def encode_joint_action(sf_idx, tp_idx, bw_idx, cfg: ScenarioConfig) -> np.ndarr
 class BatchCore:
     """N independent copies of the scenario, stepped together."""
 
-    def __init__(self, cfg: ScenarioConfig, n_envs: int = 1):
+    def __init__(self, cfg: ScenarioConfig, n_envs: int = 1, lookahead: int = 0):
         if n_envs < 1:
             raise ValueError(f"n_envs: must be >= 1, got {n_envs}")
+        if lookahead < 0 or (lookahead and n_envs != 1):
+            raise ValueError(f"lookahead: must be 0, or >= 1 with n_envs = 1; got {lookahead} with n_envs = {n_envs}")
         self.cfg = cfg
         self.n = n_envs
         self.tables = physics.Tables.from_config(cfg)
@@ -107,6 +109,9 @@ class BatchCore:
         self._resample = self._uniform[:, : NOISE_CHUNK * v].reshape(n_envs, NOISE_CHUNK, v)
         self._new_mean_raw = self._uniform[:, NOISE_CHUNK * v :].reshape(n_envs, NOISE_CHUNK, 2, v)
         self._cursor = np.zeros(n_envs, dtype=np.int64)
+        self._cursor_same: int | None = 0  # the cursor of every scenario while they agree
+        self._noise_scale = cfg.mobility.sigma * float(np.sqrt(1.0 - cfg.mobility.memory**2))
+        self._n_joint = cfg.n_joint_actions
         self._seed_source = np.random.SeedSequence()
         self._ready = False
         self.serving = np.full((n_envs, v), UNASSOCIATED, dtype=np.int64)
@@ -146,6 +151,14 @@ class BatchCore:
         # per_uav action index -> (sf_idx, tp_idx, bw_idx), one row per joint action
         self._decode = np.stack(decode_joint_action(np.arange(cfg.n_joint_actions), cfg), axis=-1).astype(np.int64)
         self._pairs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        # Lookahead (single scenario): actions change neither mobility nor the association
+        # (SPEC.md), so the positions, channels, association and observations of the next
+        # `lookahead` slots are computed at once, by a second core whose batch axis is time;
+        # step() then does only the action-dependent part. Same numbers as without it.
+        self._lookahead = lookahead
+        self._observer = BatchCore(cfg, lookahead) if lookahead else None
+        self._block: tuple | None = None
+        self._block_k = 0
 
     # ------------------------------------------------------------------ reset
     def reset(self, seed: int | Sequence[int | None] | None = None, mask: np.ndarray | None = None) -> np.ndarray:
@@ -166,8 +179,12 @@ class BatchCore:
         self._mvel[:, mask] = mob.mean_velocity_init_mps
         self.t[mask] = 0
         self.prev_alloc[mask] = -1
+        self._cursor_same = 0 if mask.all() else None
         self._ready = True
         self._observe()
+        if self._lookahead and mask.all():
+            self._ahead = (self._xy, self._vel, self._mvel)  # mobility state of the latest slot computed
+            self._block = None
         return self.obs
 
     def _seeds_for(self, seed: int | Sequence[int | None] | None) -> list:
@@ -212,6 +229,8 @@ class BatchCore:
         speed = np.multiply(vel[0], vel[0])
         speed += vel[1] * vel[1]
         np.sqrt(speed, out=speed)
+        if not (speed > vmax).any():  # the factor below would be 1 everywhere
+            return vel
         np.maximum(speed, 1e-12, out=speed)
         factor = np.divide(vmax, speed, out=speed)
         np.minimum(factor, 1.0, out=factor)
@@ -219,15 +238,26 @@ class BatchCore:
         return vel
 
     def _move(self) -> None:
-        """Eq. (gm) with SPEC.md's decisions: v-bar re-draw, speed clip, mirror reflection."""
+        self._xy, self._vel, self._mvel = self._advance(self._xy, self._vel, self._mvel)
+
+    def _advance(self, xy: np.ndarray, vel: np.ndarray, mvel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Eq. (gm) with SPEC.md's decisions: v-bar re-draw, speed clip, mirror reflection.
+        (position, velocity, mean velocity) [2, N, V] -> the next slot's, as new arrays."""
         mob, area = self.cfg.mobility, self.cfg.area_m
         c = self._cursor
-        if c[0] >= NOISE_CHUNK or not (c == c[0]).all():
+        k = self._cursor_same  # the common cursor of all scenarios, None after a partial reset
+        if k is None:
             for i in np.flatnonzero(c >= NOISE_CHUNK):
                 self._refill(i)
-        if (c == c[0]).all():  # the usual case (no partial reset): views, no gather copies
-            k = int(c[0])
+            if (c == c[0]).all():
+                k = self._cursor_same = int(c[0])
+        elif k >= NOISE_CHUNK:
+            for i in range(self.n):
+                self._refill(i)
+            k = 0
+        if k is not None:  # the usual case (no partial reset): views, no gather copies
             gauss, resample, new_raw = self._gauss[:, k], self._resample[:, k], self._new_mean_raw[:, k]
+            self._cursor_same = k + 1
         else:
             gauss = self._gauss[self._env_idx, c]
             resample, new_raw = self._resample[self._env_idx, c], self._new_mean_raw[self._env_idx, c]
@@ -235,23 +265,62 @@ class BatchCore:
         if redraw.any():
             low = -mob.v_max_mps
             new_mean = low + (mob.v_max_mps - low) * new_raw.transpose(1, 0, 2)  # Generator.uniform's formula
-            self._mvel = np.where(redraw, new_mean, self._mvel)
+            mvel = np.where(redraw, new_mean, mvel)
         c += 1
         eth = mob.memory
         # vel = eth v + (1 - eth) v-bar + sigma sqrt(1 - eth^2) w, in this order.
-        vel = eth * self._vel
-        vel += (1.0 - eth) * self._mvel
-        vel += mob.sigma * np.sqrt(1.0 - eth * eth) * gauss.transpose(1, 0, 2)
+        vel = eth * vel
+        vel += (1.0 - eth) * mvel
+        vel += self._noise_scale * gauss.transpose(1, 0, 2)
         vel = self._clip_speed(vel)
         pos = vel * mob.dt_s
-        pos += self._xy
+        pos += xy
         low, high = pos < 0.0, pos > area
-        np.negative(pos, out=pos, where=low)
-        np.subtract(2.0 * area, pos, out=pos, where=high)
-        low |= high
-        np.negative(vel, out=vel, where=low)
-        self._xy = np.clip(pos, 0.0, area, out=pos)  # guards a step longer than the area itself
-        self._vel = vel
+        out = low | high
+        if out.any():  # mirror at the borders
+            np.negative(pos, out=pos, where=low)
+            np.subtract(2.0 * area, pos, out=pos, where=high)
+            np.negative(vel, out=vel, where=out)
+            np.minimum(pos, area, out=pos)  # guards a step longer than the area itself
+            np.maximum(pos, 0.0, out=pos)
+        return pos, vel, mvel
+
+    def _next_slot(self) -> None:
+        """Move on to the next slot: positions, channels, association, observations."""
+        if not self._lookahead:
+            self._move()
+            self._observe()
+            return
+        self._block_k += 1
+        if self._block is None or self._block_k == self._lookahead:
+            self._compute_block()
+            self._block_k = 0
+        (serving, assoc, sidx, g, g_db, d_h, slot, counts, obs, all_assoc, xs, vs, ms) = self._block
+        k = self._block_k
+        row = slice(k, k + 1)
+        self.serving, self.associated, self._serving_idx = serving[row], assoc[row], sidx[row]
+        self.g_serving, self.g_db_serving, self.d_h_serving = g[row], g_db[row], d_h[row]
+        self.slot_of_ed, self._counts, self.obs = slot[row], counts[row], obs[row]
+        self._all_associated = all_assoc[k]
+        self._xy, self._vel, self._mvel = xs[k], vs[k], ms[k]
+        self._pairs = None
+
+    def _compute_block(self) -> None:
+        xy, vel, mvel = self._ahead
+        xs, vs, ms = [], [], []
+        for _ in range(self._lookahead):  # the mobility recursion is sequential in time
+            xy, vel, mvel = self._advance(xy, vel, mvel)
+            xs.append(xy)
+            vs.append(vel)
+            ms.append(mvel)
+        self._ahead = (xy, vel, mvel)
+        ob = self._observer
+        ob._xy = np.concatenate(xs, axis=1)  # [2, lookahead, V]: time as the batch axis
+        ob._observe()
+        self._block = (
+            ob.serving, ob.associated, ob._serving_idx, ob.g_serving, ob.g_db_serving, ob.d_h_serving,
+            ob.slot_of_ed, ob._counts, ob.obs, ob.associated.all(axis=-1).tolist(), xs, vs, ms,
+        )  # fmt: skip
 
     def _observe(self) -> None:
         """Channels, association and the observations of the current slot."""
@@ -386,7 +455,7 @@ class BatchCore:
         cfg = self.cfg
         actions = np.asarray(actions)
         if cfg.action_mode == "per_uav":
-            self._check_range(actions, (self.n, cfg.n_uavs), cfg.n_joint_actions)
+            self._check_range(actions, (self.n, cfg.n_uavs), self._n_joint)
             alloc = self._decode[actions.reshape(-1).take(self._serving_idx + self._act_base)]  # [N, V, 3]
             self._alloc = alloc
             return alloc[..., 0], alloc[..., 1], alloc[..., 2]
@@ -404,8 +473,13 @@ class BatchCore:
             raise ActionError(f"actions: expected shape {shape}, got {actions.shape}")
         if actions.dtype.kind not in "iu":  # signed or unsigned integers
             raise ActionError(f"actions: expected integers, got dtype {actions.dtype}")
-        if np.isscalar(high) and actions.size and 0 <= actions.min() and actions.max() < high:
-            return
+        if np.isscalar(high) and actions.size:
+            if actions.size <= 64:  # small: Python's min/max on a list beat two NumPy reductions
+                values = actions.ravel().tolist()
+                if 0 <= min(values) and max(values) < high:
+                    return
+            elif 0 <= actions.min() and actions.max() < high:
+                return
         bad = (actions < 0) | (actions >= high)
         if bad.any():
             idx = tuple(int(i) for i in np.argwhere(bad)[0])
@@ -429,8 +503,7 @@ class BatchCore:
             prev[~self.associated] = -1
         self.prev_alloc = prev
         self.t += 1
-        self._move()
-        self._observe()
+        self._next_slot()
         return StepResult(self.obs, metrics["reward"], self.t >= self.cfg.episode_len, metrics)
 
     # ------------------------------------------------------------------ global state

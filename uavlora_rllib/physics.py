@@ -270,8 +270,9 @@ def _same_sf_onehot(sf_idx: np.ndarray, associated: np.ndarray, n_sf: int) -> np
     return (sf_idx[..., None] == np.arange(n_sf)) & associated[..., None]
 
 
-def _sinr_paper_tx(s_tx: np.ndarray, sf_idx: np.ndarray, n_sf: int) -> np.ndarray:
-    """Eq. (sinr) given s_tx = the SNR of each ED, 0 for silent EDs (see `sinr_paper`)."""
+def _sinr_paper_tx(s_tx: np.ndarray, sf_idx: np.ndarray, n_sf: int, out: np.ndarray | None = None) -> np.ndarray:
+    """Eq. (sinr) given s_tx = the SNR of each ED, 0 for silent EDs (see `sinr_paper`);
+    `out`: a C-contiguous array of the broadcast shape to write the result into."""
     shape = s_tx.shape if s_tx.shape == sf_idx.shape else np.broadcast_shapes(s_tx.shape, sf_idx.shape)
     idx = _group_index(sf_idx, n_sf, shape)
     s_flat = s_tx.reshape(-1) if s_tx.shape == shape else np.broadcast_to(s_tx, shape).reshape(-1)
@@ -280,6 +281,9 @@ def _sinr_paper_tx(s_tx: np.ndarray, sf_idx: np.ndarray, n_sf: int) -> np.ndarra
     interference -= s_flat
     np.maximum(interference, 0.0, out=interference)
     interference += 1.0
+    if out is not None:
+        np.divide(s_flat, interference, out=out.reshape(-1))
+        return out
     return np.divide(s_flat, interference, out=interference).reshape(shape)
 
 
@@ -349,31 +353,34 @@ def _ee_masked(rate: np.ndarray, p_tx: np.ndarray, serving_uav: np.ndarray, hove
     watts = group_sum(p_tx, serving_uav, n_uavs)
     watts += hover_w
     bits /= watts
-    return bits.sum(axis=-1)
+    return np.add.reduce(bits, axis=-1)
 
 
 def success_rate(sinr_db: np.ndarray, threshold_db: np.ndarray, associated: np.ndarray) -> np.ndarray:
     """Xi[t]: share of ALL V EDs that are associated and decoded (SINR_dB >= rho_thr)."""
     decoded = np.greater_equal(sinr_db, threshold_db)
     decoded &= associated
-    return decoded.sum(axis=-1) / decoded.shape[-1]
+    return np.add.reduce(decoded, axis=-1) / decoded.shape[-1]
 
 
 def margin_score(snr_db: np.ndarray, threshold_db: np.ndarray, associated: np.ndarray) -> np.ndarray:
     """beta[t] (SPEC.md): mean over associated EDs of m = SNR_dB - rho_thr scored as
     min(m, 20) / 20 for m >= 0 and max(m / 2, -10) for m < 0; 0 when no ED is associated.
     (Evaluated as clip(m, -20, 20) / (20 if m >= 0 else 2): max(m / 2, -10) = max(m, -20) / 2.)"""
+    return _mean_over(_margin_points(snr_db, threshold_db), associated, np.add.reduce(associated, axis=-1), 0.0)
+
+
+def _margin_points(snr_db: np.ndarray, threshold_db: np.ndarray) -> np.ndarray:
     m = np.subtract(snr_db, threshold_db)
     score = np.maximum(m, -20.0)
     np.minimum(score, 20.0, out=score)
     score /= np.where(m >= 0.0, 20.0, 2.0)
-    return _mean_over(score, associated, 0.0)
+    return score
 
 
-def _mean_over(x: np.ndarray, associated: np.ndarray, empty: float) -> np.ndarray:
-    """Mean of x over the associated EDs (last axis); `empty` where none is associated."""
-    n = associated.sum(axis=-1)
-    total = np.where(associated, x, 0.0).sum(axis=-1)
+def _mean_over(x: np.ndarray, associated: np.ndarray, n: np.ndarray, empty: float) -> np.ndarray:
+    """Mean of x over the n associated EDs (last axis); `empty` where none is associated."""
+    total = np.add.reduce(np.where(associated, x, 0.0), axis=-1)
     return np.where(n > 0, total / np.maximum(n, 1), empty)
 
 
@@ -445,32 +452,55 @@ def slot_metrics(
     """
     if g_serving is None:
         g_serving = at_serving(gains, serving_uav)
+    sf_idx = np.asarray(sf_idx)
     p_w = tables.tp_w[tp_idx]
     bw_hz = tables.bw_hz[bw_idx]
     thr_db = tables.threshold_db[sf_idx, bw_idx]
-    p_tx = np.where(associated, p_w, 0.0)  # silent EDs transmit nothing
-    s_tx = snr(p_tx, g_serving, tables.noise_w)  # = rho_v for associated EDs, 0 for silent ones
+    shapes = (p_w.shape, np.shape(g_serving), np.shape(associated), sf_idx.shape, np.shape(serving_uav))
+    shape = shapes[0] if shapes.count(shapes[0]) == len(shapes) else np.broadcast_shapes(*shapes)
+    # Quantities that are reduced the same way are computed into one [2, ...] buffer each, so
+    # that each reduction is one NumPy call (a step at N = 1 is dominated by per-call costs).
+    lin = np.empty((2,) + shape)  # SNR and SINR (linear) of every ED
+    tx = np.empty((2,) + shape)  # rate and transmit power of every ED (0 for silent EDs)
+    p_tx = tx[1]
+    np.multiply(p_w, associated, out=p_tx)  # silent EDs transmit nothing (P * False = 0)
+    s_tx = np.multiply(p_tx, g_serving, out=lin[0])  # = rho_v for associated EDs, 0 for silent ones
+    s_tx /= tables.noise_w  # snr(): P G / sigma^2
     if cfg.interference == "paper":
-        sinr_lin = _sinr_paper_tx(s_tx, np.asarray(sf_idx), cfg.n_sf)
+        sinr_lin = _sinr_paper_tx(s_tx, sf_idx, cfg.n_sf, out=lin[1])
     else:
-        sinr_lin = sinr_cross_gain(p_w, gains, serving_uav, sf_idx, associated, cfg.n_sf, tables.noise_w)
-    sinr_db = lin_to_db(sinr_lin)
+        sinr_lin = lin[1]
+        sinr_lin[...] = sinr_cross_gain(p_w, gains, serving_uav, sf_idx, associated, cfg.n_sf, tables.noise_w)
+    db = lin_to_db(lin)
+    snr_db, sinr_db = db[0], db[1]
     # SINR = 0 for silent EDs, so their Shannon rate W log2(1) and their LoRa-PHY rate are 0.
     sf = None if cfg.rate_model == "shannon" else tables.sf[sf_idx]
-    rate = rate_bps(sinr_lin, bw_hz, sf, thr_db, cfg.rate_model, cfg.lora_coding_rate)
-    ee = _ee_masked(rate, p_tx, serving_uav, tables.hover_w, cfg.n_uavs)
-    xi = success_rate(sinr_db, thr_db, associated)
-    beta = margin_score(lin_to_db(s_tx), thr_db, associated)
-    p_total = p_tx.sum(axis=-1)
+    tx[0] = rate_bps(sinr_lin, bw_hz, sf, thr_db, cfg.rate_model, cfg.lora_coding_rate)
+    # EE (Eq. sys_ee): per-UAV sums of rate and power, both by one bincount
+    idx = _group_index(np.asarray(serving_uav), cfg.n_uavs, shape)
+    n_bins = idx.size // shape[-1] * cfg.n_uavs
+    per_uav = np.bincount(np.concatenate((idx, idx + n_bins)), weights=tx.reshape(-1), minlength=2 * n_bins)
+    per_uav = per_uav.reshape((2,) + shape[:-1] + (cfg.n_uavs,))
+    watts = per_uav[1]
+    watts += tables.hover_w
+    ee = np.add.reduce(np.divide(per_uav[0], watts, out=watts), axis=-1)
+    rate_sum, p_total = np.add.reduce(tx, axis=-1)
     p_total += cfg.n_uavs * tables.hover_w
-    n_assoc = associated.sum(axis=-1)
+    xi = success_rate(sinr_db, thr_db, associated)
+    # means over the associated EDs: beta's margin points and the SINR in dB
+    n_assoc = np.add.reduce(associated, axis=-1)
+    db[0] = _margin_points(snr_db, thr_db)
+    means = np.add.reduce(np.where(associated, db, 0.0), axis=-1)
+    means /= np.maximum(n_assoc, 1)
+    has = n_assoc > 0
+    beta = np.where(has, means[0], 0.0)
     return {
         "reward": reward(ee, xi, beta, p_total, cfg.reward),
         "ee_sys": ee,
         "success_rate": xi,
         "beta": beta,
         "p_total_w": p_total,
-        "rate_sum_bps": rate.sum(axis=-1),
-        "mean_sinr_db": _mean_over(sinr_db, associated, DB_FLOOR),
+        "rate_sum_bps": rate_sum,
+        "mean_sinr_db": np.where(has, means[1], DB_FLOOR),
         "n_unassociated": np.subtract(associated.shape[-1], n_assoc, dtype=np.float64),
     }
