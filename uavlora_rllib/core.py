@@ -2,7 +2,7 @@
 
 Arrays are shaped [N, ...]: EDs [N, V, 2], channels [N, U, V], actions [N, U] (per_uav) or
 [N, U, 2 Lambda + 1] (per_device). No Python loop runs over EDs or UAVs in a step; the only
-per-scenario loop refills the random-number buffers every `NOISE_CHUNK` steps (each
+per-scenario loop refills the random-number buffers every `noise_chunk(cfg)` steps (each
 scenario owns a numpy Generator, so that scenario i of a batch seeded with s replays
 exactly the single scenario seeded with s + i, bit for bit, as in Gymnasium's vector envs).
 
@@ -34,7 +34,8 @@ from uavlora_rllib import physics
 from uavlora_rllib.association import UNASSOCIATED, associate, greedy_association, greedy_from_nearest, nearest_uav_on_line
 from uavlora_rllib.scenario import ScenarioConfig
 
-NOISE_CHUNK = 32  # steps of mobility noise drawn per refill
+NOISE_CHUNK = 32  # steps of mobility noise drawn per refill (see noise_chunk)
+NOISE_EPISODE_MAX = 2048  # an episode's noise of at most this many (steps x EDs) is drawn at once
 OBS_ROW = 4  # (x, y, d, G) per served ED
 OBS_EXTRA = 3  # served count / quota, UAV x, UAV y
 
@@ -49,6 +50,12 @@ class StepResult:
     reward: np.ndarray  # [N] shared reward of the slot just played
     truncated: np.ndarray  # [N] bool
     metrics: dict[str, np.ndarray]  # physics.SLOT_METRICS, each [N]
+
+
+def noise_chunk(cfg: ScenarioConfig) -> int:
+    """Steps of mobility noise each scenario draws per refill: the whole episode when it is
+    small (one refill per episode, none wasted), else NOISE_CHUNK."""
+    return cfg.episode_len if cfg.episode_len * cfg.n_eds <= NOISE_EPISODE_MAX else NOISE_CHUNK
 
 
 def obs_dim(cfg: ScenarioConfig) -> int:
@@ -102,12 +109,13 @@ class BatchCore:
         self.t = np.zeros(n_envs, dtype=np.int64)
         self.prev_alloc = np.full((n_envs, v, 3), -1, dtype=np.int64)
         self._rngs: list[np.random.Generator] = [np.random.default_rng() for _ in range(n_envs)]
-        self._gauss = np.zeros((n_envs, NOISE_CHUNK, 2, v))  # per step: (x, y) noise of every ED
+        self._chunk = chunk = noise_chunk(cfg)
+        self._gauss = np.zeros((n_envs, chunk, 2, v))  # per step: (x, y) noise of every ED
         # One row of uniform [0, 1) draws per scenario: first the v-bar re-draw tests, then the
         # raw new v-bar values (mapped to [-v_max, v_max) when used); both are views into it.
-        self._uniform = np.zeros((n_envs, 3 * NOISE_CHUNK * v))
-        self._resample = self._uniform[:, : NOISE_CHUNK * v].reshape(n_envs, NOISE_CHUNK, v)
-        self._new_mean_raw = self._uniform[:, NOISE_CHUNK * v :].reshape(n_envs, NOISE_CHUNK, 2, v)
+        self._uniform = np.zeros((n_envs, 3 * chunk * v))
+        self._resample = self._uniform[:, : chunk * v].reshape(n_envs, chunk, v)
+        self._new_mean_raw = self._uniform[:, chunk * v :].reshape(n_envs, chunk, 2, v)
         self._cursor = np.zeros(n_envs, dtype=np.int64)
         self._cursor_same: int | None = 0  # the cursor of every scenario while they agree
         self._noise_scale = cfg.mobility.sigma * float(np.sqrt(1.0 - cfg.mobility.memory**2))
@@ -198,8 +206,8 @@ class BatchCore:
         return [s if s is not None else self._seed_source.spawn(1)[0] for s in seeds]
 
     def _refill(self, i: int) -> None:
-        # The stream is: standard_normal(NOISE_CHUNK, 2, v), random(NOISE_CHUNK, v), then
-        # uniform(-v_max, v_max, (NOISE_CHUNK, 2, v)). Generator.uniform(low, high) is
+        # The stream is: standard_normal(chunk, 2, v), random(chunk, v), then
+        # uniform(-v_max, v_max, (chunk, 2, v)). Generator.uniform(low, high) is
         # low + (high - low) * next_double, the same doubles random() yields, so the last two
         # are drawn as one random() call and the affine map is applied in _move.
         rng = self._rngs[i]
@@ -247,11 +255,11 @@ class BatchCore:
         c = self._cursor
         k = self._cursor_same  # the common cursor of all scenarios, None after a partial reset
         if k is None:
-            for i in np.flatnonzero(c >= NOISE_CHUNK):
+            for i in np.flatnonzero(c >= self._chunk):
                 self._refill(i)
             if (c == c[0]).all():
                 k = self._cursor_same = int(c[0])
-        elif k >= NOISE_CHUNK:
+        elif k >= self._chunk:
             for i in range(self.n):
                 self._refill(i)
             k = 0
