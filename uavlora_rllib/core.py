@@ -107,7 +107,8 @@ class BatchCore:
         self._vel = np.zeros((2, n_envs, v))
         self._mvel = np.zeros((2, n_envs, v))
         self.t = np.zeros(n_envs, dtype=np.int64)
-        self.prev_alloc = np.full((n_envs, v, 3), -1, dtype=np.int64)
+        self._prev_alloc = np.full((n_envs, v, 3), -1, dtype=np.int64)
+        self._prev_parts: tuple | None = None  # (sf, tp, bw, associated) of the slot just played
         self._rngs: list[np.random.Generator] = [np.random.default_rng() for _ in range(n_envs)]
         self._chunk = chunk = noise_chunk(cfg)
         self._gauss = np.zeros((n_envs, chunk, 2, v))  # per step: (x, y) noise of every ED
@@ -156,9 +157,9 @@ class BatchCore:
         extra = template[:-1].reshape(n_envs, u, q1 * OBS_ROW)
         extra[..., self.quota * OBS_ROW + 1 : self.quota * OBS_ROW + OBS_EXTRA] = self._obs_extra_xy
         self._obs_template = template
+        self._pairs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         # per_uav action index -> (sf_idx, tp_idx, bw_idx), one row per joint action
         self._decode = np.stack(decode_joint_action(np.arange(cfg.n_joint_actions), cfg), axis=-1).astype(np.int64)
-        self._pairs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         # Lookahead (single scenario): actions change neither mobility nor the association
         # (SPEC.md), so the positions, channels, association and observations of the next
         # `lookahead` slots are computed at once, by a second core whose batch axis is time;
@@ -186,7 +187,7 @@ class BatchCore:
         self._vel[:, mask] = self._clip_speed(self._vel[:, mask])
         self._mvel[:, mask] = mob.mean_velocity_init_mps
         self.t[mask] = 0
-        self.prev_alloc[mask] = -1
+        self.prev_alloc[mask] = -1  # (materialises the previous slot's, then clears the reset ones)
         self._cursor_same = 0 if mask.all() else None
         self._ready = True
         self._observe()
@@ -237,12 +238,16 @@ class BatchCore:
         speed = np.multiply(vel[0], vel[0])
         speed += vel[1] * vel[1]
         np.sqrt(speed, out=speed)
-        if not (speed > vmax).any():  # the factor below would be 1 everywhere
+        fast = speed > vmax
+        if not fast.any():  # the factor min(v_max / speed, 1) would be 1 everywhere
             return vel
-        np.maximum(speed, 1e-12, out=speed)
-        factor = np.divide(vmax, speed, out=speed)
+        # scale only where the factor is below 1 (elsewhere vel * 1 = vel)
+        i = np.nonzero(fast)
+        s = speed[i]
+        np.maximum(s, 1e-12, out=s)
+        factor = np.divide(vmax, s, out=s)
         np.minimum(factor, 1.0, out=factor)
-        vel *= factor
+        vel[(slice(None),) + i] *= factor
         return vel
 
     def _move(self) -> None:
@@ -270,10 +275,11 @@ class BatchCore:
             gauss = self._gauss[self._env_idx, c]
             resample, new_raw = self._resample[self._env_idx, c], self._new_mean_raw[self._env_idx, c]
         redraw = resample < mob.mean_resample_prob
-        if redraw.any():
+        if redraw.any():  # (rare: written where it happens)
+            e, v = np.nonzero(redraw)
             low = -mob.v_max_mps
-            new_mean = low + (mob.v_max_mps - low) * new_raw.transpose(1, 0, 2)  # Generator.uniform's formula
-            mvel = np.where(redraw, new_mean, mvel)
+            mvel = mvel.copy()
+            mvel[:, e, v] = low + (mob.v_max_mps - low) * new_raw[e, :, v].T  # Generator.uniform's formula
         c += 1
         eth = mob.memory
         # vel = eth v + (1 - eth) v-bar + sigma sqrt(1 - eth^2) w, in this order.
@@ -285,12 +291,14 @@ class BatchCore:
         pos += xy
         low, high = pos < 0.0, pos > area
         out = low | high
-        if out.any():  # mirror at the borders
-            np.negative(pos, out=pos, where=low)
-            np.subtract(2.0 * area, pos, out=pos, where=high)
-            np.negative(vel, out=vel, where=out)
-            np.minimum(pos, area, out=pos)  # guards a step longer than the area itself
-            np.maximum(pos, 0.0, out=pos)
+        if out.any():  # mirror at the borders (few EDs: only theirs are touched)
+            i = np.nonzero(out)
+            p = pos[i]
+            p = np.where(low[i], -p, 2.0 * area - p)
+            np.minimum(p, area, out=p)  # guards a step longer than the area itself
+            np.maximum(p, 0.0, out=p)
+            pos[i] = p
+            vel[i] = -vel[i]
         return pos, vel, mvel
 
     def _next_slot(self) -> None:
@@ -464,9 +472,12 @@ class BatchCore:
         actions = np.asarray(actions)
         if cfg.action_mode == "per_uav":
             self._check_range(actions, (self.n, cfg.n_uavs), self._n_joint)
-            alloc = self._decode[actions.reshape(-1).take(self._serving_idx + self._act_base)]  # [N, V, 3]
-            self._alloc = alloc
-            return alloc[..., 0], alloc[..., 1], alloc[..., 2]
+            idx = self._serving_idx + self._act_base  # flat index of each ED's serving UAV in [N, U]
+            if idx.size <= 4096:  # small: one lookup in the decoding table (fewest NumPy calls)
+                alloc = self._decode[actions.reshape(-1).take(idx)]  # [N, V, 3]
+                return alloc[..., 0], alloc[..., 1], alloc[..., 2]
+            sf, tp, bw = decode_joint_action(actions, cfg)  # [N, U] each, then 3 contiguous gathers
+            return sf.reshape(-1).take(idx), tp.reshape(-1).take(idx), bw.reshape(-1).take(idx)
         length = per_device_action_len(cfg)
         highs = np.array([cfg.n_sf, cfg.n_tp] * self.quota + [cfg.n_bw])
         self._check_range(actions, (self.n, cfg.n_uavs, length), highs)
@@ -500,19 +511,27 @@ class BatchCore:
     def step(self, actions: np.ndarray) -> StepResult:
         if not self._ready:
             raise RuntimeError("call reset() before step()")
-        self._alloc = None
         sf, tp, bw = self.allocations(actions)
         gains = None if self._nearest else self.gains
         metrics = physics.slot_metrics(
             gains, self._serving_idx, self.associated, sf, tp, bw, self.cfg, self.tables, g_serving=self.g_serving
         )
-        prev = np.stack((sf, tp, bw), axis=-1) if self._alloc is None else self._alloc
-        if not self._all_associated:
-            prev[~self.associated] = -1
-        self.prev_alloc = prev
+        self._prev_parts = (sf, tp, bw, None if self._all_associated else self.associated)
         self.t += 1
         self._next_slot()
         return StepResult(self.obs, metrics["reward"], self.t >= self.cfg.episode_len, metrics)
+
+    @property
+    def prev_alloc(self) -> np.ndarray:
+        """Each ED's (sf_idx, tp_idx, bw_idx) in the slot just played [N, V, 3]; -1 where it was
+        silent or no slot was played since the reset (built on first access)."""
+        if self._prev_parts is not None:
+            sf, tp, bw, assoc = self._prev_parts
+            prev = np.stack((sf, tp, bw), axis=-1)
+            if assoc is not None:
+                prev[~assoc] = -1
+            self._prev_alloc, self._prev_parts = prev, None
+        return self._prev_alloc
 
     # ------------------------------------------------------------------ global state
     def state(self) -> np.ndarray:
