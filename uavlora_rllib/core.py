@@ -212,7 +212,9 @@ class BatchCore:
         # low + (high - low) * next_double, the same doubles random() yields, so the last two
         # are drawn as one random() call and the affine map is applied in _move.
         rng = self._rngs[i]
-        rng.standard_normal(out=self._gauss[i])
+        gauss = self._gauss[i]
+        rng.standard_normal(out=gauss)
+        gauss *= self._noise_scale  # stored as sigma sqrt(1 - eth^2) w, the term Eq. (gm) adds
         rng.random(out=self._uniform[i])
         self._cursor[i] = 0
 
@@ -238,6 +240,12 @@ class BatchCore:
         speed = np.multiply(vel[0], vel[0])
         speed += vel[1] * vel[1]
         np.sqrt(speed, out=speed)
+        if speed.size <= 4096:  # small: the plain form, fewest NumPy calls
+            np.maximum(speed, 1e-12, out=speed)
+            factor = np.divide(vmax, speed, out=speed)
+            np.minimum(factor, 1.0, out=factor)
+            vel *= factor
+            return vel
         fast = speed > vmax
         if not fast.any():  # the factor min(v_max / speed, 1) would be 1 everywhere
             return vel
@@ -285,7 +293,7 @@ class BatchCore:
         # vel = eth v + (1 - eth) v-bar + sigma sqrt(1 - eth^2) w, in this order.
         vel = eth * vel
         vel += (1.0 - eth) * mvel
-        vel += self._noise_scale * gauss.transpose(1, 0, 2)
+        vel += gauss.transpose(1, 0, 2)  # (already scaled, see _refill)
         vel = self._clip_speed(vel)
         pos = vel * mob.dt_s
         pos += xy

@@ -278,8 +278,7 @@ def _sinr_paper_tx(s_tx: np.ndarray, sf_idx: np.ndarray, n_sf: int, out: np.ndar
     s_flat = s_tx.reshape(-1) if s_tx.shape == shape else np.broadcast_to(s_tx, shape).reshape(-1)
     total = np.bincount(idx, weights=s_flat, minlength=(idx.size // shape[-1]) * n_sf if idx.size else 0)
     interference = total.take(idx)  # sum over the ED's own SF, itself included
-    interference -= s_flat
-    np.maximum(interference, 0.0, out=interference)
+    interference -= s_flat  # >= 0 exactly: a running sum of terms >= 0 never falls below one of them
     interference += 1.0
     if out is not None:
         np.divide(s_flat, interference, out=out.reshape(-1))
@@ -328,13 +327,23 @@ def rate_bps(
     threshold_db: np.ndarray,
     model: Literal["shannon", "lora_phy"] = "shannon",
     coding_rate: int = 1,
+    out: np.ndarray | None = None,
 ) -> np.ndarray:
     """Eq. (shannon): R = W log2(1 + SINR), or the LoRa PHY bit rate (SPEC.md extension):
-    R = SF W / 2^SF * 4 / (4 + CR), delivered only when SINR_dB >= rho_thr(SF, W)."""
+    R = SF W / 2^SF * 4 / (4 + CR), delivered only when SINR_dB >= rho_thr(SF, W).
+    `out`: an array of the result's shape for the Shannon rate to be written into."""
     if model == "shannon":
-        return bw_hz * np.log2(np.add(sinr, 1.0))
+        if out is None:
+            return bw_hz * np.log2(np.add(sinr, 1.0))
+        np.add(sinr, 1.0, out=out)
+        np.log2(out, out=out)
+        return np.multiply(bw_hz, out, out=out)
     phy = sf * bw_hz / np.power(2.0, sf) * 4.0 / (4.0 + coding_rate)
-    return np.where(lin_to_db(sinr) >= threshold_db, phy, 0.0)
+    r = np.where(lin_to_db(sinr) >= threshold_db, phy, 0.0)
+    if out is not None:
+        out[...] = r
+        return out
+    return r
 
 
 # ---------------------------------------------------------------- EE (Eq. sys_ee) and the reward terms
@@ -456,8 +465,10 @@ def slot_metrics(
     p_w = tables.tp_w[tp_idx]
     bw_hz = tables.bw_hz[bw_idx]
     thr_db = tables.threshold_db[sf_idx, bw_idx]
-    shapes = (p_w.shape, np.shape(g_serving), np.shape(associated), sf_idx.shape, np.shape(serving_uav))
-    shape = shapes[0] if shapes.count(shapes[0]) == len(shapes) else np.broadcast_shapes(*shapes)
+    g_serving, associated, serving_uav = np.asarray(g_serving), np.asarray(associated), np.asarray(serving_uav)
+    shape = p_w.shape
+    if not (shape == g_serving.shape == associated.shape == sf_idx.shape == serving_uav.shape):
+        shape = np.broadcast_shapes(shape, g_serving.shape, associated.shape, sf_idx.shape, serving_uav.shape)
     # Quantities that are reduced the same way are computed into one [2, ...] buffer each, so
     # that each reduction is one NumPy call (a step at N = 1 is dominated by per-call costs).
     lin = np.empty((2,) + shape)  # SNR and SINR (linear) of every ED
@@ -475,9 +486,9 @@ def slot_metrics(
     snr_db, sinr_db = db[0], db[1]
     # SINR = 0 for silent EDs, so their Shannon rate W log2(1) and their LoRa-PHY rate are 0.
     sf = None if cfg.rate_model == "shannon" else tables.sf[sf_idx]
-    tx[0] = rate_bps(sinr_lin, bw_hz, sf, thr_db, cfg.rate_model, cfg.lora_coding_rate)
+    rate_bps(sinr_lin, bw_hz, sf, thr_db, cfg.rate_model, cfg.lora_coding_rate, out=tx[0])
     # EE (Eq. sys_ee): per-UAV sums of rate and power, both by one bincount
-    idx = _group_index(np.asarray(serving_uav), cfg.n_uavs, shape)
+    idx = _group_index(serving_uav, cfg.n_uavs, shape)
     n_bins = idx.size // shape[-1] * cfg.n_uavs
     per_uav = np.bincount(np.concatenate((idx, idx + n_bins)), weights=tx.reshape(-1), minlength=2 * n_bins)
     per_uav = per_uav.reshape((2,) + shape[:-1] + (cfg.n_uavs,))
