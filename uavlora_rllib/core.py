@@ -316,7 +316,7 @@ class BatchCore:
             self._observe()
             return
         self._block_k += 1
-        if self._block is None or self._block_k == self._lookahead:
+        if self._block is None or self._block_k == self._block_len:
             self._compute_block()
             self._block_k = 0
         (serving, assoc, sidx, g, g_db, d_h, slot, counts, obs, all_assoc, xs, vs, ms) = self._block
@@ -330,16 +330,20 @@ class BatchCore:
         self._pairs = None
 
     def _compute_block(self) -> None:
+        """The next slots (at most `lookahead`, and none past the end of the episode unless
+        the episode is already over): mobility one slot at a time, the rest at once."""
+        left = self.cfg.episode_len - int(self.t[0]) + 1  # slots t .. episode_len
+        self._block_len = m = min(self._lookahead, left) if left > 0 else self._lookahead
         xy, vel, mvel = self._ahead
         xs, vs, ms = [], [], []
-        for _ in range(self._lookahead):  # the mobility recursion is sequential in time
+        for _ in range(m):  # the mobility recursion is sequential in time
             xy, vel, mvel = self._advance(xy, vel, mvel)
             xs.append(xy)
             vs.append(vel)
             ms.append(mvel)
         self._ahead = (xy, vel, mvel)
         ob = self._observer
-        ob._xy = np.concatenate(xs, axis=1)  # [2, lookahead, V]: time as the batch axis
+        ob._xy = np.concatenate(xs + xs[-1:] * (self._lookahead - m), axis=1)  # [2, lookahead, V]: time as the batch axis
         ob._observe()
         self._block = (
             ob.serving, ob.associated, ob._serving_idx, ob.g_serving, ob.g_db_serving, ob.d_h_serving,

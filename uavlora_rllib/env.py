@@ -22,7 +22,7 @@ from uavlora_rllib.scenario import ScenarioConfig
 
 ENV_NAME = "uavlora"
 _NP_INTS = frozenset(np.sctypeDict[k] for k in ("int8", "int16", "int32", "int64", "uint8", "uint16", "uint32", "uint64"))
-LOOKAHEAD = 16  # slots of positions/channels/association/observations precomputed at once (BatchCore)
+LOOKAHEAD = 32  # slots of positions/channels/association/observations precomputed at once (BatchCore)
 STATE_KEY = "state"
 
 
