@@ -119,7 +119,9 @@ def greedy_from_nearest(
     Each ED's first choice is its nearest UAV if that one is in range, and no UAV is in range
     otherwise (all others are farther). Where those first choices fit in every quota (the
     default layout) that IS the greedy matching. Scenarios where a quota binds get the full
-    `greedy_association` on (gains, d_h) = full_problem(mask of those scenarios)."""
+    greedy matching (deferred acceptance) on (key, d_h) = full_problem(mask of those
+    scenarios), [M, U, V] each: `key` is the gain or any strictly increasing function of it
+    (the matching depends only on the order of the gains), e.g. -d_h^2."""
     reachable = d_h_nearest <= comm_range_m
     serving = np.where(reachable, nearest, UNASSOCIATED)
     if quota < nearest.shape[-1]:  # otherwise no quota can bind

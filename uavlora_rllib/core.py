@@ -240,22 +240,10 @@ class BatchCore:
         speed = np.multiply(vel[0], vel[0])
         speed += vel[1] * vel[1]
         np.sqrt(speed, out=speed)
-        if speed.size <= 4096:  # small: the plain form, fewest NumPy calls
-            np.maximum(speed, 1e-12, out=speed)
-            factor = np.divide(vmax, speed, out=speed)
-            np.minimum(factor, 1.0, out=factor)
-            vel *= factor
-            return vel
-        fast = speed > vmax
-        if not fast.any():  # the factor min(v_max / speed, 1) would be 1 everywhere
-            return vel
-        # scale only where the factor is below 1 (elsewhere vel * 1 = vel)
-        i = np.nonzero(fast)
-        s = speed[i]
-        np.maximum(s, 1e-12, out=s)
-        factor = np.divide(vmax, s, out=s)
+        np.maximum(speed, 1e-12, out=speed)
+        factor = np.divide(vmax, speed, out=speed)
         np.minimum(factor, 1.0, out=factor)
-        vel[(slice(None),) + i] *= factor
+        vel *= factor
         return vel
 
     def _move(self) -> None:
@@ -391,13 +379,12 @@ class BatchCore:
         return self._pairs
 
     def _binding_problem(self, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(G, d_h) of every pair [M, U, V] of the scenarios in `mask` (where a quota binds)."""
+        """(-d_h^2, d_h) of every pair [M, U, V] of the scenarios in `mask` (where a quota
+        binds). -d_h^2 orders the pairs as their gains do (G strictly decreases with d_h here),
+        which is all the greedy matching looks at: no transcendental needed."""
         self._rebound = True
-        if self._pairs is not None:
-            return self._pairs[1][mask], self._pairs[0][mask]
         d2 = physics.horizontal_distance_sq(self._xy[:, mask].transpose(1, 2, 0), self.uav_xy)
-        gains = physics.channel_gain_sq(d2, self.cfg)
-        return gains, np.sqrt(d2, out=d2)
+        return np.negative(d2), np.sqrt(d2, out=d2)
 
     @property
     def d_h(self) -> np.ndarray:
