@@ -68,11 +68,22 @@ def _deferred_acceptance(g: np.ndarray, ok: np.ndarray, quota: int) -> np.ndarra
     pref = np.ascontiguousarray(g.transpose(0, 2, 1))[rows, order]
     candidate = np.argmax(pref, axis=-1)  # first choices
     candidate[best[rows, order] == -np.inf] = UNASSOCIATED
-    uav_ids = np.arange(n_uavs)[None, :, None]
+    pos = np.arange(n_eds)
+    group_base = (np.arange(n) * (n_uavs + 1))[:, None]
+    row_base = (np.arange(n) * n_eds)[:, None]
     while True:
-        cand = candidate[:, None, :] == uav_ids  # [N, U, V'], columns already in priority order
-        keep = cand & (np.cumsum(cand, axis=-1) <= quota)
-        kept = keep.any(axis=1)
+        # A UAV keeps a candidate iff fewer than `quota` of its candidates come earlier in the
+        # priority order (the columns): rank each candidate within its UAV by a stable sort of
+        # the UAV ids (U + 1 = none), as in BatchCore._slots.
+        grp = np.where(candidate == UNASSOCIATED, n_uavs, candidate)
+        by = np.argsort(grp.astype(np.int8), axis=-1, kind="stable")  # U <= 64
+        by += row_base
+        grouped = grp.reshape(-1).take(by) + group_base  # flat (row, UAV) group of each sorted entry
+        counts = np.bincount(grouped.reshape(-1), minlength=n * (n_uavs + 1))
+        start = np.cumsum(counts) - counts  # first sorted position of each group (flat)
+        kept_sorted = (grouped - group_base < n_uavs) & (pos - (start.take(grouped) - row_base) < quota)
+        kept = np.empty_like(kept_sorted)
+        kept.reshape(-1)[by.reshape(-1)] = kept_sorted.reshape(-1)
         held = np.where(kept, candidate, UNASSOCIATED)
         rejected = (candidate != UNASSOCIATED) & ~kept
         if not rejected.any():
