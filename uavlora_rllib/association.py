@@ -52,21 +52,34 @@ def greedy_association(gains: np.ndarray, d_h: np.ndarray, comm_range_m: float, 
     return serving
 
 
-def _deferred_acceptance(g: np.ndarray, ok: np.ndarray, quota: int) -> np.ndarray:
+def stable_argsort(key: np.ndarray) -> np.ndarray:
+    """np.argsort(key, axis=-1, kind="stable") for [N, V]: the (SIMD) quicksort when no row has
+    tied keys (then every sort gives the same order), else the stable sort."""
+    if key.shape[-1] <= 32:
+        return np.argsort(key, axis=-1, kind="stable")
+    order = np.argsort(key, axis=-1)
+    ks = np.take_along_axis(key, order, axis=-1)
+    if (ks[..., 1:] == ks[..., :-1]).any():
+        return np.argsort(key, axis=-1, kind="stable")
+    return order
+
+
+def _deferred_acceptance(g: np.ndarray, ok: np.ndarray, quota: int, first: np.ndarray | None = None) -> np.ndarray:
     """ED-proposing deferred acceptance with the common priority order (see module docstring).
 
     g: gains with -inf where out of range. Each round, every ED rejected in the previous one
     proposes to its best in-range UAV not yet tried (argmax over the UAVs, ties: lowest index,
     i.e. the next entry of its preference list); EDs held stay candidates of their UAV, and
-    each UAV keeps its `quota` highest-priority candidates."""
+    each UAV keeps its `quota` highest-priority candidates. `first`: each ED's first choice
+    [N, V] when the caller knows it (the argmax over the UAVs of g)."""
     n, n_uavs, n_eds = g.shape
     # Priority: descending best in-range gain; ties by ED index (stable sort).
     best = g.max(axis=1)  # [N, V]; -inf: no UAV in range
-    order = np.argsort(-best, axis=-1, kind="stable")  # [N, V] ED ids, best first
+    order = stable_argsort(-best)  # [N, V] ED ids, best first
     rows = np.arange(n)[:, None]
     # [N, V', U] in priority order, contiguous along U; UAVs already tried are set to -inf
     pref = np.ascontiguousarray(g.transpose(0, 2, 1))[rows, order]
-    candidate = np.argmax(pref, axis=-1)  # first choices
+    candidate = np.argmax(pref, axis=-1) if first is None else first[rows, order]  # first choices
     candidate[best[rows, order] == -np.inf] = UNASSOCIATED
     pos = np.arange(n_eds)
     group_base = (np.arange(n) * (n_uavs + 1))[:, None]
@@ -141,7 +154,7 @@ def greedy_from_nearest(
         if binding.any():
             g, d = full_problem(binding)
             ok = in_range_mask(d, comm_range_m)
-            serving[binding] = _deferred_acceptance(np.where(ok, g, -np.inf), ok, quota)
+            serving[binding] = _deferred_acceptance(np.where(ok, g, -np.inf), ok, quota, nearest[binding])
     return serving
 
 

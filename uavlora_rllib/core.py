@@ -31,7 +31,13 @@ from typing import Sequence
 import numpy as np
 
 from uavlora_rllib import physics
-from uavlora_rllib.association import UNASSOCIATED, associate, greedy_association, greedy_from_nearest, nearest_uav_on_line
+from uavlora_rllib.association import (
+    UNASSOCIATED,
+    associate,
+    greedy_from_nearest,
+    nearest_uav_on_line,
+    stable_argsort,
+)
 from uavlora_rllib.scenario import ScenarioConfig
 
 NOISE_CHUNK = 32  # steps of mobility noise drawn per refill (see noise_chunk)
@@ -274,7 +280,7 @@ class BatchCore:
         if redraw.any():  # (rare: written where it happens)
             e, v = np.nonzero(redraw)
             low = -mob.v_max_mps
-            mvel = mvel.copy()
+            mvel = mvel.copy()  # (the previous slot's array may be kept, e.g. by the lookahead)
             mvel[:, e, v] = low + (mob.v_max_mps - low) * new_raw[e, :, v].T  # Generator.uniform's formula
         c += 1
         eth = mob.memory
@@ -288,13 +294,14 @@ class BatchCore:
         low, high = pos < 0.0, pos > area
         out = low | high
         if out.any():  # mirror at the borders (few EDs: only theirs are touched)
-            i = np.nonzero(out)
-            p = pos[i]
-            p = np.where(low[i], -p, 2.0 * area - p)
+            i = np.flatnonzero(out)  # pos, vel: new C-contiguous arrays, so reshape(-1) is a view
+            pos_f, vel_f = pos.reshape(-1), vel.reshape(-1)
+            p = pos_f[i]
+            p = np.where(low.reshape(-1)[i], -p, 2.0 * area - p)
             np.minimum(p, area, out=p)  # guards a step longer than the area itself
             np.maximum(p, 0.0, out=p)
-            pos[i] = p
-            vel[i] = -vel[i]
+            pos_f[i] = p
+            vel_f[i] = -vel_f[i]
         return pos, vel, mvel
 
     def _next_slot(self) -> None:
@@ -408,17 +415,8 @@ class BatchCore:
         position minus the start of its UAV's run (an exclusive cumulative sum of the counts)."""
         n, v, u = self.n, self.cfg.n_eds, self.cfg.n_uavs
         grp = self._serving_idx if self._all_associated else np.where(self.associated, self._serving_idx, u)
-        key = np.negative(self.g_serving)
-        if v <= 32:
-            order = np.argsort(key, axis=-1, kind="stable")
-            order += self._row_base  # flat indices into [N, V]
-        else:  # long rows: the (SIMD) quicksort, unless a row has tied gains (then stable)
-            order = np.argsort(key, axis=-1)
-            order += self._row_base
-            ks = key.reshape(-1).take(order)
-            if (ks[:, 1:] == ks[:, :-1]).any():
-                order = np.argsort(key, axis=-1, kind="stable")
-                order += self._row_base
+        order = stable_argsort(np.negative(self.g_serving))
+        order += self._row_base  # flat indices into [N, V]
         grp_sorted = grp.reshape(-1).take(order)
         # U <= 64 (ScenarioConfig): ids fit in int8, whose stable sort is a radix sort (faster for long rows).
         by = np.argsort(grp_sorted.astype(np.int8) if v > 32 else grp_sorted, axis=-1, kind="stable")
