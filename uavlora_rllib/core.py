@@ -353,13 +353,14 @@ class BatchCore:
             near = nearest_uav_on_line(self._xy[0], self._spacing, cfg.n_uavs)
             d2 = physics.horizontal_distance_sq_to(self.ed_xy, self.uav_xy, near)
             d_h = np.sqrt(d2)
-            self._rebound = False
+            self._rebound = None
             self.serving = greedy_from_nearest(near, d_h, cfg.comm_range_m, self.quota, cfg.n_uavs, self._binding_problem)
             self.associated = self.serving != UNASSOCIATED
-            if self._rebound:  # a quota bound somewhere: some EDs are served by another UAV
-                near = np.where(self.associated, self.serving, near)
-                d2 = physics.horizontal_distance_sq_to(self.ed_xy, self.uav_xy, near)
-                d_h = np.sqrt(d2)
+            if self._rebound is not None:  # a quota bound: there some EDs are served by another UAV
+                m = self._rebound
+                near[m] = np.where(self.associated[m], self.serving[m], near[m])
+                d2[m] = physics.horizontal_distance_sq_to(self.ed_xy[m], self.uav_xy, near[m])
+                d_h[m] = np.sqrt(d2[m])
             self._serving_idx = near  # unassociated EDs: their nearest UAV (any valid index)
             self.g_serving, self.g_db_serving = physics.channel_gain_sq(d2, cfg, with_db=True)
             self.d_h_serving = d_h
@@ -389,7 +390,7 @@ class BatchCore:
         """(-d_h^2, d_h) of every pair [M, U, V] of the scenarios in `mask` (where a quota
         binds). -d_h^2 orders the pairs as their gains do (G strictly decreases with d_h here),
         which is all the greedy matching looks at: no transcendental needed."""
-        self._rebound = True
+        self._rebound = mask
         d2 = physics.horizontal_distance_sq(self._xy[:, mask].transpose(1, 2, 0), self.uav_xy)
         return np.negative(d2), np.sqrt(d2, out=d2)
 

@@ -464,7 +464,7 @@ def slot_metrics(
     sf_idx = np.asarray(sf_idx)
     p_w = tables.tp_w[tp_idx]
     bw_hz = tables.bw_hz[bw_idx]
-    thr_db = tables.threshold_db[sf_idx, bw_idx]
+    thr_db = tables.threshold_db.reshape(-1).take(sf_idx * tables.threshold_db.shape[1] + bw_idx)
     g_serving, associated, serving_uav = np.asarray(g_serving), np.asarray(associated), np.asarray(serving_uav)
     shape = p_w.shape
     if not (shape == g_serving.shape == associated.shape == sf_idx.shape == serving_uav.shape):
