@@ -66,7 +66,7 @@ def test_rllib_multiagent_env_check(mode):
 )
 def test_batch_equals_single_runs_bit_for_bit(fields):
     """BatchCore(N) seeded s == N runs of BatchCore(1) seeded s, s+1, ..., over a full episode
-    (150 steps: with V >= 14 this crosses several refills of the noise buffers, core.noise_chunk)."""
+    (150 steps: crosses several refills of the noise buffers)."""
     cfg = make_cfg(**fields)
     n, seed, rng = 4, 17, np.random.default_rng(0)
     actions = [random_actions(cfg, n, rng) for _ in range(cfg.episode_len)]
@@ -365,7 +365,7 @@ def test_ed_right_under_a_uav_is_finite(mode):
     assert all(np.isfinite(v).all() for v in res.metrics.values())
 
 
-@pytest.mark.parametrize("n_eds", [8, 30])  # noise drawn once per episode / every 32 steps (core.noise_chunk)
+@pytest.mark.parametrize("n_eds", [8, 30])
 def test_partial_reset_replays_single_runs(n_eds):
     """reset(seed, mask) restarts only the masked scenarios; each scenario still equals its own
     single run (the batch's noise cursors then differ between scenarios)."""

@@ -2,7 +2,7 @@
 
 Arrays are shaped [N, ...]: EDs [N, V, 2], channels [N, U, V], actions [N, U] (per_uav) or
 [N, U, 2 Lambda + 1] (per_device). No Python loop runs over EDs or UAVs in a step; the only
-per-scenario loop refills the random-number buffers every `noise_chunk(cfg)` steps (each
+per-scenario loop refills the random-number buffers every `NOISE_CHUNK` steps (each
 scenario owns a numpy Generator, so that scenario i of a batch seeded with s replays
 exactly the single scenario seeded with s + i, bit for bit, as in Gymnasium's vector envs).
 
@@ -40,8 +40,7 @@ from uavlora_rllib.association import (
 )
 from uavlora_rllib.scenario import ScenarioConfig
 
-NOISE_CHUNK = 32  # steps of mobility noise drawn per refill (see noise_chunk)
-NOISE_EPISODE_MAX = 2048  # an episode's noise of at most this many (steps x EDs) is drawn at once
+NOISE_CHUNK = 32  # steps of mobility noise drawn per refill
 OBS_ROW = 4  # (x, y, d, G) per served ED
 OBS_EXTRA = 3  # served count / quota, UAV x, UAV y
 
@@ -56,12 +55,6 @@ class StepResult:
     reward: np.ndarray  # [N] shared reward of the slot just played
     truncated: np.ndarray  # [N] bool
     metrics: dict[str, np.ndarray]  # physics.SLOT_METRICS, each [N]
-
-
-def noise_chunk(cfg: ScenarioConfig) -> int:
-    """Steps of mobility noise each scenario draws per refill: the whole episode when it is
-    small (one refill per episode, none wasted), else NOISE_CHUNK."""
-    return cfg.episode_len if cfg.episode_len * cfg.n_eds <= NOISE_EPISODE_MAX else NOISE_CHUNK
 
 
 def obs_dim(cfg: ScenarioConfig) -> int:
@@ -116,7 +109,7 @@ class BatchCore:
         self._prev_alloc = np.full((n_envs, v, 3), -1, dtype=np.int64)
         self._prev_parts: tuple | None = None  # (sf, tp, bw, associated) of the slot just played
         self._rngs: list[np.random.Generator] = [np.random.default_rng() for _ in range(n_envs)]
-        self._chunk = chunk = noise_chunk(cfg)
+        self._chunk = chunk = NOISE_CHUNK
         self._gauss = np.zeros((n_envs, chunk, 2, v))  # per step: (x, y) noise of every ED
         # One row of uniform [0, 1) draws per scenario: first the v-bar re-draw tests, then the
         # raw new v-bar values (mapped to [-v_max, v_max) when used); both are views into it.
