@@ -340,36 +340,45 @@ class BatchCore:
 
     def _observe(self) -> None:
         """Channels, association and the observations of the current slot."""
-        cfg = self.cfg
         self._pairs = None
         if self._nearest:
-            near = nearest_uav_on_line(self._xy[0], self._spacing, cfg.n_uavs)
-            d2 = physics.horizontal_distance_sq_to(self.ed_xy, self.uav_xy, near)
-            d_h = np.sqrt(d2)
-            self._rebound = None
-            self.serving = greedy_from_nearest(near, d_h, cfg.comm_range_m, self.quota, cfg.n_uavs, self._binding_problem)
-            self.associated = self.serving != UNASSOCIATED
-            if self._rebound is not None:  # a quota bound: there some EDs are served by another UAV
-                m = self._rebound
-                near[m] = np.where(self.associated[m], self.serving[m], near[m])
-                d2[m] = physics.horizontal_distance_sq_to(self.ed_xy[m], self.uav_xy, near[m])
-                d_h[m] = np.sqrt(d2[m])
-            self._serving_idx = near  # unassociated EDs: their nearest UAV (any valid index)
-            self.g_serving, self.g_db_serving = physics.channel_gain_sq(d2, cfg, with_db=True)
-            self.d_h_serving = d_h
+            self._observe_nearest()
         else:
-            d_h, gains, gain_db = self._pair_channels()
-            self.serving = associate(gains, d_h, cfg.comm_range_m, self.quota, cfg.association)
-            self.associated = self.serving != UNASSOCIATED
-            self._serving_idx = np.where(self.associated, self.serving, 0)
-            flat = (self._flat_base + self._serving_idx * cfg.n_eds).reshape(-1)  # into [N, U, V]
-            shape = self._serving_idx.shape
-            self.d_h_serving = d_h.reshape(-1).take(flat).reshape(shape)
-            self.g_serving = gains.reshape(-1).take(flat).reshape(shape)
-            self.g_db_serving = gain_db.reshape(-1).take(flat).reshape(shape)
+            self._observe_pairs()
         self._all_associated = bool(self.associated.all())
         self._slots()
         self.obs = self._build_obs()
+
+    def _observe_nearest(self) -> None:
+        """Association and serving channels from the nearest UAV (see __init__)."""
+        cfg = self.cfg
+        near = nearest_uav_on_line(self._xy[0], self._spacing, cfg.n_uavs)
+        d2 = physics.horizontal_distance_sq_to(self.ed_xy, self.uav_xy, near)
+        d_h = np.sqrt(d2)
+        self._rebound = None
+        self.serving = greedy_from_nearest(near, d_h, cfg.comm_range_m, self.quota, cfg.n_uavs, self._binding_problem)
+        self.associated = self.serving != UNASSOCIATED
+        if self._rebound is not None:  # a quota bound: there some EDs are served by another UAV
+            m = self._rebound
+            near[m] = np.where(self.associated[m], self.serving[m], near[m])
+            d2[m] = physics.horizontal_distance_sq_to(self.ed_xy[m], self.uav_xy, near[m])
+            d_h[m] = np.sqrt(d2[m])
+        self._serving_idx = near  # unassociated EDs: their nearest UAV (any valid index)
+        self.g_serving, self.g_db_serving = physics.channel_gain_sq(d2, cfg, with_db=True)
+        self.d_h_serving = d_h
+
+    def _observe_pairs(self) -> None:
+        """Association and serving channels from the channel of every UAV-ED pair."""
+        cfg = self.cfg
+        d_h, gains, gain_db = self._pair_channels()
+        self.serving = associate(gains, d_h, cfg.comm_range_m, self.quota, cfg.association)
+        self.associated = self.serving != UNASSOCIATED
+        self._serving_idx = np.where(self.associated, self.serving, 0)
+        flat = (self._flat_base + self._serving_idx * cfg.n_eds).reshape(-1)  # into [N, U, V]
+        shape = self._serving_idx.shape
+        self.d_h_serving = d_h.reshape(-1).take(flat).reshape(shape)
+        self.g_serving = gains.reshape(-1).take(flat).reshape(shape)
+        self.g_db_serving = gain_db.reshape(-1).take(flat).reshape(shape)
 
     def _pair_channels(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(d_h, G, G_dB) of every UAV-ED pair [N, U, V] of the current slot (cached)."""

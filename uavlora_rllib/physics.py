@@ -163,6 +163,10 @@ def channel_gain_sq(d2_h: np.ndarray, cfg: ScenarioConfig, with_db: bool = False
     d_h >= 0, atan(h / d_h) = pi/2 - atan(d_h / h) (also at d_h = 0), so
       -b (theta - a) = b (a - 90) + b (180/pi) atan(d_h / h).
     """
+    d2_h = np.asarray(d2_h, dtype=np.float64)
+    if d2_h.ndim == 0:
+        out = channel_gain_sq(d2_h.reshape(1), cfg, with_db)
+        return (out[0][0], out[1][0]) if with_db else out[0]
     h = cfg.altitude_m
     d3_sq = np.add(d2_h, h * h)
     t = np.sqrt(d2_h)
@@ -174,18 +178,16 @@ def channel_gain_sq(d2_h: np.ndarray, cfg: ScenarioConfig, with_db: bool = False
     t *= cfg.los_a
     t += 1.0
     p_los = np.divide(1.0, t, out=t)
-    k0 = 20.0 * np.log10(4.0 * np.pi * cfg.carrier_hz / cfg.speed_of_light_mps)
-    if with_db:
-        g_db = np.log10(d3_sq)
-        g_db *= -10.0
-        g_db += (cfg.eta_nlos_db - cfg.eta_los_db) * p_los
-        g_db -= k0 + cfg.eta_nlos_db
     c = (cfg.speed_of_light_mps / (4.0 * np.pi * cfg.carrier_hz)) ** 2 * 10.0 ** (-cfg.eta_nlos_db / 10.0)
     p_los *= (cfg.eta_nlos_db - cfg.eta_los_db) * _LN10_OVER_10
     gain = np.exp(p_los, out=p_los)
     np.divide(gain, d3_sq, out=gain)
     gain *= c
-    return (gain, g_db) if with_db else gain
+    if not with_db:
+        return gain
+    g_db = np.log10(gain, out=d3_sq)  # G_dB = 10 log10 G = -L
+    g_db *= 10.0
+    return gain, g_db
 
 
 def gain_decreases_with_distance(cfg: ScenarioConfig) -> bool:
