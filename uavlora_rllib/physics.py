@@ -367,11 +367,15 @@ def _ee_masked(rate: np.ndarray, p_tx: np.ndarray, serving_uav: np.ndarray, hove
     return np.add.reduce(bits, axis=-1)
 
 
-def success_rate(sinr_db: np.ndarray, threshold_db: np.ndarray, associated: np.ndarray) -> np.ndarray:
+def success_rate(
+    sinr_db: np.ndarray, threshold_db: np.ndarray, associated: np.ndarray, out: np.ndarray | None = None
+) -> np.ndarray:
     """Xi[t]: share of ALL V EDs that are associated and decoded (SINR_dB >= rho_thr)."""
     decoded = np.greater_equal(sinr_db, threshold_db)
     decoded &= associated
-    return np.add.reduce(decoded, axis=-1) / decoded.shape[-1]
+    xi = np.add.reduce(decoded, axis=-1, dtype=np.float64, out=out)
+    xi /= decoded.shape[-1]
+    return xi
 
 
 def margin_score(snr_db: np.ndarray, threshold_db: np.ndarray, associated: np.ndarray) -> np.ndarray:
@@ -505,8 +509,7 @@ def slot_metrics(
     db[0] = _margin_points(snr_db, thr_db)
     means = np.add.reduce(np.where(associated, db, 0.0), axis=-1)
     means /= np.maximum(n_assoc, 1)
-    has = n_assoc > 0
-    beta = np.where(has, means[0], 0.0)
+    beta = means[0]  # 0 when no ED is associated (a sum of nothing, over 1)
     return {
         "reward": reward(ee, xi, beta, p_total, cfg.reward),
         "ee_sys": ee,
@@ -514,6 +517,6 @@ def slot_metrics(
         "beta": beta,
         "p_total_w": p_total,
         "rate_sum_bps": rate_sum,
-        "mean_sinr_db": np.where(has, means[1], DB_FLOOR),
+        "mean_sinr_db": np.where(n_assoc > 0, means[1], DB_FLOOR),
         "n_unassociated": np.subtract(associated.shape[-1], n_assoc, dtype=np.float64),
     }
