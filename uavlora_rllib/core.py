@@ -1,10 +1,13 @@
 """The simulator core: N independent scenarios stepped at once with NumPy.
 
-Arrays are shaped [N, ...]: EDs [N, V, 2], channels [N, U, V], actions [N, U] (per_uav) or
-[N, U, 2 Lambda + 1] (per_device). No Python loop runs over EDs or UAVs in a step; the only
-per-scenario loop refills the random-number buffers every `NOISE_CHUNK` steps (each
-scenario owns a numpy Generator, so that scenario i of a batch seeded with s replays
+Arrays are shaped [N, ...]: EDs [N, V, 2] (stored as [2, N, V]), channels [N, U, V], actions
+[N, U] (per_uav) or [N, U, 2 Lambda + 1] (per_device). No Python loop runs over EDs or UAVs in a
+step; the only per-scenario loop refills the random-number buffers every `NOISE_CHUNK` steps
+(each scenario owns a numpy Generator, so that scenario i of a batch seeded with s replays
 exactly the single scenario seeded with s + i, bit for bit, as in Gymnasium's vector envs).
+With the default channel only the serving UAV's channel is computed per step (the max-gain UAV
+is the nearest one); every pair's d_h / gains / gain_db are computed on demand. A single
+scenario can precompute `lookahead` future slots at once (time as the batch axis), see __init__.
 
 Slot semantics: `reset` places the EDs and associates them (slot 0). `step(actions)`
 applies the actions to the CURRENT slot (its positions and association), scores it with
@@ -151,7 +154,6 @@ class BatchCore:
         q1 = self.quota + 1
         self._obs_rows_base = (self._env_idx * (u * q1 * OBS_ROW))[:, None]  # flat offsets
         self._obs_garbage = n_envs * u * q1 * OBS_ROW
-        self._xy_cols = np.arange(2)
         template = np.zeros((n_envs * u * q1 + 1, OBS_ROW))
         extra = template[:-1].reshape(n_envs, u, q1 * OBS_ROW)
         extra[..., self.quota * OBS_ROW + 1 : self.quota * OBS_ROW + OBS_EXTRA] = self._obs_extra_xy
