@@ -143,3 +143,45 @@ def test_batch_rows_are_independent():
         batch = associate(g, d, 600.0, 3, method)
         for i in range(6):
             np.testing.assert_array_equal(batch[i], associate(g[i : i + 1], d[i : i + 1], 600.0, 3, method)[0])
+
+
+# ------------------------------------------------------------------ the nearest-UAV path (gain decreasing in d_h)
+def test_nearest_uav_on_the_mid_line_equals_the_argmin():
+    from uavlora_rllib import physics
+    from uavlora_rllib.association import nearest_uav, nearest_uav_on_line
+    from uavlora_rllib.scenario import ScenarioConfig
+
+    rng = np.random.default_rng(0)
+    for n_uavs in (1, 2, 3, 8):
+        cfg = ScenarioConfig(n_uavs=n_uavs)
+        uav = physics.uav_positions(cfg)
+        s = cfg.area_m / n_uavs
+        x = np.concatenate([rng.uniform(0, 1000, 2000), np.arange(n_uavs + 1) * s, [0.0, 1000.0]])  # boundaries: ties
+        xy = np.stack([x, rng.uniform(0, 1000, x.size)], axis=-1)
+        assert np.array_equal(nearest_uav_on_line(x, s, n_uavs), nearest_uav(xy, uav))
+
+
+@SETTINGS
+@given(
+    st.integers(1, 3), st.integers(1, 8), st.integers(1, 30), st.integers(1, 12), st.integers(0, 2**31),
+    st.sampled_from([100.0, 300.0, 600.0, 2000.0]),
+)  # fmt: skip
+def test_greedy_from_nearest_equals_greedy(n, n_uavs, n_eds, quota, seed, r_comm):
+    """Positions -> channel of every pair -> greedy_association, against the nearest-UAV path
+    (small quotas: the deferred-acceptance fallback runs for the scenarios where one binds)."""
+    from uavlora_rllib import physics
+    from uavlora_rllib.association import greedy_from_nearest, nearest_uav
+    from uavlora_rllib.scenario import ScenarioConfig
+
+    cfg = ScenarioConfig(n_uavs=n_uavs, n_eds=n_eds)
+    uav = physics.uav_positions(cfg)
+    xy = np.random.default_rng(seed).uniform(0, 1000, (n, n_eds, 2))
+    d2 = physics.horizontal_distance_sq(xy, uav)
+    gains, d_h = physics.channel_gain_sq(d2, cfg), np.sqrt(d2)
+    want = greedy_association(gains, d_h, r_comm, quota)
+    for i in range(n):
+        assert want[i].tolist() == reference_greedy(gains[i], d_h[i], r_comm, quota)
+    near = nearest_uav(xy, uav)
+    d_near = np.sqrt(physics.horizontal_distance_sq_to(xy, uav, near))
+    got = greedy_from_nearest(near, d_near, r_comm, quota, n_uavs, lambda mask: (gains[mask], d_h[mask]))
+    assert np.array_equal(got, want)

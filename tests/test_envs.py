@@ -365,10 +365,11 @@ def test_ed_right_under_a_uav_is_finite(mode):
     assert all(np.isfinite(v).all() for v in res.metrics.values())
 
 
-def test_partial_reset_replays_single_runs():
+@pytest.mark.parametrize("n_eds", [8, 30])
+def test_partial_reset_replays_single_runs(n_eds):
     """reset(seed, mask) restarts only the masked scenarios; each scenario still equals its own
     single run (the batch's noise cursors then differ between scenarios)."""
-    cfg = make_cfg(n_eds=8)
+    cfg = make_cfg(n_eds=n_eds)
     rng = np.random.default_rng(11)
     first = [random_actions(cfg, 3, rng) for _ in range(45)]
     core = BatchCore(cfg, 3)
@@ -464,3 +465,73 @@ def test_spaces_follow_reduced_sets(mode):
         bad, high, ok = np.r_[2, zero[1:]], 2, zero  # slot 0's SF index, 2 SFs
     with pytest.raises(ActionError, match=rf"action of uav_0 .*is outside \[0, {high}\)"):
         env.step({"uav_0": bad, "uav_1": ok, "uav_2": ok})
+
+
+# ------------------------------------------------------------------ fast paths = the general ones
+CORE_VARIANTS = [
+    {},
+    {"n_eds": 30, "max_eds_per_uav": 4, "comm_range_m": 300.0},  # quotas bind, some EDs out of range
+    {"n_eds": 40, "n_uavs": 3, "action_mode": "per_device"},
+    {"n_eds": 100, "n_uavs": 8},  # long rows: the quicksort path of the slot ranking
+]
+
+
+@pytest.mark.parametrize("fields", CORE_VARIANTS)
+def test_nearest_path_equals_the_all_pairs_path(fields):
+    """The default path (channel at the nearest UAV only) against the path that computes every
+    pair's channel and runs greedy_association on it: the same trajectory, bit for bit."""
+    cfg = make_cfg(**fields)
+    fast, full = BatchCore(cfg, 3), BatchCore(cfg, 3)
+    assert fast._nearest
+    full._nearest = False
+    rng = np.random.default_rng(4)
+    assert np.array_equal(fast.reset(8), full.reset(8))
+    for _ in range(40):
+        a = random_actions(cfg, 3, rng)
+        rf, rp = fast.step(a), full.step(a)
+        assert np.array_equal(rf.obs, rp.obs)
+        assert np.array_equal(fast.serving, full.serving) and np.array_equal(fast.slot_of_ed, full.slot_of_ed)
+        assert np.array_equal(fast.state(), full.state())
+        for key in physics.SLOT_METRICS:
+            assert np.array_equal(rf.metrics[key], rp.metrics[key]), key
+
+
+@pytest.mark.parametrize(
+    "fields",
+    CORE_VARIANTS
+    + [{"association": "optimal", "interference": "cross_gain", "n_eds": 12}, {"eta_los_db": 30.0, "eta_nlos_db": 0.0}],
+)
+def test_lookahead_equals_plain_stepping(fields):
+    """BatchCore(cfg, 1, lookahead=K) precomputes K slots at once: same numbers as stepping one
+    slot at a time, across block boundaries, episode ends and re-resets."""
+    cfg = make_cfg(episode_len=23, **fields)
+    rng = np.random.default_rng(6)
+    plain, ahead = BatchCore(cfg, 1), BatchCore(cfg, 1, lookahead=5)
+    for seed in (3, 3, 11):
+        assert np.array_equal(plain.reset(seed), ahead.reset(seed))
+        for _ in range(int(rng.integers(1, 30))):
+            a = random_actions(cfg, 1, rng)
+            rp, ra = plain.step(a), ahead.step(a)
+            assert np.array_equal(rp.obs, ra.obs) and np.array_equal(rp.truncated, ra.truncated)
+            for key in physics.SLOT_METRICS:
+                assert np.array_equal(rp.metrics[key], ra.metrics[key]), key
+            for attr in ("ed_xy", "ed_vel", "ed_mean_vel", "serving", "slot_of_ed", "t", "prev_alloc", "gains", "d_h"):
+                assert np.array_equal(getattr(plain, attr), getattr(ahead, attr)), attr
+            assert np.array_equal(plain.state(), ahead.state())
+    with pytest.raises(ValueError, match="lookahead"):
+        BatchCore(cfg, 2, lookahead=4)
+
+
+def test_step_scores_the_gains_the_core_exposes():
+    """slot_metrics on core.gains (every pair, computed on demand) gives the step's metrics bit for bit."""
+    cfg = make_cfg(n_eds=20)
+    core = BatchCore(cfg, 4)
+    core.reset(2)
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        a = random_actions(cfg, 4, rng)
+        sf, tp, bw = core.allocations(a)
+        want = physics.slot_metrics(core.gains, core._serving_idx, core.associated, sf, tp, bw, cfg, core.tables)
+        res = core.step(a)
+        for key in physics.SLOT_METRICS:
+            assert np.array_equal(res.metrics[key], want[key]), key

@@ -411,3 +411,75 @@ def test_tables_from_config():
     assert TABLES.threshold_db.shape == (6, 3)
     # SNR: rho = P G / sigma^2, e.g. 14 dBm over a 100 dB loss: 0.0251 W * 1e-10 / 1e-15 = 2511.9
     assert float(physics.snr(dbm(14.0), 1e-10, NOISE_W)) == pytest.approx(2511.886, rel=1e-6)
+
+
+# ------------------------------------------------------------------ faster formulations = the plain formulas
+CHANNEL_CFGS = [
+    CFG,
+    CFG.replace(altitude_m=120.0, carrier_hz=433e6, eta_los_db=1.0, eta_nlos_db=20.0, los_a=9.61, los_b=0.16),
+    CFG.replace(eta_los_db=30.0, eta_nlos_db=0.0),  # eta_LoS > eta_NLoS: G not monotone in d_h
+]
+
+
+@pytest.mark.parametrize("cfg", CHANNEL_CFGS)
+def test_channel_gain_sq_equals_the_plain_formula(cfg):
+    d_h = np.concatenate([[0.0, 1e-6, 1.0, 90.0, 600.0, 1414.2, 5000.0], np.random.default_rng(0).uniform(0, 2000, 1000)])
+    g, g_db = physics.channel_gain_sq(d_h * d_h, cfg, with_db=True)
+    np.testing.assert_allclose(g, physics.channel_gain(d_h, cfg), rtol=1e-12, atol=0)
+    np.testing.assert_allclose(g_db, -physics.path_loss_db(d_h, cfg), rtol=1e-12, atol=0)
+    assert np.array_equal(physics.channel_gain_sq(d_h * d_h, cfg), g)  # with or without dB: same G
+    # element by element: a value does not depend on the array it is computed in (batch = single)
+    assert np.array_equal(physics.channel_gain_sq((d_h * d_h)[3:4], cfg), g[3:4])
+
+
+def test_gain_decreases_with_distance_flag():
+    d2 = np.linspace(0.0, 3000.0, 20001) ** 2
+    for cfg in CHANNEL_CFGS:
+        g = physics.channel_gain_sq(d2, cfg)
+        if physics.gain_decreases_with_distance(cfg):
+            assert (np.diff(g) < 0).all()
+        else:
+            assert (np.diff(g) > 0).any()  # the flag is off exactly where the nearest UAV may not be the best
+    assert physics.gain_decreases_with_distance(CFG)
+    assert not physics.gain_decreases_with_distance(CHANNEL_CFGS[2])
+
+
+def test_horizontal_distance_sq_to_is_the_pairwise_entry_bit_for_bit():
+    rng = np.random.default_rng(1)
+    eds = rng.uniform(0, 1000, (3, 7, 2))
+    uav = physics.uav_positions(CFG.replace(n_uavs=4))
+    pairs = physics.horizontal_distance_sq(eds, uav)  # [3, 4, 7]
+    idx = rng.integers(0, 4, (3, 7))
+    got = physics.horizontal_distance_sq_to(eds, uav, idx)
+    assert np.array_equal(got, np.take_along_axis(pairs, idx[:, None, :], axis=1)[:, 0])
+    assert np.array_equal(np.sqrt(pairs), physics.horizontal_distance(eds, uav))
+
+
+def test_group_sum_and_lin_to_db_equal_the_plain_forms():
+    rng = np.random.default_rng(2)
+    values, groups = rng.normal(size=(4, 9)), rng.integers(0, 3, (4, 9))
+    want = np.array([[values[i][groups[i] == g].sum() for g in range(3)] for i in range(4)])
+    np.testing.assert_allclose(physics.group_sum(values, groups, 3), want, rtol=1e-14, atol=1e-15)
+    assert physics.group_sum(values[0], groups[0], 3).shape == (3,)
+    x = np.array([0.0, -1.0, 1e-300, 1e-21, 1e-20, 2e-20, 1e-3, 1.0, 123.0, np.inf])
+    with np.errstate(divide="ignore"):
+        plain = np.maximum(10.0 * np.log10(np.maximum(x, 0.0)), physics.DB_FLOOR)
+    assert np.array_equal(physics.lin_to_db(x), plain)
+    assert physics.lin_to_db(0.0) == physics.DB_FLOOR and physics.lin_to_db(10.0) == pytest.approx(10.0)
+
+
+def test_sinr_and_energy_efficiency_by_bincount_equal_the_one_hot_sums():
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        n, u, v, n_sf = 3, 3, 8, 6
+        snr, assoc = rng.uniform(0, 50, (n, v)), rng.random((n, v)) < 0.8
+        sf, serving = rng.integers(0, n_sf, (n, v)), rng.integers(0, u, (n, v))
+        s_tx = np.where(assoc, snr, 0.0)
+        onehot = (sf[..., None] == np.arange(n_sf)) & assoc[..., None]
+        same = np.take_along_axis(np.einsum("nvk,nv->nk", onehot, s_tx), sf, axis=-1)
+        want = np.where(assoc, s_tx / (np.maximum(same - s_tx, 0.0) + 1.0), 0.0)
+        np.testing.assert_allclose(physics.sinr_paper(snr, sf, assoc, n_sf), want, rtol=1e-12)
+        rate, p = rng.uniform(0, 1e5, (n, v)), rng.uniform(0, 0.03, (n, v))
+        a_uv = (serving[:, None, :] == np.arange(u)[:, None]) & assoc[:, None, :]
+        ee = (np.einsum("nuv,nv->nu", a_uv, rate) / (np.einsum("nuv,nv->nu", a_uv, p) + 0.2)).sum(-1)
+        np.testing.assert_allclose(physics.energy_efficiency(rate, p, serving, assoc, 0.2, u), ee, rtol=1e-12)

@@ -22,8 +22,12 @@ one, which is worth 0, stay unassociated).
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+
+from uavlora_rllib import physics
 
 UNASSOCIATED = -1
 
@@ -48,34 +52,109 @@ def greedy_association(gains: np.ndarray, d_h: np.ndarray, comm_range_m: float, 
     return serving
 
 
-def _deferred_acceptance(g: np.ndarray, ok: np.ndarray, quota: int) -> np.ndarray:
-    """ED-proposing deferred acceptance with the common priority order (see module docstring)."""
+def stable_argsort(key: np.ndarray) -> np.ndarray:
+    """np.argsort(key, axis=-1, kind="stable") for [N, V]: the (SIMD) quicksort when no row has
+    tied keys (then every sort gives the same order), else the stable sort."""
+    if key.shape[-1] <= 32:
+        return np.argsort(key, axis=-1, kind="stable")
+    order = np.argsort(key, axis=-1)
+    ks = np.take_along_axis(key, order, axis=-1)
+    if (ks[..., 1:] == ks[..., :-1]).any():
+        return np.argsort(key, axis=-1, kind="stable")
+    return order
+
+
+def _deferred_acceptance(g: np.ndarray, ok: np.ndarray, quota: int, first: np.ndarray | None = None) -> np.ndarray:
+    """ED-proposing deferred acceptance with the common priority order (see module docstring).
+
+    g: gains with -inf where out of range. Each round, every ED rejected in the previous one
+    proposes to its best in-range UAV not yet tried (argmax over the UAVs, ties: lowest index,
+    i.e. the next entry of its preference list); EDs held stay candidates of their UAV, and
+    each UAV keeps its `quota` highest-priority candidates. `first`: each ED's first choice
+    [N, V] when the caller knows it (the argmax over the UAVs of g)."""
     n, n_uavs, n_eds = g.shape
     # Priority: descending best in-range gain; ties by ED index (stable sort).
-    order = np.argsort(-g.max(axis=1), axis=-1, kind="stable")  # [N, V] ED ids, best first
-    g_sorted = np.take_along_axis(g, order[:, None, :], axis=-1)  # [N, U, V'] in priority order
-    ok_sorted = np.take_along_axis(ok, order[:, None, :], axis=-1)
-    # Each ED's preference list over UAVs (descending gain); only in-range entries are usable.
-    prefs = np.argsort(-g_sorted, axis=1, kind="stable")  # [N, U(rank), V']
-    n_options = ok_sorted.sum(axis=1)  # [N, V']
-
-    rank = np.zeros((n, n_eds), dtype=np.int64)  # next preference to try
-    held = np.full((n, n_eds), UNASSOCIATED, dtype=np.int64)  # UAV currently holding each ED
-    uav_ids = np.arange(n_uavs)[None, :, None]
+    best = g.max(axis=1)  # [N, V]; -inf: no UAV in range
+    order = stable_argsort(-best)  # [N, V] ED ids, best first
+    rows = np.arange(n)[:, None]
+    # [N, V', U] in priority order, contiguous along U; UAVs already tried are set to -inf
+    pref = np.ascontiguousarray(g.transpose(0, 2, 1))[rows, order]
+    candidate = np.argmax(pref, axis=-1) if first is None else first[rows, order]  # first choices
+    candidate[best[rows, order] == -np.inf] = UNASSOCIATED
+    pos = np.arange(n_eds)
+    group_base = (np.arange(n) * (n_uavs + 1))[:, None]
+    row_base = (np.arange(n) * n_eds)[:, None]
     while True:
-        proposing = (held == UNASSOCIATED) & (rank < n_options)
-        if not proposing.any():
+        # A UAV keeps a candidate iff fewer than `quota` of its candidates come earlier in the
+        # priority order (the columns): rank each candidate within its UAV by a stable sort of
+        # the UAV ids (U + 1 = none), as in BatchCore._slots.
+        grp = np.where(candidate == UNASSOCIATED, n_uavs, candidate)
+        by = np.argsort(grp.astype(np.int8), axis=-1, kind="stable")  # U <= 64
+        by += row_base
+        grouped = grp.reshape(-1).take(by) + group_base  # flat (row, UAV) group of each sorted entry
+        counts = np.bincount(grouped.reshape(-1), minlength=n * (n_uavs + 1))
+        start = np.cumsum(counts) - counts  # first sorted position of each group (flat)
+        kept_sorted = (grouped - group_base < n_uavs) & (pos - (start.take(grouped) - row_base) < quota)
+        kept = np.empty_like(kept_sorted)
+        kept.reshape(-1)[by.reshape(-1)] = kept_sorted.reshape(-1)
+        held = np.where(kept, candidate, UNASSOCIATED)
+        rejected = (candidate != UNASSOCIATED) & ~kept
+        if not rejected.any():
             break
-        target = np.take_along_axis(prefs, np.minimum(rank, n_uavs - 1)[:, None, :], axis=1)[:, 0, :]
-        candidate_uav = np.where(proposing, target, held)  # held EDs stay candidates of their UAV
-        cand = candidate_uav[:, None, :] == uav_ids  # [N, U, V'], columns already in priority order
-        keep = cand & (np.cumsum(cand, axis=-1) <= quota)
-        kept = keep.any(axis=1)
-        rejected = (candidate_uav != UNASSOCIATED) & ~kept
-        held = np.where(kept, candidate_uav, UNASSOCIATED)
-        rank = rank + rejected  # proposers and displaced EDs move on to their next choice
+        e, v = np.nonzero(rejected)  # proposers and displaced EDs move on to their next choice
+        pref[e, v, candidate[e, v]] = -np.inf
+        rows = pref[e, v]  # [K, U]
+        nxt = np.argmax(rows, axis=-1)
+        has_next = rows[np.arange(len(e)), nxt] > -np.inf
+        candidate = held
+        candidate[e[has_next], v[has_next]] = nxt[has_next]
     serving = np.empty_like(held)
     np.put_along_axis(serving, order, held, axis=-1)
+    return serving
+
+
+def nearest_uav(ed_xy: np.ndarray, uav_xy: np.ndarray) -> np.ndarray:
+    """Index of each ED's horizontally nearest UAV [..., V] (ties: the lowest index)."""
+    return np.argmin(physics.horizontal_distance_sq(ed_xy, uav_xy), axis=-2)
+
+
+def nearest_uav_on_line(ed_x: np.ndarray, spacing: float, n_uavs: int) -> np.ndarray:
+    """`nearest_uav` for UAVs at x_i = (i + 0.5) spacing on one horizontal line (SPEC.md's
+    layout), from the ED x coordinates alone: UAV i is nearest for x in (i s, (i + 1) s], the
+    lower index on the boundary tie, i.e. i = ceil(x / s) - 1 clipped to [0, U - 1]. O(V)."""
+    i = np.divide(ed_x, spacing)
+    np.ceil(i, out=i)
+    i -= 1.0
+    np.clip(i, 0.0, n_uavs - 1.0, out=i)
+    return i.astype(np.int64)
+
+
+def greedy_from_nearest(
+    nearest: np.ndarray,
+    d_h_nearest: np.ndarray,
+    comm_range_m: float,
+    quota: int,
+    n_uavs: int,
+    full_problem: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+) -> np.ndarray:
+    """`greedy_association` where the max-gain UAV is the nearest one (gain strictly decreasing
+    in d_h, `physics.gain_decreases_with_distance`), without the per-pair gains.
+
+    Each ED's first choice is its nearest UAV if that one is in range, and no UAV is in range
+    otherwise (all others are farther). Where those first choices fit in every quota (the
+    default layout) that IS the greedy matching. Scenarios where a quota binds get the full
+    greedy matching (deferred acceptance) on (key, d_h) = full_problem(mask of those
+    scenarios), [M, U, V] each: `key` is the gain or any strictly increasing function of it
+    (the matching depends only on the order of the gains), e.g. -d_h^2."""
+    reachable = d_h_nearest <= comm_range_m
+    serving = np.where(reachable, nearest, UNASSOCIATED)
+    if quota < nearest.shape[-1]:  # otherwise no quota can bind
+        counts = physics.group_sum(reachable, nearest, n_uavs)
+        binding = (counts > quota).any(axis=-1)
+        if binding.any():
+            g, d = full_problem(binding)
+            ok = in_range_mask(d, comm_range_m)
+            serving[binding] = _deferred_acceptance(np.where(ok, g, -np.inf), ok, quota, nearest[binding])
     return serving
 
 

@@ -1,10 +1,13 @@
 """The simulator core: N independent scenarios stepped at once with NumPy.
 
-Arrays are shaped [N, ...]: EDs [N, V, 2], channels [N, U, V], actions [N, U] (per_uav) or
-[N, U, 2 Lambda + 1] (per_device). No Python loop runs over EDs or UAVs in a step; the only
-per-scenario loop refills the random-number buffers every `NOISE_CHUNK` steps (each
-scenario owns a numpy Generator, so that scenario i of a batch seeded with s replays
+Arrays are shaped [N, ...]: EDs [N, V, 2] (stored as [2, N, V]), channels [N, U, V], actions
+[N, U] (per_uav) or [N, U, 2 Lambda + 1] (per_device). No Python loop runs over EDs or UAVs in a
+step; the only per-scenario loop refills the random-number buffers every `NOISE_CHUNK` steps
+(each scenario owns a numpy Generator, so that scenario i of a batch seeded with s replays
 exactly the single scenario seeded with s + i, bit for bit, as in Gymnasium's vector envs).
+With the default channel only the serving UAV's channel is computed per step (the max-gain UAV
+is the nearest one); every pair's d_h / gains / gain_db are computed on demand. A single
+scenario can precompute `lookahead` future slots at once (time as the batch axis), see __init__.
 
 Slot semantics: `reset` places the EDs and associates them (slot 0). `step(actions)`
 applies the actions to the CURRENT slot (its positions and association), scores it with
@@ -31,7 +34,13 @@ from typing import Sequence
 import numpy as np
 
 from uavlora_rllib import physics
-from uavlora_rllib.association import UNASSOCIATED, associate
+from uavlora_rllib.association import (
+    UNASSOCIATED,
+    associate,
+    greedy_from_nearest,
+    nearest_uav_on_line,
+    stable_argsort,
+)
 from uavlora_rllib.scenario import ScenarioConfig
 
 NOISE_CHUNK = 32  # steps of mobility noise drawn per refill
@@ -77,9 +86,11 @@ def encode_joint_action(sf_idx, tp_idx, bw_idx, cfg: ScenarioConfig) -> np.ndarr
 class BatchCore:
     """N independent copies of the scenario, stepped together."""
 
-    def __init__(self, cfg: ScenarioConfig, n_envs: int = 1):
+    def __init__(self, cfg: ScenarioConfig, n_envs: int = 1, lookahead: int = 0):
         if n_envs < 1:
             raise ValueError(f"n_envs: must be >= 1, got {n_envs}")
+        if lookahead < 0 or (lookahead and n_envs != 1):
+            raise ValueError(f"lookahead: must be 0, or >= 1 with n_envs = 1; got {lookahead} with n_envs = {n_envs}")
         self.cfg = cfg
         self.n = n_envs
         self.tables = physics.Tables.from_config(cfg)
@@ -92,19 +103,26 @@ class BatchCore:
         self._gain_db_mid = (g_hi + g_lo) / 2.0
         self._gain_db_half = max((g_hi - g_lo) / 2.0, 1e-9)
         v, u = cfg.n_eds, cfg.n_uavs
-        self.ed_xy = np.zeros((n_envs, v, 2))
-        self.ed_vel = np.zeros((n_envs, v, 2))
-        self.ed_mean_vel = np.zeros((n_envs, v, 2))
+        # Mobility state, stored by coordinate ([2, N, V]: NumPy's loops over a trailing axis of 2
+        # are slow); ed_xy, ed_vel, ed_mean_vel are [N, V, 2] views of it (properties below).
+        self._xy = np.zeros((2, n_envs, v))
+        self._vel = np.zeros((2, n_envs, v))
+        self._mvel = np.zeros((2, n_envs, v))
         self.t = np.zeros(n_envs, dtype=np.int64)
-        self.prev_alloc = np.full((n_envs, v, 3), -1, dtype=np.int64)
+        self._prev_alloc = np.full((n_envs, v, 3), -1, dtype=np.int64)
+        self._prev_parts: tuple | None = None  # (sf, tp, bw, associated) of the slot just played
         self._rngs: list[np.random.Generator] = [np.random.default_rng() for _ in range(n_envs)]
-        self._gauss = np.zeros((n_envs, NOISE_CHUNK, v, 2))
+        self._chunk = chunk = NOISE_CHUNK
+        self._gauss = np.zeros((n_envs, chunk, 2, v))  # per step: (x, y) noise of every ED
         # One row of uniform [0, 1) draws per scenario: first the v-bar re-draw tests, then the
         # raw new v-bar values (mapped to [-v_max, v_max) when used); both are views into it.
-        self._uniform = np.zeros((n_envs, 3 * NOISE_CHUNK * v))
-        self._resample = self._uniform[:, : NOISE_CHUNK * v].reshape(n_envs, NOISE_CHUNK, v)
-        self._new_mean_raw = self._uniform[:, NOISE_CHUNK * v :].reshape(n_envs, NOISE_CHUNK, v, 2)
+        self._uniform = np.zeros((n_envs, 3 * chunk * v))
+        self._resample = self._uniform[:, : chunk * v].reshape(n_envs, chunk, v)
+        self._new_mean_raw = self._uniform[:, chunk * v :].reshape(n_envs, chunk, 2, v)
         self._cursor = np.zeros(n_envs, dtype=np.int64)
+        self._cursor_same: int | None = 0  # the cursor of every scenario while they agree
+        self._noise_scale = cfg.mobility.sigma * float(np.sqrt(1.0 - cfg.mobility.memory**2))
+        self._n_joint = cfg.n_joint_actions
         self._seed_source = np.random.SeedSequence()
         self._ready = False
         self.serving = np.full((n_envs, v), UNASSOCIATED, dtype=np.int64)
@@ -114,6 +132,43 @@ class BatchCore:
         self._flat_base = (self._env_idx[:, None] * (u * v) + np.arange(v)[None, :]).astype(np.int64)
         self._positions = np.broadcast_to(np.arange(v), (n_envs, v))
         self._obs_extra_xy = 2.0 * self.uav_xy / cfg.area_m - 1.0  # [U, 2], constant
+        # Channel/association path. "nearest": greedy association with the paper's SINR and a
+        # gain strictly decreasing in d_h, so every ED's max-gain UAV is its nearest one and
+        # the channel is needed at the serving UAV only ([N, V] work per step, not [N, U, V]);
+        # the per-pair d_h / gains / gain_db are then computed on demand (properties below).
+        # Otherwise ("pairs") every pair's channel is computed each step, as the optimal
+        # association or the cross_gain SINR need it.
+        self._nearest = (
+            cfg.association == "greedy"
+            and cfg.interference == "paper"
+            and physics.gain_decreases_with_distance(cfg)
+            and np.array_equal(self.uav_xy, physics.uav_positions(cfg))
+        )
+        self._spacing = cfg.area_m / u
+        self._row_base = (self._env_idx * v)[:, None]  # flat index of (e, 0) in an [N, V] array
+        self._act_base = (self._env_idx * u)[:, None]  # flat index of (e, 0) in an [N, U] array
+        self._grp_base = (self._env_idx * (u + 1))[:, None]  # groups: UAV 0..U-1, U = unassociated
+        # Observations are written into a buffer of OBS_ROW-wide rows: per (scenario, UAV) the
+        # quota's ED rows, then one row holding the 3 extra features and one pad; obs is the
+        # [N, U, obs_dim] view of it. One more row at the end receives unassociated EDs.
+        q1 = self.quota + 1
+        self._obs_rows_base = (self._env_idx * (u * q1 * OBS_ROW))[:, None]  # flat offsets
+        self._obs_garbage = n_envs * u * q1 * OBS_ROW
+        template = np.zeros((n_envs * u * q1 + 1, OBS_ROW))
+        extra = template[:-1].reshape(n_envs, u, q1 * OBS_ROW)
+        extra[..., self.quota * OBS_ROW + 1 : self.quota * OBS_ROW + OBS_EXTRA] = self._obs_extra_xy
+        self._obs_template = template
+        self._pairs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        # per_uav action index -> (sf_idx, tp_idx, bw_idx), one row per joint action
+        self._decode = np.stack(decode_joint_action(np.arange(cfg.n_joint_actions), cfg), axis=-1).astype(np.int64)
+        # Lookahead (single scenario): actions change neither mobility nor the association
+        # (SPEC.md), so the positions, channels, association and observations of the next
+        # `lookahead` slots are computed at once, by a second core whose batch axis is time;
+        # step() then does only the action-dependent part. Same numbers as without it.
+        self._lookahead = lookahead
+        self._observer = BatchCore(cfg, lookahead) if lookahead else None
+        self._block: tuple | None = None
+        self._block_k = 0
 
     # ------------------------------------------------------------------ reset
     def reset(self, seed: int | Sequence[int | None] | None = None, mask: np.ndarray | None = None) -> np.ndarray:
@@ -130,12 +185,16 @@ class BatchCore:
             self.ed_xy[i] = rng.uniform(0.0, cfg.area_m, size=(cfg.n_eds, 2))
             self.ed_vel[i] = rng.uniform(-mob.v_max_mps, mob.v_max_mps, size=(cfg.n_eds, 2))
             self._refill(i)
-        self.ed_vel[mask] = self._clip_speed(self.ed_vel[mask])
-        self.ed_mean_vel[mask] = mob.mean_velocity_init_mps
+        self._vel[:, mask] = self._clip_speed(self._vel[:, mask])
+        self._mvel[:, mask] = mob.mean_velocity_init_mps
         self.t[mask] = 0
-        self.prev_alloc[mask] = -1
+        self.prev_alloc[mask] = -1  # (materialises the previous slot's, then clears the reset ones)
+        self._cursor_same = 0 if mask.all() else None
         self._ready = True
         self._observe()
+        if self._lookahead and mask.all():
+            self._ahead = (self._xy, self._vel, self._mvel)  # mobility state of the latest slot computed
+            self._block = None
         return self.obs
 
     def _seeds_for(self, seed: int | Sequence[int | None] | None) -> list:
@@ -149,110 +208,264 @@ class BatchCore:
         return [s if s is not None else self._seed_source.spawn(1)[0] for s in seeds]
 
     def _refill(self, i: int) -> None:
-        # The stream is: standard_normal(NOISE_CHUNK, v, 2), random(NOISE_CHUNK, v), then
-        # uniform(-v_max, v_max, (NOISE_CHUNK, v, 2)). Generator.uniform(low, high) is
+        # The stream is: standard_normal(chunk, 2, v), random(chunk, v), then
+        # uniform(-v_max, v_max, (chunk, 2, v)). Generator.uniform(low, high) is
         # low + (high - low) * next_double, the same doubles random() yields, so the last two
-        # are drawn as one random() call and the affine map is applied in _move (bit-identical).
+        # are drawn as one random() call and the affine map is applied in _move.
         rng = self._rngs[i]
-        rng.standard_normal(out=self._gauss[i])
+        gauss = self._gauss[i]
+        rng.standard_normal(out=gauss)
+        gauss *= self._noise_scale  # stored as sigma sqrt(1 - eth^2) w, the term Eq. (gm) adds
         rng.random(out=self._uniform[i])
         self._cursor[i] = 0
 
+    @property
+    def ed_xy(self) -> np.ndarray:
+        """ED positions [N, V, 2] (a view: writing into it moves the EDs)."""
+        return self._xy.transpose(1, 2, 0)
+
+    @property
+    def ed_vel(self) -> np.ndarray:
+        """ED velocities [N, V, 2] (a view)."""
+        return self._vel.transpose(1, 2, 0)
+
+    @property
+    def ed_mean_vel(self) -> np.ndarray:
+        """ED mean velocities v-bar [N, V, 2] (a view)."""
+        return self._mvel.transpose(1, 2, 0)
+
     # ------------------------------------------------------------------ dynamics
     def _clip_speed(self, vel: np.ndarray) -> np.ndarray:
+        """vel [2, ...] scaled (in place) to speed <= v_max."""
         vmax = self.cfg.mobility.v_max_mps
-        speed = np.sqrt(np.einsum("...k,...k->...", vel, vel))
+        speed = np.multiply(vel[0], vel[0])
+        speed += vel[1] * vel[1]
+        np.sqrt(speed, out=speed)
         np.maximum(speed, 1e-12, out=speed)
         factor = np.divide(vmax, speed, out=speed)
         np.minimum(factor, 1.0, out=factor)
-        return vel * factor[..., None]
+        vel *= factor
+        return vel
 
     def _move(self) -> None:
-        """Eq. (gm) with SPEC.md's decisions: v-bar re-draw, speed clip, mirror reflection."""
+        self._xy, self._vel, self._mvel = self._advance(self._xy, self._vel, self._mvel)
+
+    def _advance(self, xy: np.ndarray, vel: np.ndarray, mvel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Eq. (gm) with SPEC.md's decisions: v-bar re-draw, speed clip, mirror reflection.
+        (position, velocity, mean velocity) [2, N, V] -> the next slot's, as new arrays."""
         mob, area = self.cfg.mobility, self.cfg.area_m
-        for i in np.flatnonzero(self._cursor >= NOISE_CHUNK):
-            self._refill(i)
         c = self._cursor
-        if (c == c[0]).all():  # the usual case (no partial reset): views, no gather copies
-            k = int(c[0])
+        k = self._cursor_same  # the common cursor of all scenarios, None after a partial reset
+        if k is None:
+            for i in np.flatnonzero(c >= self._chunk):
+                self._refill(i)
+            if (c == c[0]).all():
+                k = self._cursor_same = int(c[0])
+        elif k >= self._chunk:
+            for i in range(self.n):
+                self._refill(i)
+            k = 0
+        if k is not None:  # the usual case (no partial reset): views, no gather copies
             gauss, resample, new_raw = self._gauss[:, k], self._resample[:, k], self._new_mean_raw[:, k]
+            self._cursor_same = k + 1
         else:
             gauss = self._gauss[self._env_idx, c]
             resample, new_raw = self._resample[self._env_idx, c], self._new_mean_raw[self._env_idx, c]
         redraw = resample < mob.mean_resample_prob
-        if redraw.any():
+        if redraw.any():  # (rare: written where it happens)
+            e, v = np.nonzero(redraw)
             low = -mob.v_max_mps
-            new_mean = low + (mob.v_max_mps - low) * new_raw  # Generator.uniform's own formula
-            self.ed_mean_vel = np.where(redraw[..., None], new_mean, self.ed_mean_vel)
-        self._cursor += 1
+            mvel = mvel.copy()  # (the previous slot's array may be kept, e.g. by the lookahead)
+            mvel[:, e, v] = low + (mob.v_max_mps - low) * new_raw[e, :, v].T  # Generator.uniform's formula
+        c += 1
         eth = mob.memory
-        # vel = eth v + (1 - eth) v-bar + sigma sqrt(1 - eth^2) w, in this order, in place.
-        vel = eth * self.ed_vel
-        vel += (1.0 - eth) * self.ed_mean_vel
-        vel += mob.sigma * np.sqrt(1.0 - eth * eth) * gauss
+        # vel = eth v + (1 - eth) v-bar + sigma sqrt(1 - eth^2) w, in this order.
+        vel = eth * vel
+        vel += (1.0 - eth) * mvel
+        vel += gauss.transpose(1, 0, 2)  # (already scaled, see _refill)
         vel = self._clip_speed(vel)
         pos = vel * mob.dt_s
-        pos += self.ed_xy
+        pos += xy
         low, high = pos < 0.0, pos > area
-        np.negative(pos, out=pos, where=low)
-        np.subtract(2.0 * area, pos, out=pos, where=high)
-        np.negative(vel, out=vel, where=low | high)
-        self.ed_xy = np.clip(pos, 0.0, area, out=pos)  # guards a step longer than the area itself
-        self.ed_vel = vel
+        out = low | high
+        if out.any():  # mirror at the borders (few EDs: only theirs are touched)
+            i = np.flatnonzero(out)  # pos, vel: new C-contiguous arrays, so reshape(-1) is a view
+            pos_f, vel_f = pos.reshape(-1), vel.reshape(-1)
+            p = pos_f[i]
+            p = np.where(low.reshape(-1)[i], -p, 2.0 * area - p)
+            np.minimum(p, area, out=p)  # guards a step longer than the area itself
+            np.maximum(p, 0.0, out=p)
+            pos_f[i] = p
+            vel_f[i] = -vel_f[i]
+        return pos, vel, mvel
+
+    def _next_slot(self) -> None:
+        """Move on to the next slot: positions, channels, association, observations."""
+        if not self._lookahead:
+            self._move()
+            self._observe()
+            return
+        self._block_k += 1
+        if self._block is None or self._block_k == self._block_len:
+            self._compute_block()
+            self._block_k = 0
+        (serving, assoc, sidx, g, g_db, d_h, slot, counts, obs, all_assoc, xs, vs, ms) = self._block
+        k = self._block_k
+        row = slice(k, k + 1)
+        self.serving, self.associated, self._serving_idx = serving[row], assoc[row], sidx[row]
+        self.g_serving, self.g_db_serving, self.d_h_serving = g[row], g_db[row], d_h[row]
+        self.slot_of_ed, self._counts, self.obs = slot[row], counts[row], obs[row]
+        self._all_associated = all_assoc[k]
+        self._xy, self._vel, self._mvel = xs[k], vs[k], ms[k]
+        self._pairs = None
+
+    def _compute_block(self) -> None:
+        """The next slots (at most `lookahead`, and none past the end of the episode unless
+        the episode is already over): mobility one slot at a time, the rest at once."""
+        left = self.cfg.episode_len - int(self.t[0]) + 1  # slots t .. episode_len
+        self._block_len = m = min(self._lookahead, left) if left > 0 else self._lookahead
+        xy, vel, mvel = self._ahead
+        xs, vs, ms = [], [], []
+        for _ in range(m):  # the mobility recursion is sequential in time
+            xy, vel, mvel = self._advance(xy, vel, mvel)
+            xs.append(xy)
+            vs.append(vel)
+            ms.append(mvel)
+        self._ahead = (xy, vel, mvel)
+        ob = self._observer
+        ob._xy = np.concatenate(xs + xs[-1:] * (self._lookahead - m), axis=1)  # [2, lookahead, V]: time as the batch axis
+        ob._observe()
+        self._block = (
+            ob.serving, ob.associated, ob._serving_idx, ob.g_serving, ob.g_db_serving, ob.d_h_serving,
+            ob.slot_of_ed, ob._counts, ob.obs, ob.associated.all(axis=-1).tolist(), xs, vs, ms,
+        )  # fmt: skip
 
     def _observe(self) -> None:
         """Channels, association and the observations of the current slot."""
+        self._pairs = None
+        if self._nearest:
+            self._observe_nearest()
+        else:
+            self._observe_pairs()
+        self._all_associated = bool(self.associated.all())
+        self._slots()
+        self.obs = self._build_obs()
+
+    def _observe_nearest(self) -> None:
+        """Association and serving channels from the nearest UAV (see __init__)."""
         cfg = self.cfg
-        self.d_h = physics.horizontal_distance(self.ed_xy, self.uav_xy)  # [N, U, V]
-        path_loss = physics.path_loss_db(self.d_h, cfg)
-        self.gain_db = np.negative(path_loss, out=path_loss)
-        self.gains = physics.db_to_lin(self.gain_db)
-        self.serving = associate(self.gains, self.d_h, cfg.comm_range_m, self.quota, cfg.association)
+        near = nearest_uav_on_line(self._xy[0], self._spacing, cfg.n_uavs)
+        d2 = physics.horizontal_distance_sq_to(self.ed_xy, self.uav_xy, near)
+        d_h = np.sqrt(d2)
+        self._rebound = None
+        self.serving = greedy_from_nearest(near, d_h, cfg.comm_range_m, self.quota, cfg.n_uavs, self._binding_problem)
+        self.associated = self.serving != UNASSOCIATED
+        if self._rebound is not None:  # a quota bound: there some EDs are served by another UAV
+            m = self._rebound
+            near[m] = np.where(self.associated[m], self.serving[m], near[m])
+            d2[m] = physics.horizontal_distance_sq_to(self.ed_xy[m], self.uav_xy, near[m])
+            d_h[m] = np.sqrt(d2[m])
+        self._serving_idx = near  # unassociated EDs: their nearest UAV (any valid index)
+        self.g_serving, self.g_db_serving = physics.channel_gain_sq(d2, cfg, with_db=True)
+        self.d_h_serving = d_h
+
+    def _observe_pairs(self) -> None:
+        """Association and serving channels from the channel of every UAV-ED pair."""
+        cfg = self.cfg
+        d_h, gains, gain_db = self._pair_channels()
+        self.serving = associate(gains, d_h, cfg.comm_range_m, self.quota, cfg.association)
         self.associated = self.serving != UNASSOCIATED
         self._serving_idx = np.where(self.associated, self.serving, 0)
-        self._serving_flat = self._flat_base + self._serving_idx * cfg.n_eds  # into [N, U, V]
-        g_serving = self.gain_db.reshape(-1).take(self._serving_flat)
-        # Slot of each served ED in its UAV's observation: rank by gain among that UAV's EDs
-        # (ties by ED id). Sort by gain (stable), then stably by serving UAV: each UAV's EDs
-        # form a run in gain order and an ED's slot is its offset within the run.
-        key = np.where(self.associated, g_serving, -np.inf)
-        order = np.argsort(-key, axis=-1, kind="stable")  # [N, V] best first
-        serving_sorted = physics.take_last(self.serving, order)
-        # U <= 64 (ScenarioConfig), so the ids fit in int8, for which the stable sort is a radix sort.
-        by_uav = np.argsort(serving_sorted.astype(np.int8), axis=-1, kind="stable")
-        grouped = physics.take_last(serving_sorted, by_uav)  # non-decreasing
-        pos = self._positions
-        run_start = np.where(grouped != np.concatenate([grouped[:, :1] - 1, grouped[:, :-1]], axis=-1), pos, 0)
-        slot = pos - np.maximum.accumulate(run_start, axis=-1)
-        slot[grouped == UNASSOCIATED] = -1
-        self.slot_of_ed = np.empty_like(slot)
-        self.slot_of_ed[self._env_idx[:, None], physics.take_last(order, by_uav)] = slot
-        self.obs = self._build_obs(g_serving)
+        flat = (self._flat_base + self._serving_idx * cfg.n_eds).reshape(-1)  # into [N, U, V]
+        shape = self._serving_idx.shape
+        self.d_h_serving = d_h.reshape(-1).take(flat).reshape(shape)
+        self.g_serving = gains.reshape(-1).take(flat).reshape(shape)
+        self.g_db_serving = gain_db.reshape(-1).take(flat).reshape(shape)
+
+    def _pair_channels(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(d_h, G, G_dB) of every UAV-ED pair [N, U, V] of the current slot (cached)."""
+        if self._pairs is None:
+            d2 = physics.horizontal_distance_sq(self.ed_xy, self.uav_xy)
+            gains, gain_db = physics.channel_gain_sq(d2, self.cfg, with_db=True)
+            self._pairs = (np.sqrt(d2, out=d2), gains, gain_db)
+        return self._pairs
+
+    def _binding_problem(self, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(-d_h^2, d_h) of every pair [M, U, V] of the scenarios in `mask` (where a quota
+        binds). -d_h^2 orders the pairs as their gains do (G strictly decreases with d_h here),
+        which is all the greedy matching looks at: no transcendental needed."""
+        self._rebound = mask
+        d2 = physics.horizontal_distance_sq(self._xy[:, mask].transpose(1, 2, 0), self.uav_xy)
+        return np.negative(d2), np.sqrt(d2, out=d2)
+
+    @property
+    def d_h(self) -> np.ndarray:
+        """Horizontal distance of every UAV-ED pair [N, U, V] (current slot)."""
+        return self._pair_channels()[0]
+
+    @property
+    def gains(self) -> np.ndarray:
+        """Linear channel gain of every UAV-ED pair [N, U, V] (current slot)."""
+        return self._pair_channels()[1]
+
+    @property
+    def gain_db(self) -> np.ndarray:
+        """Channel gain in dB of every UAV-ED pair [N, U, V] (current slot)."""
+        return self._pair_channels()[2]
+
+    def _slots(self) -> None:
+        """slot_of_ed [N, V]: rank of each served ED by gain among its UAV's EDs (ties by ED id;
+        -1 if unassociated), and the served counts [N, U]. A stable sort by gain, then a stable
+        sort by serving UAV: each UAV's EDs form a run in gain order, and an ED's slot is its
+        position minus the start of its UAV's run (an exclusive cumulative sum of the counts)."""
+        n, v, u = self.n, self.cfg.n_eds, self.cfg.n_uavs
+        grp = self._serving_idx if self._all_associated else np.where(self.associated, self._serving_idx, u)
+        order = stable_argsort(np.negative(self.g_serving))
+        order += self._row_base  # flat indices into [N, V]
+        grp_sorted = grp.reshape(-1).take(order)
+        # U <= 64 (ScenarioConfig): ids fit in int8, whose stable sort is a radix sort (faster for long rows).
+        by = np.argsort(grp_sorted.astype(np.int8) if v > 32 else grp_sorted, axis=-1, kind="stable")
+        by += self._row_base
+        grouped = grp_sorted.reshape(-1).take(by)  # [N, V] non-decreasing per row
+        counts = np.bincount((grouped + self._grp_base).reshape(-1), minlength=n * (u + 1)).reshape(n, u + 1)
+        start = np.cumsum(counts, axis=-1)
+        start -= counts
+        slot = self._positions - start.reshape(-1).take(grouped + self._grp_base)
+        if not self._all_associated:
+            slot[grouped == u] = -1
+        slot_of_ed = np.empty((n, v), dtype=np.int64)
+        slot_of_ed.reshape(-1)[order.reshape(-1).take(by)] = slot
+        self.slot_of_ed = slot_of_ed
+        self._counts = counts[:, :u]
 
     def _gain_feature(self, gain_db: np.ndarray) -> np.ndarray:
         return (gain_db - self._gain_db_mid) / self._gain_db_half
 
-    def _build_obs(self, g_serving_db: np.ndarray) -> np.ndarray:
+    def _build_obs(self) -> np.ndarray:
         cfg, n, q, n_u = self.cfg, self.n, self.quota, self.cfg.n_uavs
-        width = q * OBS_ROW + OBS_EXTRA
-        obs = np.zeros((n, n_u, width))
-        flat = obs.reshape(-1)  # a view
-        e, v = np.nonzero(self.associated)
-        u = self.serving[e, v]
-        # Row (e, u, slot) starts at flat offset (e U + u) width + OBS_ROW slot; one column at a time.
-        start = (e * n_u + u) * width + OBS_ROW * self.slot_of_ed[e, v]
-        xy = self.ed_xy[e, v]
-        xy *= 2.0
-        xy /= cfg.area_m
+        q1 = q + 1
+        # Row of ED v: (e U + u) (quota + 1) + slot; unassociated EDs: the scratch row. Each
+        # feature is written by its own flat scatter from a contiguous array (NumPy's loops
+        # over a trailing axis of 2 or 4 are slow).
+        start = self._serving_idx * (q1 * OBS_ROW)
+        start += self._obs_rows_base
+        start += OBS_ROW * self.slot_of_ed
+        if not self._all_associated:
+            start = np.where(self.associated, start, self._obs_garbage)
+        buf = self._obs_template.copy()
+        flat = buf.reshape(-1)
+        xy = np.multiply(self._xy, 2.0 / cfg.area_m)
         xy -= 1.0
-        flat[start] = xy[:, 0]
-        flat[start + 1] = xy[:, 1]
-        flat[start + 2] = self.d_h.reshape(-1).take(self._serving_flat[e, v]) / cfg.comm_range_m
-        flat[start + 3] = self._gain_feature(g_serving_db[e, v])
-        counts = np.bincount(e * n_u + u, minlength=n * n_u).reshape(n, n_u)
-        obs[..., q * OBS_ROW] = counts / self.quota
-        obs[..., q * OBS_ROW + 1 :] = self._obs_extra_xy
-        return obs
+        flat[start] = xy[0]
+        start += 1
+        flat[start] = xy[1]
+        start += 1
+        flat[start] = np.divide(self.d_h_serving, cfg.comm_range_m)
+        start += 1
+        flat[start] = self._gain_feature(self.g_db_serving)
+        obs = buf[:-1].reshape(n, n_u, q1 * OBS_ROW)
+        np.divide(self._counts, q, out=obs[..., q * OBS_ROW])
+        return obs[..., : q * OBS_ROW + OBS_EXTRA]
 
     # ------------------------------------------------------------------ actions
     def allocations(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -260,8 +473,13 @@ class BatchCore:
         cfg = self.cfg
         actions = np.asarray(actions)
         if cfg.action_mode == "per_uav":
-            self._check_range(actions, (self.n, cfg.n_uavs), cfg.n_joint_actions)
-            return decode_joint_action(physics.take_last(actions, self._serving_idx), cfg)
+            self._check_range(actions, (self.n, cfg.n_uavs), self._n_joint)
+            idx = self._serving_idx + self._act_base  # flat index of each ED's serving UAV in [N, U]
+            if idx.size <= 4096:  # small: one lookup in the decoding table (fewest NumPy calls)
+                alloc = self._decode[actions.reshape(-1).take(idx)]  # [N, V, 3]
+                return alloc[..., 0], alloc[..., 1], alloc[..., 2]
+            sf, tp, bw = decode_joint_action(actions, cfg)  # [N, U] each, then 3 contiguous gathers
+            return sf.reshape(-1).take(idx), tp.reshape(-1).take(idx), bw.reshape(-1).take(idx)
         length = per_device_action_len(cfg)
         highs = np.array([cfg.n_sf, cfg.n_tp] * self.quota + [cfg.n_bw])
         self._check_range(actions, (self.n, cfg.n_uavs, length), highs)
@@ -276,8 +494,13 @@ class BatchCore:
             raise ActionError(f"actions: expected shape {shape}, got {actions.shape}")
         if actions.dtype.kind not in "iu":  # signed or unsigned integers
             raise ActionError(f"actions: expected integers, got dtype {actions.dtype}")
-        if np.isscalar(high) and actions.size and 0 <= actions.min() and actions.max() < high:
-            return
+        if np.isscalar(high) and actions.size:
+            if actions.size <= 64:  # small: Python's min/max on a list beat two NumPy reductions
+                values = actions.ravel().tolist()
+                if 0 <= min(values) and max(values) < high:
+                    return
+            elif 0 <= actions.min() and actions.max() < high:
+                return
         bad = (actions < 0) | (actions >= high)
         if bad.any():
             idx = tuple(int(i) for i in np.argwhere(bad)[0])
@@ -291,15 +514,26 @@ class BatchCore:
         if not self._ready:
             raise RuntimeError("call reset() before step()")
         sf, tp, bw = self.allocations(actions)
-        metrics = physics.slot_metrics(self.gains, self._serving_idx, self.associated, sf, tp, bw, self.cfg, self.tables)
-        prev = np.empty(sf.shape + (3,), dtype=np.int64)
-        prev[..., 0], prev[..., 1], prev[..., 2] = sf, tp, bw
-        prev[~self.associated] = -1
-        self.prev_alloc = prev
+        gains = None if self._nearest else self.gains
+        metrics = physics.slot_metrics(
+            gains, self._serving_idx, self.associated, sf, tp, bw, self.cfg, self.tables, g_serving=self.g_serving
+        )
+        self._prev_parts = (sf, tp, bw, None if self._all_associated else self.associated)
         self.t += 1
-        self._move()
-        self._observe()
+        self._next_slot()
         return StepResult(self.obs, metrics["reward"], self.t >= self.cfg.episode_len, metrics)
+
+    @property
+    def prev_alloc(self) -> np.ndarray:
+        """Each ED's (sf_idx, tp_idx, bw_idx) in the slot just played [N, V, 3]; -1 where it was
+        silent or no slot was played since the reset (built on first access)."""
+        if self._prev_parts is not None:
+            sf, tp, bw, assoc = self._prev_parts
+            prev = np.stack((sf, tp, bw), axis=-1)
+            if assoc is not None:
+                prev[~assoc] = -1
+            self._prev_alloc, self._prev_parts = prev, None
+        return self._prev_alloc
 
     # ------------------------------------------------------------------ global state
     def state(self) -> np.ndarray:

@@ -21,6 +21,8 @@ from uavlora_rllib.render import association_rgb
 from uavlora_rllib.scenario import ScenarioConfig
 
 ENV_NAME = "uavlora"
+_NP_INTS = frozenset(np.sctypeDict[k] for k in ("int8", "int16", "int32", "int64", "uint8", "uint16", "uint32", "uint64"))
+LOOKAHEAD = 32  # slots of positions/channels/association/observations precomputed at once (BatchCore)
 STATE_KEY = "state"
 
 
@@ -61,18 +63,34 @@ class _SingleScenario:
 
     def _setup(self, cfg: ScenarioConfig) -> None:
         self.scenario = cfg
-        self.core = BatchCore(cfg, n_envs=1)
+        self.core = BatchCore(cfg, n_envs=1, lookahead=LOOKAHEAD)
         self.possible_agents = agent_ids(cfg)
         self._obs_space = observation_space(cfg)
         self._act_space = action_space(cfg)
         self._state_space = state_space(cfg)
         self._last_metrics: dict[str, float] = {}
+        self._per_uav = cfg.action_mode == "per_uav"
 
     def _obs_dict(self, obs: np.ndarray) -> dict[str, np.ndarray]:
-        obs32 = np.clip(obs[0], -1.0, 1.0).astype(np.float32)
-        return {a: obs32[i] for i, a in enumerate(self.possible_agents)}
+        # cast then clip: the same float32 values as clip then cast (rounding is monotone)
+        obs32 = obs[0].astype(np.float32)
+        np.maximum(obs32, -1.0, out=obs32)
+        np.minimum(obs32, 1.0, out=obs32)
+        return dict(zip(self.possible_agents, obs32))
 
     def _actions_array(self, actions: Mapping[str, Any]) -> np.ndarray:
+        # Fast path: exactly the agents, each a plain (numpy) integer, in per_uav mode; the core
+        # checks the range. Anything else goes through the checks below.
+        if self._per_uav and len(actions) == len(self.possible_agents):
+            try:
+                values = [actions[a] for a in self.possible_agents]
+            except KeyError:
+                values = None
+            if values is not None and all(type(x) is int or type(x) in _NP_INTS for x in values):
+                return np.array(values, dtype=np.int64).reshape(1, -1)
+        return self._actions_array_checked(actions)
+
+    def _actions_array_checked(self, actions: Mapping[str, Any]) -> np.ndarray:
         missing = [a for a in self.possible_agents if a not in actions]
         unknown = [a for a in actions if a not in self.possible_agents]
         if missing or unknown:

@@ -9,6 +9,7 @@ leaves open, the docstring says so.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Literal
 
@@ -20,6 +21,8 @@ from uavlora_rllib.scenario import SNR_THRESHOLD_TABLE_DB, RewardWeights, Scenar
 # Floor used wherever a ratio is shown in dB, so that "no signal" is a finite, very low value.
 DB_FLOOR = -200.0
 _DEG_PER_RAD = 180.0 / np.pi
+_FLOOR_LIN = 10.0 ** (DB_FLOOR / 10.0)  # 1e-20
+_LN10_OVER_10 = np.log(10.0) / 10.0
 
 
 # ---------------------------------------------------------------- gathers
@@ -39,6 +42,36 @@ def at_serving(per_uav: np.ndarray, serving_uav: np.ndarray) -> np.ndarray:
     return np.take_along_axis(per_uav, serving_uav[..., None, :], axis=-2)[..., 0, :]
 
 
+@functools.lru_cache(maxsize=64)
+def _row_offsets(lead: tuple[int, ...], n_groups: int) -> np.ndarray:
+    """n_groups * (row number) for each row of a [*lead] batch, shaped [*lead, 1] (read-only)."""
+    off = (np.arange(int(np.prod(lead)), dtype=np.int64) * n_groups).reshape(lead + (1,))
+    off.flags.writeable = False
+    return off
+
+
+def _group_index(groups: np.ndarray, n_groups: int, shape: tuple[int, ...]) -> np.ndarray:
+    """Flat bin of each element of `groups` [..., V] (values in [0, n_groups)) in a
+    [prod(shape[:-1]) * n_groups] array: row r, group g -> r * n_groups + g."""
+    off = _row_offsets(shape[:-1], n_groups)
+    if groups.shape != shape:
+        groups = np.broadcast_to(groups, shape)
+    return np.add(groups, off).reshape(-1)
+
+
+def group_sum(values: np.ndarray, groups: np.ndarray, n_groups: int) -> np.ndarray:
+    """sum_v [groups_v == g] values_v along the last axis: [..., V] x [..., V] -> [..., n_groups].
+
+    One np.bincount over the whole batch (each bin sums its elements in index order, so a
+    row's result does not depend on the other rows); `groups` must lie in [0, n_groups)."""
+    values, groups = np.asarray(values), np.asarray(groups)
+    shape = values.shape if values.shape == groups.shape else np.broadcast_shapes(values.shape, groups.shape)
+    idx = _group_index(groups, n_groups, shape)
+    w = values.reshape(-1) if values.shape == shape else np.broadcast_to(values, shape).reshape(-1)
+    n_bins = (idx.size // shape[-1]) * n_groups if idx.size else 0
+    return np.bincount(idx, weights=w, minlength=n_bins).reshape(shape[:-1] + (n_groups,))
+
+
 # ---------------------------------------------------------------- unit conversions
 def dbm_to_w(p_dbm: np.ndarray | float) -> np.ndarray:
     return np.power(10.0, (np.asarray(p_dbm, dtype=np.float64) - 30.0) / 10.0)
@@ -51,10 +84,17 @@ def db_to_lin(x_db: np.ndarray | float) -> np.ndarray:
 
 
 def lin_to_db(x: np.ndarray | float) -> np.ndarray:
-    """10 log10(x), floored at DB_FLOOR for x <= 0."""
-    x = np.asarray(x, dtype=np.float64)
-    with np.errstate(divide="ignore"):
-        return np.maximum(10.0 * np.log10(np.maximum(x, 0.0)), DB_FLOOR)
+    """10 log10(x), floored at DB_FLOOR for x <= 0.
+
+    Evaluated as max(10 log10(max(x, 10^(DB_FLOOR/10))), DB_FLOOR): for x above the floor's
+    linear value that is 10 log10(x); below it (x <= 0 included) both forms give DB_FLOOR, and
+    no log of 0 is taken (no floating-point warning to suppress)."""
+    x = np.maximum(x, _FLOOR_LIN)
+    if not isinstance(x, np.ndarray):  # 0-d input
+        return np.maximum(10.0 * np.log10(x), DB_FLOOR)
+    np.log10(x, out=x)
+    x *= 10.0
+    return np.maximum(x, DB_FLOOR, out=x)
 
 
 # ---------------------------------------------------------------- channel, Eqs. (plos), (a2g_pl)
@@ -104,19 +144,88 @@ def path_loss_db(d_h: np.ndarray | float, cfg: ScenarioConfig) -> np.ndarray:
 
 
 def channel_gain(d_h: np.ndarray | float, cfg: ScenarioConfig) -> np.ndarray:
-    """G = 10^(-L/10), linear power gain."""
+    """G = 10^(-L/10), linear power gain (the plain formula; see `channel_gain_sq`)."""
     return db_to_lin(-path_loss_db(d_h, cfg))
 
 
-def horizontal_distance(ed_xy: np.ndarray, uav_xy: np.ndarray) -> np.ndarray:
-    """d_h between every UAV and every ED: ed_xy [..., V, 2], uav_xy [U, 2] -> [..., U, V]."""
+def channel_gain_sq(d2_h: np.ndarray, cfg: ScenarioConfig, with_db: bool = False):
+    """G = 10^(-L/10) of Eq. (a2g_pl) from the SQUARED horizontal distance d2_h = d_h^2, with
+    the transcendentals this CPU's NumPy vectorises (sqrt, arctan, exp, log10) instead of
+    arctan2 and 10^x. Same value as `channel_gain(sqrt(d2_h))` up to rounding (tested to 1e-12
+    relative). Returns G, or (G, G_dB) with G_dB = -L when `with_db`.
+
+    Derivation. With d3^2 = d2_h + h^2 and K0 = 20 log10(4 pi f / c),
+      L = 10 log10(d3^2) + K0 + eta_LoS P + eta_NLoS (1 - P)
+        = 10 log10(d3^2) + K0 + eta_NLoS - (eta_NLoS - eta_LoS) P,
+    so  G = 10^(-L/10) = C / d3^2 * exp(kappa P),  C = (c / (4 pi f))^2 10^(-eta_NLoS/10),
+    kappa = (eta_NLoS - eta_LoS) ln(10) / 10.
+    Eq. (plos): P = 1 / (1 + a exp(-b (theta - a))), theta = atan(h / d_h) in degrees; for
+    d_h >= 0, atan(h / d_h) = pi/2 - atan(d_h / h) (also at d_h = 0), so
+      -b (theta - a) = b (a - 90) + b (180/pi) atan(d_h / h).
+    """
+    d2_h = np.asarray(d2_h, dtype=np.float64)
+    if d2_h.ndim == 0:
+        out = channel_gain_sq(d2_h.reshape(1), cfg, with_db)
+        return (out[0][0], out[1][0]) if with_db else out[0]
+    h = cfg.altitude_m
+    d3_sq = np.add(d2_h, h * h)
+    t = np.sqrt(d2_h)
+    t *= 1.0 / h
+    np.arctan(t, out=t)
+    t *= cfg.los_b * _DEG_PER_RAD
+    t += cfg.los_b * (cfg.los_a - 90.0)
+    np.exp(t, out=t)
+    t *= cfg.los_a
+    t += 1.0
+    p_los = np.divide(1.0, t, out=t)
+    c = (cfg.speed_of_light_mps / (4.0 * np.pi * cfg.carrier_hz)) ** 2 * 10.0 ** (-cfg.eta_nlos_db / 10.0)
+    p_los *= (cfg.eta_nlos_db - cfg.eta_los_db) * _LN10_OVER_10
+    gain = np.exp(p_los, out=p_los)
+    np.divide(gain, d3_sq, out=gain)
+    gain *= c
+    if not with_db:
+        return gain
+    g_db = np.log10(gain, out=d3_sq)  # G_dB = 10 log10 G = -L
+    g_db *= 10.0
+    return gain, g_db
+
+
+def gain_decreases_with_distance(cfg: ScenarioConfig) -> bool:
+    """True when G is strictly decreasing in d_h: then "max-gain UAV" = "nearest UAV".
+
+    The free-space term grows with d_h; P_LoS falls with d_h (theta falls, b >= 0), and
+    L = ... - (eta_NLoS - eta_LoS) P, so L strictly increases when eta_NLoS >= eta_LoS."""
+    return cfg.eta_nlos_db >= cfg.eta_los_db and cfg.los_b >= 0.0 and cfg.los_a >= 0.0
+
+
+def horizontal_distance_sq(ed_xy: np.ndarray, uav_xy: np.ndarray) -> np.ndarray:
+    """d_h^2 between every UAV and every ED: ed_xy [..., V, 2], uav_xy [U, 2] -> [..., U, V]."""
     ed_xy = np.asarray(ed_xy, dtype=np.float64)
     dx = np.subtract(ed_xy[..., None, :, 0], uav_xy[:, None, 0])  # [..., U, V], contiguous
     dy = np.subtract(ed_xy[..., None, :, 1], uav_xy[:, None, 1])
     dx *= dx
     dy *= dy
     dx += dy
-    return np.sqrt(dx, out=dx)
+    return dx
+
+
+def horizontal_distance(ed_xy: np.ndarray, uav_xy: np.ndarray) -> np.ndarray:
+    """d_h between every UAV and every ED: ed_xy [..., V, 2], uav_xy [U, 2] -> [..., U, V]."""
+    d2 = horizontal_distance_sq(ed_xy, uav_xy)
+    return np.sqrt(d2, out=d2)
+
+
+def horizontal_distance_sq_to(ed_xy: np.ndarray, uav_xy: np.ndarray, uav_idx: np.ndarray) -> np.ndarray:
+    """d_h^2 between each ED and ONE UAV each: ed_xy [..., V, 2], uav_idx [..., V] -> [..., V].
+
+    The same operations, element by element, as `horizontal_distance_sq` (so the value equals
+    that function's entry [..., uav_idx[v], v] bit for bit)."""
+    dx = np.subtract(ed_xy[..., 0], uav_xy[:, 0].take(uav_idx))
+    dy = np.subtract(ed_xy[..., 1], uav_xy[:, 1].take(uav_idx))
+    dx *= dx
+    dy *= dy
+    dx += dy
+    return dx
 
 
 def uav_positions(cfg: ScenarioConfig) -> np.ndarray:
@@ -163,18 +272,29 @@ def _same_sf_onehot(sf_idx: np.ndarray, associated: np.ndarray, n_sf: int) -> np
     return (sf_idx[..., None] == np.arange(n_sf)) & associated[..., None]
 
 
+def _sinr_paper_tx(s_tx: np.ndarray, sf_idx: np.ndarray, n_sf: int, out: np.ndarray | None = None) -> np.ndarray:
+    """Eq. (sinr) given s_tx = the SNR of each ED, 0 for silent EDs (see `sinr_paper`);
+    `out`: a C-contiguous array of the broadcast shape to write the result into."""
+    shape = s_tx.shape if s_tx.shape == sf_idx.shape else np.broadcast_shapes(s_tx.shape, sf_idx.shape)
+    idx = _group_index(sf_idx, n_sf, shape)
+    s_flat = s_tx.reshape(-1) if s_tx.shape == shape else np.broadcast_to(s_tx, shape).reshape(-1)
+    total = np.bincount(idx, weights=s_flat, minlength=(idx.size // shape[-1]) * n_sf if idx.size else 0)
+    interference = total.take(idx)  # sum over the ED's own SF, itself included
+    interference -= s_flat  # >= 0 exactly: a running sum of terms >= 0 never falls below one of them
+    interference += 1.0
+    if out is not None:
+        np.divide(s_flat, interference, out=out.reshape(-1))
+        return out
+    return np.divide(s_flat, interference, out=interference).reshape(shape)
+
+
 def sinr_paper(snr_serving: np.ndarray, sf_idx: np.ndarray, associated: np.ndarray, n_sf: int) -> np.ndarray:
     """Eq. (sinr): SINR_v = rho_v / (sum_{v' != v, same SF, associated} rho_{a_v', v'} + 1).
 
     The interference of v' is its SNR at ITS OWN serving UAV, as the paper writes it.
     Silent (unassociated) EDs neither transmit nor interfere; their SINR is 0.
     """
-    onehot = _same_sf_onehot(sf_idx, associated, n_sf)
-    s_tx = np.where(associated, snr_serving, 0.0)
-    total = np.einsum("...vn,...v->...n", onehot, s_tx)
-    same = take_last(total, sf_idx)
-    interference = np.maximum(same - s_tx, 0.0)
-    return np.where(associated, s_tx / (interference + 1.0), 0.0)
+    return _sinr_paper_tx(np.where(associated, snr_serving, 0.0), np.asarray(sf_idx), n_sf)
 
 
 def sinr_cross_gain(
@@ -209,38 +329,74 @@ def rate_bps(
     threshold_db: np.ndarray,
     model: Literal["shannon", "lora_phy"] = "shannon",
     coding_rate: int = 1,
+    out: np.ndarray | None = None,
 ) -> np.ndarray:
     """Eq. (shannon): R = W log2(1 + SINR), or the LoRa PHY bit rate (SPEC.md extension):
-    R = SF W / 2^SF * 4 / (4 + CR), delivered only when SINR_dB >= rho_thr(SF, W)."""
+    R = SF W / 2^SF * 4 / (4 + CR), delivered only when SINR_dB >= rho_thr(SF, W).
+    `out`: an array of the result's shape for the Shannon rate to be written into."""
     if model == "shannon":
-        return bw_hz * np.log2(1.0 + sinr)
+        if out is None:
+            return bw_hz * np.log2(np.add(sinr, 1.0))
+        np.add(sinr, 1.0, out=out)
+        np.log2(out, out=out)
+        return np.multiply(bw_hz, out, out=out)
     phy = sf * bw_hz / np.power(2.0, sf) * 4.0 / (4.0 + coding_rate)
-    return np.where(lin_to_db(sinr) >= threshold_db, phy, 0.0)
+    r = np.where(lin_to_db(sinr) >= threshold_db, phy, 0.0)
+    if out is not None:
+        out[...] = r
+        return out
+    return r
 
 
 # ---------------------------------------------------------------- EE (Eq. sys_ee) and the reward terms
 def energy_efficiency(
     rate: np.ndarray, tx_power_w: np.ndarray, serving_uav: np.ndarray, associated: np.ndarray, hover_w: float, n_uavs: int
 ) -> np.ndarray:
-    """EE_sys[t] = sum_u (sum_v a_uv R_uv) / (sum_v a_uv P_v + P_hover_u), bits per joule, one slot."""
-    a_uv = (serving_uav[..., None, :] == np.arange(n_uavs)[:, None]) & associated[..., None, :]
-    bits = np.einsum("...uv,...v->...u", a_uv, rate)
-    watts = np.einsum("...uv,...v->...u", a_uv, tx_power_w) + hover_w
-    return (bits / watts).sum(axis=-1)
+    """EE_sys[t] = sum_u (sum_v a_uv R_uv) / (sum_v a_uv P_v + P_hover_u), bits per joule, one slot.
+
+    serving_uav: any valid UAV index where the ED is unassociated."""
+    return _ee_masked(np.where(associated, rate, 0.0), np.where(associated, tx_power_w, 0.0), serving_uav, hover_w, n_uavs)
 
 
-def success_rate(sinr_db: np.ndarray, threshold_db: np.ndarray, associated: np.ndarray) -> np.ndarray:
+def _ee_masked(rate: np.ndarray, p_tx: np.ndarray, serving_uav: np.ndarray, hover_w: float, n_uavs: int) -> np.ndarray:
+    """energy_efficiency with rate and power already 0 for the unassociated EDs."""
+    bits = group_sum(rate, serving_uav, n_uavs)
+    watts = group_sum(p_tx, serving_uav, n_uavs)
+    watts += hover_w
+    bits /= watts
+    return np.add.reduce(bits, axis=-1)
+
+
+def success_rate(
+    sinr_db: np.ndarray, threshold_db: np.ndarray, associated: np.ndarray, out: np.ndarray | None = None
+) -> np.ndarray:
     """Xi[t]: share of ALL V EDs that are associated and decoded (SINR_dB >= rho_thr)."""
-    return (associated & (sinr_db >= threshold_db)).mean(axis=-1)
+    decoded = np.greater_equal(sinr_db, threshold_db)
+    decoded &= associated
+    xi = np.add.reduce(decoded, axis=-1, dtype=np.float64, out=out)
+    xi /= decoded.shape[-1]
+    return xi
 
 
 def margin_score(snr_db: np.ndarray, threshold_db: np.ndarray, associated: np.ndarray) -> np.ndarray:
     """beta[t] (SPEC.md): mean over associated EDs of m = SNR_dB - rho_thr scored as
-    min(m, 20) / 20 for m >= 0 and max(m / 2, -10) for m < 0; 0 when no ED is associated."""
-    m = snr_db - threshold_db
-    score = np.where(m >= 0.0, np.minimum(m, 20.0) / 20.0, np.maximum(m / 2.0, -10.0))
-    n = associated.sum(axis=-1)
-    return np.where(n > 0, np.where(associated, score, 0.0).sum(axis=-1) / np.maximum(n, 1), 0.0)
+    min(m, 20) / 20 for m >= 0 and max(m / 2, -10) for m < 0; 0 when no ED is associated.
+    (Evaluated as clip(m, -20, 20) / (20 if m >= 0 else 2): max(m / 2, -10) = max(m, -20) / 2.)"""
+    return _mean_over(_margin_points(snr_db, threshold_db), associated, np.add.reduce(associated, axis=-1), 0.0)
+
+
+def _margin_points(snr_db: np.ndarray, threshold_db: np.ndarray) -> np.ndarray:
+    m = np.subtract(snr_db, threshold_db)
+    score = np.maximum(m, -20.0)
+    np.minimum(score, 20.0, out=score)
+    score /= np.where(m >= 0.0, 20.0, 2.0)
+    return score
+
+
+def _mean_over(x: np.ndarray, associated: np.ndarray, n: np.ndarray, empty: float) -> np.ndarray:
+    """Mean of x over the n associated EDs (last axis); `empty` where none is associated."""
+    total = np.add.reduce(np.where(associated, x, 0.0), axis=-1)
+    return np.where(n > 0, total / np.maximum(n, 1), empty)
 
 
 def total_power_w(tx_power_w: np.ndarray, associated: np.ndarray, hover_w: float, n_uavs: int) -> np.ndarray:
@@ -292,7 +448,7 @@ SLOT_METRICS = (
 
 
 def slot_metrics(
-    gains: np.ndarray,
+    gains: np.ndarray | None,
     serving_uav: np.ndarray,
     associated: np.ndarray,
     sf_idx: np.ndarray,
@@ -300,39 +456,67 @@ def slot_metrics(
     bw_idx: np.ndarray,
     cfg: ScenarioConfig,
     tables: Tables,
+    g_serving: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Everything the paper measures in one slot, given the association and per-ED allocations.
 
     gains [..., U, V]; the other inputs [..., V] (serving_uav is any valid index where the ED
-    is unassociated). Returns the keys of SLOT_METRICS, each shaped [...].
+    is unassociated). `g_serving` [..., V], the gain at each ED's serving UAV, may be given
+    instead of being gathered from `gains`; `gains` may then be None with the default
+    `interference: paper`. Returns the keys of SLOT_METRICS, each shaped [...].
     """
-    g_serving = at_serving(gains, serving_uav)
+    if g_serving is None:
+        g_serving = at_serving(gains, serving_uav)
+    sf_idx = np.asarray(sf_idx)
     p_w = tables.tp_w[tp_idx]
     bw_hz = tables.bw_hz[bw_idx]
-    thr_db = tables.threshold_db[sf_idx, bw_idx]
-    snr_lin = snr(p_w, g_serving, tables.noise_w)
+    thr_db = tables.threshold_db.reshape(-1).take(sf_idx * tables.threshold_db.shape[1] + bw_idx)
+    g_serving, associated, serving_uav = np.asarray(g_serving), np.asarray(associated), np.asarray(serving_uav)
+    shape = p_w.shape
+    if not (shape == g_serving.shape == associated.shape == sf_idx.shape == serving_uav.shape):
+        shape = np.broadcast_shapes(shape, g_serving.shape, associated.shape, sf_idx.shape, serving_uav.shape)
+    # Quantities that are reduced the same way are computed into one [2, ...] buffer each, so
+    # that each reduction is one NumPy call (a step at N = 1 is dominated by per-call costs).
+    lin = np.empty((2,) + shape)  # SNR and SINR (linear) of every ED
+    tx = np.empty((2,) + shape)  # rate and transmit power of every ED (0 for silent EDs)
+    p_tx = tx[1]
+    np.multiply(p_w, associated, out=p_tx)  # silent EDs transmit nothing (P * False = 0)
+    s_tx = np.multiply(p_tx, g_serving, out=lin[0])  # = rho_v for associated EDs, 0 for silent ones
+    s_tx /= tables.noise_w  # snr(): P G / sigma^2
     if cfg.interference == "paper":
-        sinr_lin = sinr_paper(snr_lin, sf_idx, associated, cfg.n_sf)
+        sinr_lin = _sinr_paper_tx(s_tx, sf_idx, cfg.n_sf, out=lin[1])
     else:
-        sinr_lin = sinr_cross_gain(p_w, gains, serving_uav, sf_idx, associated, cfg.n_sf, tables.noise_w)
-    sinr_db = lin_to_db(sinr_lin)
-    rate = np.where(
-        associated,
-        rate_bps(sinr_lin, bw_hz, tables.sf[sf_idx], thr_db, cfg.rate_model, cfg.lora_coding_rate),
-        0.0,
-    )
-    ee = energy_efficiency(rate, p_w, serving_uav, associated, tables.hover_w, cfg.n_uavs)
+        sinr_lin = lin[1]
+        sinr_lin[...] = sinr_cross_gain(p_w, gains, serving_uav, sf_idx, associated, cfg.n_sf, tables.noise_w)
+    db = lin_to_db(lin)
+    snr_db, sinr_db = db[0], db[1]
+    # SINR = 0 for silent EDs, so their Shannon rate W log2(1) and their LoRa-PHY rate are 0.
+    sf = None if cfg.rate_model == "shannon" else tables.sf[sf_idx]
+    rate_bps(sinr_lin, bw_hz, sf, thr_db, cfg.rate_model, cfg.lora_coding_rate, out=tx[0])
+    # EE (Eq. sys_ee): per-UAV sums of rate and power, both by one bincount
+    idx = _group_index(serving_uav, cfg.n_uavs, shape)
+    n_bins = idx.size // shape[-1] * cfg.n_uavs
+    per_uav = np.bincount(np.concatenate((idx, idx + n_bins)), weights=tx.reshape(-1), minlength=2 * n_bins)
+    per_uav = per_uav.reshape((2,) + shape[:-1] + (cfg.n_uavs,))
+    watts = per_uav[1]
+    watts += tables.hover_w
+    ee = np.add.reduce(np.divide(per_uav[0], watts, out=watts), axis=-1)
+    rate_sum, p_total = np.add.reduce(tx, axis=-1)
+    p_total += cfg.n_uavs * tables.hover_w
     xi = success_rate(sinr_db, thr_db, associated)
-    beta = margin_score(lin_to_db(snr_lin), thr_db, associated)
-    p_total = total_power_w(p_w, associated, tables.hover_w, cfg.n_uavs)
-    n_assoc = associated.sum(axis=-1)
+    # means over the associated EDs: beta's margin points and the SINR in dB
+    n_assoc = np.add.reduce(associated, axis=-1)
+    db[0] = _margin_points(snr_db, thr_db)
+    means = np.add.reduce(np.where(associated, db, 0.0), axis=-1)
+    means /= np.maximum(n_assoc, 1)
+    beta = means[0]  # 0 when no ED is associated (a sum of nothing, over 1)
     return {
         "reward": reward(ee, xi, beta, p_total, cfg.reward),
         "ee_sys": ee,
         "success_rate": xi,
         "beta": beta,
         "p_total_w": p_total,
-        "rate_sum_bps": rate.sum(axis=-1),
-        "mean_sinr_db": np.where(n_assoc > 0, np.where(associated, sinr_db, 0.0).sum(axis=-1) / np.maximum(n_assoc, 1), DB_FLOOR),
-        "n_unassociated": (~associated).sum(axis=-1).astype(np.float64),
+        "rate_sum_bps": rate_sum,
+        "mean_sinr_db": np.where(n_assoc > 0, means[1], DB_FLOOR),
+        "n_unassociated": np.subtract(associated.shape[-1], n_assoc, dtype=np.float64),
     }
