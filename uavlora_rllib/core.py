@@ -219,6 +219,14 @@ class BatchCore:
         rng.random(out=self._uniform[i])
         self._cursor[i] = 0
 
+    def _refill_all(self) -> None:
+        """_refill of every scenario (the same draws), with the scaling done once for the batch."""
+        for rng, gauss, uniform in zip(self._rngs, self._gauss, self._uniform):
+            rng.standard_normal(out=gauss)
+            rng.random(out=uniform)
+        self._gauss *= self._noise_scale
+        self._cursor[:] = 0
+
     @property
     def ed_xy(self) -> np.ndarray:
         """ED positions [N, V, 2] (a view: writing into it moves the EDs)."""
@@ -262,8 +270,7 @@ class BatchCore:
             if (c == c[0]).all():
                 k = self._cursor_same = int(c[0])
         elif k >= self._chunk:
-            for i in range(self.n):
-                self._refill(i)
+            self._refill_all()
             k = 0
         if k is not None:  # the usual case (no partial reset): views, no gather copies
             gauss, resample, new_raw = self._gauss[:, k], self._resample[:, k], self._new_mean_raw[:, k]
