@@ -60,11 +60,12 @@ class MAPPOHParams:
                             minibatch_size = train_batch_size / num_minibatches env steps. One
                             minibatch, MAPPO's reference default, runs ~1.3x faster per env step
                             but at lr 1e-4 learned far less in 150k env steps: BENCHMARKS.md)
-    max_seq_len      10     GRU BPTT window [slots] (decision: MAPPO's reference
-                            data_chunk_length; each window starts from the GRU state recorded
-                            during the rollout, so only gradients are truncated; the per-slot
-                            optimum is memoryless, SPEC.md, so longer credit paths buy nothing,
-                            and short windows give the GRU wider matrix products than 32 did)
+    max_seq_len      32     GRU BPTT window [slots] (decision: an episode chunk of T = 150 slots
+                            plus RLlib's bootstrap step is 151 = 4 x 32 + 23, 6 % padding; each
+                            window starts from the GRU state recorded during the rollout, so
+                            only gradients are truncated. MAPPO's reference data_chunk_length 10
+                            runs ~1.2x faster here but learned less: 89% vs 98% of the per-slot
+                            optimum, mean of 4 learning-check runs, BENCHMARKS.md)
     gru_hidden       128    GRU width (paper)
     fc_hidden        128    ReLU layer before and after the GRU (paper: ReLU; width a decision)
     critic_hidden    128    width of the critic's two ReLU layers (decision)
@@ -85,7 +86,7 @@ class MAPPOHParams:
     num_epochs: int = Field(15, ge=1)
     batch_episodes: int = Field(16, ge=1)
     num_minibatches: int = Field(4, ge=1)
-    max_seq_len: int = Field(10, ge=1)
+    max_seq_len: int = Field(32, ge=1)
     gru_hidden: int = Field(128, ge=1)
     fc_hidden: int = Field(128, ge=1)
     critic_hidden: int = Field(128, ge=1)
