@@ -59,13 +59,14 @@ class MAPPOHParams:
     num_minibatches  4      minibatches per epoch [-] (decision: 15 x 4 = 60 Adam steps per batch;
                             minibatch_size = train_batch_size / num_minibatches env steps. One
                             minibatch, MAPPO's reference default, runs ~1.3x faster per env step
-                            but at lr 1e-4 learned far less in 150k env steps: BENCHMARKS.md)
+                            but at lr 1e-4 learned far less in 150k env steps: 43% vs 100% of
+                            the per-slot optimum, BENCHMARKS.md)
     max_seq_len      32     GRU BPTT window [slots] (decision: an episode chunk of T = 150 slots
                             plus RLlib's bootstrap step is 151 = 4 x 32 + 23, 6 % padding; each
                             window starts from the GRU state recorded during the rollout, so
                             only gradients are truncated. MAPPO's reference data_chunk_length 10
-                            runs ~1.2x faster here but learned less: 89% vs 98% of the per-slot
-                            optimum, mean of 4 learning-check runs, BENCHMARKS.md)
+                            runs ~1.2x faster here but learned less: 94% of the EE of 32-slot
+                            windows, mean of 4 learning-check runs, BENCHMARKS.md)
     gru_hidden       128    GRU width (paper)
     fc_hidden        128    ReLU layer before and after the GRU (paper: ReLU; width a decision)
     critic_hidden    128    width of the critic's two ReLU layers (decision)
