@@ -142,7 +142,6 @@ class BatchCore:
             cfg.association == "greedy"
             and cfg.interference == "paper"
             and physics.gain_decreases_with_distance(cfg)
-            and np.array_equal(self.uav_xy, physics.uav_positions(cfg))
         )
         self._spacing = cfg.area_m / u
         self._row_base = (self._env_idx * v)[:, None]  # flat index of (e, 0) in an [N, V] array
@@ -184,7 +183,7 @@ class BatchCore:
             self._rngs[i] = rng
             self.ed_xy[i] = rng.uniform(0.0, cfg.area_m, size=(cfg.n_eds, 2))
             self.ed_vel[i] = rng.uniform(-mob.v_max_mps, mob.v_max_mps, size=(cfg.n_eds, 2))
-            self._refill(i)
+        self._refill(None if mask.all() else np.flatnonzero(mask))
         self._vel[:, mask] = self._clip_speed(self._vel[:, mask])
         self._mvel[:, mask] = mob.mean_velocity_init_mps
         self.t[mask] = 0
@@ -207,25 +206,25 @@ class BatchCore:
             raise ValueError(f"seed: expected {self.n} seeds, got {len(seeds)}")
         return [s if s is not None else self._seed_source.spawn(1)[0] for s in seeds]
 
-    def _refill(self, i: int) -> None:
-        # The stream is: standard_normal(chunk, 2, v), random(chunk, v), then
-        # uniform(-v_max, v_max, (chunk, 2, v)). Generator.uniform(low, high) is
-        # low + (high - low) * next_double, the same doubles random() yields, so the last two
-        # are drawn as one random() call and the affine map is applied in _move.
-        rng = self._rngs[i]
-        gauss = self._gauss[i]
-        rng.standard_normal(out=gauss)
-        gauss *= self._noise_scale  # stored as sigma sqrt(1 - eth^2) w, the term Eq. (gm) adds
-        rng.random(out=self._uniform[i])
-        self._cursor[i] = 0
+    def _refill(self, rows: np.ndarray | None = None) -> None:
+        """The next NOISE_CHUNK steps of noise for the scenarios `rows` (indices; None: all).
 
-    def _refill_all(self) -> None:
-        """_refill of every scenario (the same draws), with the scaling done once for the batch."""
-        for rng, gauss, uniform in zip(self._rngs, self._gauss, self._uniform):
-            rng.standard_normal(out=gauss)
-            rng.random(out=uniform)
-        self._gauss *= self._noise_scale
-        self._cursor[:] = 0
+        Per scenario the stream is: standard_normal(chunk, 2, v), random(chunk, v), then
+        uniform(-v_max, v_max, (chunk, 2, v)). Generator.uniform(low, high) is
+        low + (high - low) * next_double, the same doubles random() yields, so the last two
+        are drawn as one random() call and the affine map is applied in _advance."""
+        idx = range(self.n) if rows is None else rows
+        for i in idx:
+            rng = self._rngs[i]
+            rng.standard_normal(out=self._gauss[i])
+            rng.random(out=self._uniform[i])
+        # stored as sigma sqrt(1 - eth^2) w, the term Eq. (gm) adds (one scaling for all rows)
+        if rows is None:
+            self._gauss *= self._noise_scale
+            self._cursor[:] = 0
+        else:
+            self._gauss[rows] *= self._noise_scale
+            self._cursor[rows] = 0
 
     @property
     def ed_xy(self) -> np.ndarray:
@@ -265,12 +264,13 @@ class BatchCore:
         c = self._cursor
         k = self._cursor_same  # the common cursor of all scenarios, None after a partial reset
         if k is None:
-            for i in np.flatnonzero(c >= self._chunk):
-                self._refill(i)
+            due = np.flatnonzero(c >= self._chunk)
+            if due.size:
+                self._refill(due)
             if (c == c[0]).all():
                 k = self._cursor_same = int(c[0])
         elif k >= self._chunk:
-            self._refill_all()
+            self._refill()
             k = 0
         if k is not None:  # the usual case (no partial reset): views, no gather copies
             gauss, resample, new_raw = self._gauss[:, k], self._resample[:, k], self._new_mean_raw[:, k]

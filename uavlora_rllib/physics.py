@@ -355,16 +355,21 @@ def energy_efficiency(
     """EE_sys[t] = sum_u (sum_v a_uv R_uv) / (sum_v a_uv P_v + P_hover_u), bits per joule, one slot.
 
     serving_uav: any valid UAV index where the ED is unassociated."""
-    return _ee_masked(np.where(associated, rate, 0.0), np.where(associated, tx_power_w, 0.0), serving_uav, hover_w, n_uavs)
+    tx = np.stack(np.broadcast_arrays(np.where(associated, rate, 0.0), np.where(associated, tx_power_w, 0.0)))
+    return _ee_of_tx(tx, np.asarray(serving_uav), hover_w, n_uavs)
 
 
-def _ee_masked(rate: np.ndarray, p_tx: np.ndarray, serving_uav: np.ndarray, hover_w: float, n_uavs: int) -> np.ndarray:
-    """energy_efficiency with rate and power already 0 for the unassociated EDs."""
-    bits = group_sum(rate, serving_uav, n_uavs)
-    watts = group_sum(p_tx, serving_uav, n_uavs)
+def _ee_of_tx(tx: np.ndarray, serving_uav: np.ndarray, hover_w: float, n_uavs: int) -> np.ndarray:
+    """energy_efficiency from tx [2, ..., V] = (rate, transmit power), both already 0 for the
+    unassociated EDs: the per-UAV sums of bits and watts by one bincount over the batch."""
+    shape = tx.shape[1:]
+    idx = _group_index(serving_uav, n_uavs, shape)
+    n_bins = idx.size // shape[-1] * n_uavs
+    per_uav = np.bincount(np.concatenate((idx, idx + n_bins)), weights=tx.reshape(-1), minlength=2 * n_bins)
+    per_uav = per_uav.reshape((2,) + shape[:-1] + (n_uavs,))
+    watts = per_uav[1]
     watts += hover_w
-    bits /= watts
-    return np.add.reduce(bits, axis=-1)
+    return np.add.reduce(np.divide(per_uav[0], watts, out=watts), axis=-1)
 
 
 def success_rate(
@@ -393,15 +398,22 @@ def _margin_points(snr_db: np.ndarray, threshold_db: np.ndarray) -> np.ndarray:
     return score
 
 
-def _mean_over(x: np.ndarray, associated: np.ndarray, n: np.ndarray, empty: float) -> np.ndarray:
-    """Mean of x over the n associated EDs (last axis); `empty` where none is associated."""
+def _mean_over(x: np.ndarray, associated: np.ndarray, n: np.ndarray, empty) -> np.ndarray:
+    """Mean of x over the n associated EDs (last axis; x may stack several quantities in front,
+    [k, ..., V], each reduced by the one call); `empty` (broadcast) where none is associated."""
     total = np.add.reduce(np.where(associated, x, 0.0), axis=-1)
     return np.where(n > 0, total / np.maximum(n, 1), empty)
 
 
 def total_power_w(tx_power_w: np.ndarray, associated: np.ndarray, hover_w: float, n_uavs: int) -> np.ndarray:
     """P_total[t] = sum of associated EDs' TP (W) + sum_u P_hover_u."""
-    return np.where(associated, tx_power_w, 0.0).sum(axis=-1) + n_uavs * hover_w
+    return _p_total(np.where(associated, tx_power_w, 0.0).sum(axis=-1), hover_w, n_uavs)
+
+
+def _p_total(tx_sum_w: np.ndarray, hover_w: float, n_uavs: int) -> np.ndarray:
+    """total_power_w from the sum of the associated EDs' transmit powers (in place)."""
+    tx_sum_w += n_uavs * hover_w
+    return tx_sum_w
 
 
 def reward(ee: np.ndarray, xi: np.ndarray, beta: np.ndarray, p_total: np.ndarray, w: RewardWeights) -> np.ndarray:
@@ -445,6 +457,9 @@ SLOT_METRICS = (
     "mean_sinr_db",
     "n_unassociated",
 )
+
+
+_EMPTY_MEANS = np.array([0.0, DB_FLOOR])  # beta and mean SINR (dB) of a slot with no ED associated
 
 
 def slot_metrics(
@@ -493,23 +508,14 @@ def slot_metrics(
     # SINR = 0 for silent EDs, so their Shannon rate W log2(1) and their LoRa-PHY rate are 0.
     sf = None if cfg.rate_model == "shannon" else tables.sf[sf_idx]
     rate_bps(sinr_lin, bw_hz, sf, thr_db, cfg.rate_model, cfg.lora_coding_rate, out=tx[0])
-    # EE (Eq. sys_ee): per-UAV sums of rate and power, both by one bincount
-    idx = _group_index(serving_uav, cfg.n_uavs, shape)
-    n_bins = idx.size // shape[-1] * cfg.n_uavs
-    per_uav = np.bincount(np.concatenate((idx, idx + n_bins)), weights=tx.reshape(-1), minlength=2 * n_bins)
-    per_uav = per_uav.reshape((2,) + shape[:-1] + (cfg.n_uavs,))
-    watts = per_uav[1]
-    watts += tables.hover_w
-    ee = np.add.reduce(np.divide(per_uav[0], watts, out=watts), axis=-1)
+    ee = _ee_of_tx(tx, serving_uav, tables.hover_w, cfg.n_uavs)  # Eq. (sys_ee)
     rate_sum, p_total = np.add.reduce(tx, axis=-1)
-    p_total += cfg.n_uavs * tables.hover_w
+    p_total = _p_total(p_total, tables.hover_w, cfg.n_uavs)
     xi = success_rate(sinr_db, thr_db, associated)
-    # means over the associated EDs: beta's margin points and the SINR in dB
+    # means over the associated EDs, in one reduction: beta's margin points and the SINR in dB
     n_assoc = np.add.reduce(associated, axis=-1)
     db[0] = _margin_points(snr_db, thr_db)
-    means = np.add.reduce(np.where(associated, db, 0.0), axis=-1)
-    means /= np.maximum(n_assoc, 1)
-    beta = means[0]  # 0 when no ED is associated (a sum of nothing, over 1)
+    beta, mean_sinr_db = _mean_over(db, associated, n_assoc, _EMPTY_MEANS.reshape((2,) + (1,) * (db.ndim - 2)))
     return {
         "reward": reward(ee, xi, beta, p_total, cfg.reward),
         "ee_sys": ee,
@@ -517,6 +523,6 @@ def slot_metrics(
         "beta": beta,
         "p_total_w": p_total,
         "rate_sum_bps": rate_sum,
-        "mean_sinr_db": np.where(n_assoc > 0, means[1], DB_FLOOR),
+        "mean_sinr_db": mean_sinr_db,
         "n_unassociated": np.subtract(associated.shape[-1], n_assoc, dtype=np.float64),
     }
