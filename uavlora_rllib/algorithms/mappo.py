@@ -56,8 +56,9 @@ class MAPPOHParams:
     num_epochs       15     passes over each train batch (paper)
     batch_episodes   16     train batch in EPISODES: train_batch_size = 16 x episode_len env
                             steps (paper's "batch 16"); each env step holds all U agents
-    num_minibatches  4      minibatches per epoch [-] (decision: 15 x 4 = 60 Adam steps per batch;
-                            minibatch_size = train_batch_size / num_minibatches env steps. One
+    num_minibatches  4      minibatches per epoch [-] (decision: minibatch_size = train_batch_size /
+                            num_minibatches env steps; RLlib counts the zero-padded slots, so a
+                            batch of 16 chunks x 160 slots gives 15 x 2560 / 600 = 64 Adam steps. One
                             minibatch, MAPPO's reference default, runs ~1.3x faster per env step
                             but at lr 1e-4 learned far less in 150k env steps: 43% vs 100% of
                             the per-slot optimum, BENCHMARKS.md)
