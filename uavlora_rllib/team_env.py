@@ -150,3 +150,19 @@ def make_team_env(config: Mapping[str, Any] | None = None):
 
 
 register_env(TEAM_ENV_NAME, make_team_env)
+
+
+def sample_through_team_env(config: Any, scenario: ScenarioConfig, resources: Any, algorithm: str, **env_runner_settings: Any) -> Any:
+    """`config` (an RLlib AlgorithmConfig) set to sample the team view: N scenarios per env
+    runner in ONE BatchCore (`gym_env_vectorize_mode="vector_entry_point"`), with the trial's
+    `registry.Resources`. The algorithm's own env-runner settings (fragment length, batch mode)
+    pass through `env_runner_settings`."""
+    return config.environment(
+        UavLoraTeamEnv, env_config={"scenario": scenario.to_dict(), "uavlora_algorithm": algorithm}
+    ).env_runners(
+        num_env_runners=resources.num_env_runners,
+        num_envs_per_env_runner=resources.num_envs_per_env_runner,
+        num_cpus_per_env_runner=resources.num_cpus_per_env_runner,
+        gym_env_vectorize_mode="vector_entry_point",
+        **env_runner_settings,
+    )

@@ -48,7 +48,7 @@ from uavlora_rllib.algorithms.registry import AlgorithmEntry, Resources, registe
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.core import obs_dim, state_dim
 from uavlora_rllib.scenario import ScenarioConfig
-from uavlora_rllib.team_env import UavLoraTeamEnv
+from uavlora_rllib.team_env import sample_through_team_env
 
 NAME = "coma"
 
@@ -218,15 +218,8 @@ def build(scenario: ScenarioConfig, hparams: COMAHParams | dict | None, resource
             "whole episodes, sampled in whole rounds of all envs"
         )
     return (
-        COMAConfig()
-        .environment(UavLoraTeamEnv, env_config={"scenario": scenario.to_dict(), "uavlora_algorithm": NAME})
+        sample_through_team_env(COMAConfig(), scenario, resources, NAME)
         .framework("torch")
-        .env_runners(
-            num_env_runners=resources.num_env_runners,
-            num_envs_per_env_runner=resources.num_envs_per_env_runner,
-            num_cpus_per_env_runner=resources.num_cpus_per_env_runner,
-            gym_env_vectorize_mode="vector_entry_point",
-        )
         .learners(num_learners=0, num_cpus_per_learner=resources.num_cpus_per_learner)
         .training(train_batch_size_per_learner=hparams.batch_episodes * scenario.episode_len)
         .coma(hparams, torch_threads=resources.torch_threads)

@@ -39,7 +39,7 @@ from uavlora_rllib.algorithms.registry import AlgorithmEntry, Resources, registe
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.core import state_dim
 from uavlora_rllib.scenario import ScenarioConfig
-from uavlora_rllib.team_env import UavLoraTeamEnv, team_action_space, team_observation_space
+from uavlora_rllib.team_env import sample_through_team_env, team_action_space, team_observation_space
 
 
 @typed_dataclass(config=ConfigDict(extra="forbid", frozen=True))
@@ -158,16 +158,8 @@ def _build(name: str):
                 f"sequence (max_seq_len {hparams.max_seq_len}); use fewer minibatches or more batch_episodes"
             )
         cfg = (
-            MAPPOConfig()
-            .environment(UavLoraTeamEnv, env_config={"scenario": scenario.to_dict(), "uavlora_algorithm": name})
+            sample_through_team_env(MAPPOConfig(), scenario, resources, name, rollout_fragment_length="auto")
             .framework("torch")
-            .env_runners(
-                num_env_runners=resources.num_env_runners,
-                num_envs_per_env_runner=resources.num_envs_per_env_runner,
-                num_cpus_per_env_runner=resources.num_cpus_per_env_runner,
-                gym_env_vectorize_mode="vector_entry_point",
-                rollout_fragment_length="auto",
-            )
             .learners(
                 num_learners=0,
                 num_cpus_per_learner=resources.num_cpus_per_learner,

@@ -322,18 +322,11 @@ def _build(name: str, config_cls: type):
         entry.check_scenario(scenario)
         if not isinstance(hparams, QMIXHParams):
             hparams = entry.hparams(hparams)
-        import uavlora_rllib.team_env as team_env  # registers the env
+        from uavlora_rllib.team_env import sample_through_team_env
 
         config = (
-            config_cls()
-            .environment(team_env.UavLoraTeamEnv, env_config={"scenario": scenario.to_dict(), "uavlora_algorithm": name})
-            .env_runners(
-                num_env_runners=resources.num_env_runners,
-                num_envs_per_env_runner=resources.num_envs_per_env_runner,
-                num_cpus_per_env_runner=resources.num_cpus_per_env_runner,
-                gym_env_vectorize_mode="vector_entry_point",
-                rollout_fragment_length=scenario.episode_len,
-                batch_mode="truncate_episodes",
+            sample_through_team_env(
+                config_cls(), scenario, resources, name, rollout_fragment_length=scenario.episode_len, batch_mode="truncate_episodes"
             )
             .learners(num_learners=0, num_cpus_per_learner=resources.num_cpus_per_learner)
             .training(
