@@ -422,28 +422,58 @@ class BatchCore:
 
     def _slots(self) -> None:
         """slot_of_ed [N, V]: rank of each served ED by gain among its UAV's EDs (ties by ED id;
-        -1 if unassociated), and the served counts [N, U]. A stable sort by gain, then a stable
-        sort by serving UAV: each UAV's EDs form a run in gain order, and an ED's slot is its
+        -1 if unassociated), and the served counts [N, U]. The EDs are sorted by (serving UAV,
+        descending gain, ED id): each UAV's EDs form a run in gain order, and an ED's slot is its
         position minus the start of its UAV's run (an exclusive cumulative sum of the counts)."""
         n, v, u = self.n, self.cfg.n_eds, self.cfg.n_uavs
         grp = self._serving_idx if self._all_associated else np.where(self.associated, self._serving_idx, u)
-        order = stable_argsort(np.negative(self.g_serving))
-        order += self._row_base  # flat indices into [N, V]
+        order, grouped = self._group_order(grp)  # flat indices into [N, V]; UAV ids in that order
+        grouped += self._grp_base
+        counts = np.bincount(grouped.reshape(-1), minlength=n * (u + 1)).reshape(n, u + 1)
+        start = np.cumsum(counts, axis=-1)
+        start -= counts
+        slot = self._positions - start.reshape(-1).take(grouped)
+        if not self._all_associated:
+            slot[grouped - self._grp_base == u] = -1
+        slot_of_ed = np.empty((n, v), dtype=np.int64)
+        slot_of_ed.reshape(-1)[order] = slot
+        self.slot_of_ed = slot_of_ed
+        self._counts = counts[:, :u]
+
+    def _group_order(self, grp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The flat [N, V] indices of the EDs sorted by (grp, descending g_serving, ED id) per
+        scenario, and grp in that order.
+
+        Usually one sort of an int64 composite key: for g >= 0 the bit pattern of a float64, read
+        as an int64, increases with g, so (grp << s) + (max bits - bits of g) orders as wanted if
+        the gains' bit patterns span less than 2^s (s = 63 - bits of U: ~2^(s-52) binades, e.g.
+        128 for U = 8, 16 for U = 64). Ties (equal gains in one group) need the stable sort;
+        otherwise the SIMD quicksort gives the same order. Gains spread too far: two stable sorts."""
+        v, u = self.cfg.n_eds, self.cfg.n_uavs
+        g = self.g_serving
+        if v > 32 and g.ndim == 2 and g.flags.c_contiguous:
+            bits = g.view(np.int64)
+            lo, hi = int(bits.min()), int(bits.max())
+            shift = 63 - int(u).bit_length()
+            if lo >= 0 and hi - lo < (1 << shift):
+                key = np.left_shift(grp, shift)
+                key += hi
+                key -= bits
+                order = np.argsort(key, axis=-1)
+                order += self._row_base
+                ks = key.reshape(-1).take(order)
+                if (ks[:, 1:] == ks[:, :-1]).any():  # (a tie: rare)
+                    order = np.argsort(key, axis=-1, kind="stable")
+                    order += self._row_base
+                    ks = key.reshape(-1).take(order)
+                return order, np.right_shift(ks, shift, out=ks)
+        order = stable_argsort(np.negative(g))
+        order += self._row_base
         grp_sorted = grp.reshape(-1).take(order)
         # U <= 64 (ScenarioConfig): ids fit in int8, whose stable sort is a radix sort (faster for long rows).
         by = np.argsort(grp_sorted.astype(np.int8) if v > 32 else grp_sorted, axis=-1, kind="stable")
         by += self._row_base
-        grouped = grp_sorted.reshape(-1).take(by)  # [N, V] non-decreasing per row
-        counts = np.bincount((grouped + self._grp_base).reshape(-1), minlength=n * (u + 1)).reshape(n, u + 1)
-        start = np.cumsum(counts, axis=-1)
-        start -= counts
-        slot = self._positions - start.reshape(-1).take(grouped + self._grp_base)
-        if not self._all_associated:
-            slot[grouped == u] = -1
-        slot_of_ed = np.empty((n, v), dtype=np.int64)
-        slot_of_ed.reshape(-1)[order.reshape(-1).take(by)] = slot
-        self.slot_of_ed = slot_of_ed
-        self._counts = counts[:, :u]
+        return order.reshape(-1).take(by), grp_sorted.reshape(-1).take(by)
 
     def _gain_feature(self, gain_db: np.ndarray) -> np.ndarray:
         return (gain_db - self._gain_db_mid) / self._gain_db_half
