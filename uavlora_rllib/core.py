@@ -119,6 +119,10 @@ class BatchCore:
         self._uniform = np.zeros((n_envs, 3 * chunk * v))
         self._resample = self._uniform[:, : chunk * v].reshape(n_envs, chunk, v)
         self._new_mean_raw = self._uniform[:, chunk * v :].reshape(n_envs, chunk, 2, v)
+        # The re-draws those imply, found once per refill (see _refill): (scenario, step in the
+        # chunk, ED) of each, and the new v-bar there [2, K].
+        none = np.zeros(0, dtype=np.int64)
+        self._redraws: tuple[np.ndarray, ...] = (none, none, none, np.zeros((2, 0)))
         self._cursor = np.zeros(n_envs, dtype=np.int64)
         self._cursor_same: int | None = 0  # the cursor of every scenario while they agree
         self._noise_scale = cfg.mobility.sigma * float(np.sqrt(1.0 - cfg.mobility.memory**2))
@@ -218,6 +222,7 @@ class BatchCore:
             rng = self._rngs[i]
             rng.standard_normal(out=self._gauss[i])
             rng.random(out=self._uniform[i])
+        self._find_redraws(rows)
         # stored as sigma sqrt(1 - eth^2) w, the term Eq. (gm) adds (one scaling for all rows)
         if rows is None:
             self._gauss *= self._noise_scale
@@ -225,6 +230,30 @@ class BatchCore:
         else:
             self._gauss[rows] *= self._noise_scale
             self._cursor[rows] = 0
+
+    def _find_redraws(self, rows: np.ndarray | None) -> None:
+        """The v-bar re-draws of the fresh chunk of the scenarios `rows` (None: all), where the
+        test draw is below the re-draw probability (rare: ~1% of the EDs per step). Finding them
+        once per refill, on the buffer's contiguous rows, is cheaper than testing an [N, V]
+        slice of it (one row per scenario, 77 KB apart) every step."""
+        mob = self.cfg.mobility
+        tests = self._uniform[:, : self._resample[0].size]  # [N, chunk V] (contiguous rows)
+        if rows is not None:
+            tests = tests[rows]
+        e, kv = np.divmod(np.flatnonzero(tests < mob.mean_resample_prob), tests.shape[1])  # (3-D nonzero: 10x slower)
+        k, v = np.divmod(kv, self.cfg.n_eds)
+        if rows is not None:
+            e = rows[e]
+        low = -mob.v_max_mps
+        new = low + (mob.v_max_mps - low) * self._new_mean_raw[e, k, :, v].T  # Generator.uniform's formula
+        if rows is not None:  # keep the other scenarios' re-draws
+            other = np.ones(self.n, dtype=bool)
+            other[rows] = False
+            keep = other[self._redraws[0]]
+            old = self._redraws
+            e, k, v = (np.concatenate((a[keep], b)) for a, b in zip(old[:3], (e, k, v)))
+            new = np.concatenate((old[3][:, keep], new), axis=1)
+        self._redraws = (e, k, v, new)
 
     @property
     def ed_xy(self) -> np.ndarray:
@@ -272,18 +301,17 @@ class BatchCore:
         elif k >= self._chunk:
             self._refill()
             k = 0
+        re, rk, rv, new = self._redraws
         if k is not None:  # the usual case (no partial reset): views, no gather copies
-            gauss, resample, new_raw = self._gauss[:, k], self._resample[:, k], self._new_mean_raw[:, k]
+            gauss = self._gauss[:, k]
             self._cursor_same = k + 1
+            hit = np.flatnonzero(rk == k)
         else:
             gauss = self._gauss[self._env_idx, c]
-            resample, new_raw = self._resample[self._env_idx, c], self._new_mean_raw[self._env_idx, c]
-        redraw = resample < mob.mean_resample_prob
-        if redraw.any():  # (rare: written where it happens)
-            e, v = np.nonzero(redraw)
-            low = -mob.v_max_mps
+            hit = np.flatnonzero(rk == c.take(re))
+        if hit.size:  # the v-bar re-draws of this step (rare: written where they happen)
             mvel = mvel.copy()  # (the previous slot's array may be kept, e.g. by the lookahead)
-            mvel[:, e, v] = low + (mob.v_max_mps - low) * new_raw[e, :, v].T  # Generator.uniform's formula
+            mvel[:, re[hit], rv[hit]] = new[:, hit]
         c += 1
         eth = mob.memory
         # vel = eth v + (1 - eth) v-bar + sigma sqrt(1 - eth^2) w, in this order.
