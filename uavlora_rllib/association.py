@@ -12,7 +12,8 @@ the batch, the EDs and the UAVs: each round every unmatched ED proposes to its n
 preferred UAV, and each UAV keeps its Lambda_max highest-priority candidates. Scenarios
 where no quota binds (the default layout) skip it: there every ED simply takes its best
 in-range UAV (one argmax). At most V * U rounds, usually
-<= U. Cost per round O(N U V), plus one O(N V log V) sort.
+<= U. Cost per round O(N U V), plus one O(N V log V) sort; a scenario leaves the rounds once
+none of its EDs is rejected (most are matched after one or two).
 
 optimal (extension): the assignment that maximises the total linear gain under the quota,
 solved per scenario with scipy's linear_sum_assignment on min(Lambda_max, V) replicated
@@ -83,40 +84,50 @@ def _deferred_acceptance(g: np.ndarray, ok: np.ndarray, quota: int, first: np.nd
     # Priority: descending best in-range gain; ties by ED index (stable sort).
     best = g.max(axis=1)  # [N, V]; -inf: no UAV in range
     order = stable_argsort(-best)  # [N, V] ED ids, best first
-    rows = np.arange(n)[:, None]
-    # [N, V', U] in priority order, contiguous along U; UAVs already tried are set to -inf
-    pref = np.ascontiguousarray(g.transpose(0, 2, 1))[rows, order]
-    candidate = np.argmax(pref, axis=-1) if first is None else first[rows, order]  # first choices
-    candidate[best[rows, order] == -np.inf] = UNASSOCIATED
+    row_base = (np.arange(n) * n_eds)[:, None]
+    order += row_base  # flat indices into [N, V] (flat takes: much faster than fancy indexing here)
+    # [N V', U]: row e V + i = the gains of scenario e's i-th ED in priority order, contiguous
+    # along U; UAVs already tried are set to -inf
+    pref = np.ascontiguousarray(g.transpose(0, 2, 1)).reshape(n * n_eds, n_uavs).take(order.reshape(-1), axis=0)
+    candidate = np.argmax(pref, axis=-1).reshape(n, n_eds) if first is None else first.reshape(-1).take(order)
+    candidate[best.reshape(-1).take(order) == -np.inf] = UNASSOCIATED
     pos = np.arange(n_eds)
     group_base = (np.arange(n) * (n_uavs + 1))[:, None]
-    row_base = (np.arange(n) * n_eds)[:, None]
+    held_all = np.empty((n, n_eds), dtype=np.int64)  # the final matching, in priority order
+    active = np.arange(n)  # scenarios still with rejected EDs (the others are done)
     while True:
         # A UAV keeps a candidate iff fewer than `quota` of its candidates come earlier in the
         # priority order (the columns): rank each candidate within its UAV by a stable sort of
         # the UAV ids (U + 1 = none), as in BatchCore._slots.
+        m = len(active)
         grp = np.where(candidate == UNASSOCIATED, n_uavs, candidate)
         by = np.argsort(grp.astype(np.int8), axis=-1, kind="stable")  # U <= 64
-        by += row_base
-        grouped = grp.reshape(-1).take(by) + group_base  # flat (row, UAV) group of each sorted entry
-        counts = np.bincount(grouped.reshape(-1), minlength=n * (n_uavs + 1))
+        by += row_base[:m]
+        grouped = grp.reshape(-1).take(by) + group_base[:m]  # flat (row, UAV) group of each sorted entry
+        counts = np.bincount(grouped.reshape(-1), minlength=m * (n_uavs + 1))
         start = np.cumsum(counts) - counts  # first sorted position of each group (flat)
-        kept_sorted = (grouped - group_base < n_uavs) & (pos - (start.take(grouped) - row_base) < quota)
+        kept_sorted = (grouped - group_base[:m] < n_uavs) & (pos - (start.take(grouped) - row_base[:m]) < quota)
         kept = np.empty_like(kept_sorted)
         kept.reshape(-1)[by.reshape(-1)] = kept_sorted.reshape(-1)
         held = np.where(kept, candidate, UNASSOCIATED)
         rejected = (candidate != UNASSOCIATED) & ~kept
-        if not rejected.any():
-            break
+        going = rejected.any(axis=-1)
+        if not going.all():  # scenarios without a rejection are matched; later rounds skip them
+            held_all[active[~going]] = held[~going]
+            if not going.any():
+                break
+            active, held, rejected, candidate = active[going], held[going], rejected[going], candidate[going]
         e, v = np.nonzero(rejected)  # proposers and displaced EDs move on to their next choice
-        pref[e, v, candidate[e, v]] = -np.inf
-        rows = pref[e, v]  # [K, U]
+        ev = active[e] * n_eds + v  # their rows in pref
+        rows = pref[ev]  # [K, U]
+        rows[np.arange(len(e)), candidate[e, v]] = -np.inf
+        pref[ev] = rows
         nxt = np.argmax(rows, axis=-1)
         has_next = rows[np.arange(len(e)), nxt] > -np.inf
         candidate = held
         candidate[e[has_next], v[has_next]] = nxt[has_next]
-    serving = np.empty_like(held)
-    np.put_along_axis(serving, order, held, axis=-1)
+    serving = np.empty_like(held_all)
+    serving.reshape(-1)[order] = held_all
     return serving
 
 
