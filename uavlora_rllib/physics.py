@@ -365,11 +365,10 @@ def _ee_of_tx(tx: np.ndarray, serving_uav: np.ndarray, hover_w: float, n_uavs: i
     shape = tx.shape[1:]
     idx = _group_index(serving_uav, n_uavs, shape)
     n_bins = idx.size // shape[-1] * n_uavs
-    per_uav = np.bincount(np.concatenate((idx, idx + n_bins)), weights=tx.reshape(-1), minlength=2 * n_bins)
-    per_uav = per_uav.reshape((2,) + shape[:-1] + (n_uavs,))
-    watts = per_uav[1]
+    bits = np.bincount(idx, weights=tx[0].reshape(-1), minlength=n_bins)
+    watts = np.bincount(idx, weights=tx[1].reshape(-1), minlength=n_bins)
     watts += hover_w
-    return np.add.reduce(np.divide(per_uav[0], watts, out=watts), axis=-1)
+    return np.add.reduce(np.divide(bits, watts, out=watts).reshape(shape[:-1] + (n_uavs,)), axis=-1)
 
 
 def success_rate(
@@ -398,10 +397,11 @@ def _margin_points(snr_db: np.ndarray, threshold_db: np.ndarray) -> np.ndarray:
     return score
 
 
-def _mean_over(x: np.ndarray, associated: np.ndarray, n: np.ndarray, empty) -> np.ndarray:
+def _mean_over(x: np.ndarray, associated: np.ndarray | None, n: np.ndarray, empty) -> np.ndarray:
     """Mean of x over the n associated EDs (last axis; x may stack several quantities in front,
-    [k, ..., V], each reduced by the one call); `empty` (broadcast) where none is associated."""
-    total = np.add.reduce(np.where(associated, x, 0.0), axis=-1)
+    [k, ..., V], each reduced by the one call); `empty` (broadcast) where none is associated.
+    associated None: every ED is (the same sums, without the masking pass)."""
+    total = np.add.reduce(x if associated is None else np.where(associated, x, 0.0), axis=-1)
     return np.where(n > 0, total / np.maximum(n, 1), empty)
 
 
@@ -483,8 +483,8 @@ def slot_metrics(
     if g_serving is None:
         g_serving = at_serving(gains, serving_uav)
     sf_idx = np.asarray(sf_idx)
-    p_w = tables.tp_w[tp_idx]
-    bw_hz = tables.bw_hz[bw_idx]
+    p_w = tables.tp_w.take(tp_idx)  # (take: ~2x faster than fancy indexing)
+    bw_hz = tables.bw_hz.take(bw_idx)
     thr_db = tables.threshold_db.reshape(-1).take(sf_idx * tables.threshold_db.shape[1] + bw_idx)
     g_serving, associated, serving_uav = np.asarray(g_serving), np.asarray(associated), np.asarray(serving_uav)
     shape = p_w.shape
@@ -495,7 +495,13 @@ def slot_metrics(
     lin = np.empty((2,) + shape)  # SNR and SINR (linear) of every ED
     tx = np.empty((2,) + shape)  # rate and transmit power of every ED (0 for silent EDs)
     p_tx = tx[1]
-    np.multiply(p_w, associated, out=p_tx)  # silent EDs transmit nothing (P * False = 0)
+    # Every ED associated (the usual case in larger layouts): the masks below are identities,
+    # skipped (same values).
+    everyone = bool(associated.all())
+    if everyone:
+        np.copyto(p_tx, p_w)
+    else:
+        np.multiply(p_w, associated, out=p_tx)  # silent EDs transmit nothing (P * False = 0)
     s_tx = np.multiply(p_tx, g_serving, out=lin[0])  # = rho_v for associated EDs, 0 for silent ones
     s_tx /= tables.noise_w  # snr(): P G / sigma^2
     if cfg.interference == "paper":
@@ -513,9 +519,9 @@ def slot_metrics(
     p_total = _p_total(p_total, tables.hover_w, cfg.n_uavs)
     xi = success_rate(sinr_db, thr_db, associated)
     # means over the associated EDs, in one reduction: beta's margin points and the SINR in dB
-    n_assoc = np.add.reduce(associated, axis=-1)
+    n_assoc = np.full(shape[:-1], shape[-1]) if everyone else np.add.reduce(associated, axis=-1)
     db[0] = _margin_points(snr_db, thr_db)
-    beta, mean_sinr_db = _mean_over(db, associated, n_assoc, _EMPTY_MEANS.reshape((2,) + (1,) * (db.ndim - 2)))
+    beta, mean_sinr_db = _mean_over(db, None if everyone else associated, n_assoc, _EMPTY_MEANS.reshape((2,) + (1,) * (db.ndim - 2)))
     return {
         "reward": reward(ee, xi, beta, p_total, cfg.reward),
         "ee_sys": ee,
