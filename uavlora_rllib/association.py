@@ -167,8 +167,8 @@ def greedy_from_nearest(
     reachable = d_h_nearest <= comm_range_m
     serving = np.where(reachable, nearest, UNASSOCIATED)
     if quota < nearest.shape[-1]:  # otherwise no quota can bind
-        counts = physics.group_sum(reachable, nearest, n_uavs)
-        binding = (counts > quota).any(axis=-1)
+        counts = physics.group_count(serving + 1, n_uavs + 1)  # group 0: unassociated
+        binding = (counts[..., 1:] > quota).any(axis=-1)
         if binding.any():
             g, d = full_problem(binding)
             ok = in_range_mask(d, comm_range_m)

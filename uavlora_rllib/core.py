@@ -401,7 +401,7 @@ class BatchCore:
             d2[m] = physics.horizontal_distance_sq_to(self.ed_xy[m], self.uav_xy, near[m])
             d_h[m] = np.sqrt(d2[m])
         self._serving_idx = near  # unassociated EDs: their nearest UAV (any valid index)
-        self.g_serving, self.g_db_serving = physics.channel_gain_sq(d2, cfg, with_db=True)
+        self.g_serving, self.g_db_serving = physics.channel_gain_sq(d2, cfg, with_db=True, d_h=d_h)
         self.d_h_serving = d_h
 
     def _observe_pairs(self) -> None:

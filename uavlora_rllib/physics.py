@@ -72,6 +72,14 @@ def group_sum(values: np.ndarray, groups: np.ndarray, n_groups: int) -> np.ndarr
     return np.bincount(idx, weights=w, minlength=n_bins).reshape(shape[:-1] + (n_groups,))
 
 
+def group_count(groups: np.ndarray, n_groups: int) -> np.ndarray:
+    """sum_v [groups_v == g] along the last axis, as int64: [..., V] -> [..., n_groups] (one
+    unweighted np.bincount, faster than group_sum with boolean weights)."""
+    idx = _group_index(groups, n_groups, groups.shape)
+    n_bins = (idx.size // groups.shape[-1]) * n_groups if idx.size else 0
+    return np.bincount(idx, minlength=n_bins).reshape(groups.shape[:-1] + (n_groups,))
+
+
 # ---------------------------------------------------------------- unit conversions
 def dbm_to_w(p_dbm: np.ndarray | float) -> np.ndarray:
     return np.power(10.0, (np.asarray(p_dbm, dtype=np.float64) - 30.0) / 10.0)
@@ -148,11 +156,12 @@ def channel_gain(d_h: np.ndarray | float, cfg: ScenarioConfig) -> np.ndarray:
     return db_to_lin(-path_loss_db(d_h, cfg))
 
 
-def channel_gain_sq(d2_h: np.ndarray, cfg: ScenarioConfig, with_db: bool = False):
+def channel_gain_sq(d2_h: np.ndarray, cfg: ScenarioConfig, with_db: bool = False, d_h: np.ndarray | None = None):
     """G = 10^(-L/10) of Eq. (a2g_pl) from the SQUARED horizontal distance d2_h = d_h^2, with
     the transcendentals this CPU's NumPy vectorises (sqrt, arctan, exp, log10) instead of
     arctan2 and 10^x. Same value as `channel_gain(sqrt(d2_h))` up to rounding (tested to 1e-12
-    relative). Returns G, or (G, G_dB) with G_dB = -L when `with_db`.
+    relative). Returns G, or (G, G_dB) with G_dB = -L when `with_db`. `d_h`: sqrt(d2_h) when the
+    caller has it (sqrt is correctly rounded: the same values, one pass fewer).
 
     Derivation. With d3^2 = d2_h + h^2 and K0 = 20 log10(4 pi f / c),
       L = 10 log10(d3^2) + K0 + eta_LoS P + eta_NLoS (1 - P)
@@ -169,8 +178,11 @@ def channel_gain_sq(d2_h: np.ndarray, cfg: ScenarioConfig, with_db: bool = False
         return (out[0][0], out[1][0]) if with_db else out[0]
     h = cfg.altitude_m
     d3_sq = np.add(d2_h, h * h)
-    t = np.sqrt(d2_h)
-    t *= 1.0 / h
+    if d_h is None:
+        t = np.sqrt(d2_h)
+        t *= 1.0 / h
+    else:
+        t = np.multiply(d_h, 1.0 / h)
     np.arctan(t, out=t)
     t *= cfg.los_b * _DEG_PER_RAD
     t += cfg.los_b * (cfg.los_a - 90.0)
