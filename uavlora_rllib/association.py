@@ -92,18 +92,27 @@ def _deferred_acceptance(g: np.ndarray, ok: np.ndarray, quota: int, first: np.nd
     candidate = np.argmax(pref, axis=-1).reshape(n, n_eds) if first is None else first.reshape(-1).take(order)
     candidate[best.reshape(-1).take(order) == -np.inf] = UNASSOCIATED
     pos = np.arange(n_eds)
+    # Each round's sort key: (candidate UAV, priority position) in one small integer, sorted by
+    # np.sort (SIMD; positions are distinct, so any sort is stable here).
+    id_bits = max(int(n_eds - 1).bit_length(), 1)
+    key_type = np.int16 if (n_uavs + 1) << id_bits <= 1 << 15 else np.int64
+    key_pos = pos.astype(key_type)
     group_base = (np.arange(n) * (n_uavs + 1))[:, None]
     held_all = np.empty((n, n_eds), dtype=np.int64)  # the final matching, in priority order
     active = np.arange(n)  # scenarios still with rejected EDs (the others are done)
     while True:
         # A UAV keeps a candidate iff fewer than `quota` of its candidates come earlier in the
-        # priority order (the columns): rank each candidate within its UAV by a stable sort of
-        # the UAV ids (U + 1 = none), as in BatchCore._slots.
+        # priority order (the columns): rank each candidate within its UAV by sorting
+        # (UAV id (U = none), position), as in BatchCore._slots.
         m = len(active)
-        grp = np.where(candidate == UNASSOCIATED, n_uavs, candidate)
-        by = np.argsort(grp.astype(np.int8), axis=-1, kind="stable")  # U <= 64
+        key = np.where(candidate == UNASSOCIATED, n_uavs, candidate).astype(key_type)
+        key <<= id_bits
+        key |= key_pos
+        key.sort(axis=-1)
+        by = (key & ((1 << id_bits) - 1)).astype(np.int64)
         by += row_base[:m]
-        grouped = grp.reshape(-1).take(by) + group_base[:m]  # flat (row, UAV) group of each sorted entry
+        grouped = (key >> id_bits).astype(np.int64)
+        grouped += group_base[:m]  # flat (row, UAV) group of each sorted entry
         counts = np.bincount(grouped.reshape(-1), minlength=m * (n_uavs + 1))
         start = np.cumsum(counts) - counts  # first sorted position of each group (flat)
         kept_sorted = (grouped - group_base[:m] < n_uavs) & (pos - (start.take(grouped) - row_base[:m]) < quota)
