@@ -579,15 +579,35 @@ class BatchCore:
             )
 
     # ------------------------------------------------------------------ step
+    def _per_uav_values(self, actions: np.ndarray) -> tuple[np.ndarray, tuple, tuple]:
+        """per_uav mode, large batches: each ED's SF index and (P_W, W_Hz, rho_thr) gathered
+        from its serving UAV's values ([N, U]: U table look-ups per scenario instead of V),
+        and the parts prev_alloc builds the per-ED (sf, tp, bw) from when it is read."""
+        cfg = self.cfg
+        actions = np.asarray(actions)
+        self._check_range(actions, (self.n, cfg.n_uavs), self._n_joint)
+        idx = self._serving_idx + self._act_base  # flat index of each ED's serving UAV in [N, U]
+        sf_u, tp_u, bw_u = decode_joint_action(actions, cfg)  # [N, U] each
+        per_uav = physics.allocation_values(sf_u, tp_u, bw_u, self.tables)
+        values = tuple(x.reshape(-1).take(idx) for x in per_uav)
+        sf = sf_u.reshape(-1).take(idx)
+        return sf, values, (sf, tp_u, bw_u, idx)
+
     def step(self, actions: np.ndarray) -> StepResult:
         if not self._ready:
             raise RuntimeError("call reset() before step()")
-        sf, tp, bw = self.allocations(actions)
         gains = None if self._nearest else self.gains
+        if self.cfg.action_mode == "per_uav" and self._serving_idx.size > 4096:
+            sf, values, parts = self._per_uav_values(actions)
+            tp = bw = None
+        else:
+            sf, tp, bw = parts = self.allocations(actions)
+            values = None
         metrics = physics.slot_metrics(
-            gains, self._serving_idx, self.associated, sf, tp, bw, self.cfg, self.tables, g_serving=self.g_serving
-        )
-        self._prev_parts = (sf, tp, bw, None if self._all_associated else self.associated)
+            gains, self._serving_idx, self.associated, sf, tp, bw, self.cfg, self.tables, g_serving=self.g_serving,
+            values=values,
+        )  # fmt: skip
+        self._prev_parts = (parts, None if self._all_associated else self.associated)
         self.t += 1
         self._next_slot()
         return StepResult(self.obs, metrics["reward"], self.t >= self.cfg.episode_len, metrics)
@@ -597,8 +617,11 @@ class BatchCore:
         """Each ED's (sf_idx, tp_idx, bw_idx) in the slot just played [N, V, 3]; -1 where it was
         silent or no slot was played since the reset (built on first access)."""
         if self._prev_parts is not None:
-            sf, tp, bw, assoc = self._prev_parts
-            prev = np.stack((sf, tp, bw), axis=-1)
+            parts, assoc = self._prev_parts
+            if len(parts) == 4:  # (sf, tp and bw per UAV, the flat serving-UAV index) of _per_uav_values
+                sf, tp_u, bw_u, idx = parts
+                parts = (sf, tp_u.reshape(-1).take(idx), bw_u.reshape(-1).take(idx))
+            prev = np.stack(parts, axis=-1)
             if assoc is not None:
                 prev[~assoc] = -1
             self._prev_alloc, self._prev_parts = prev, None
