@@ -367,18 +367,20 @@ def energy_efficiency(
     """EE_sys[t] = sum_u (sum_v a_uv R_uv) / (sum_v a_uv P_v + P_hover_u), bits per joule, one slot.
 
     serving_uav: any valid UAV index where the ED is unassociated."""
-    tx = np.stack(np.broadcast_arrays(np.where(associated, rate, 0.0), np.where(associated, tx_power_w, 0.0)))
-    return _ee_of_tx(tx, np.asarray(serving_uav), hover_w, n_uavs)
+    rate_tx, p_tx = np.broadcast_arrays(np.where(associated, rate, 0.0), np.where(associated, tx_power_w, 0.0))
+    return _ee_of_tx(rate_tx, p_tx, np.asarray(serving_uav), hover_w, n_uavs)
 
 
-def _ee_of_tx(tx: np.ndarray, serving_uav: np.ndarray, hover_w: float, n_uavs: int) -> np.ndarray:
-    """energy_efficiency from tx [2, ..., V] = (rate, transmit power), both already 0 for the
-    unassociated EDs: the per-UAV sums of bits and watts by one bincount over the batch."""
-    shape = tx.shape[1:]
+def _ee_of_tx(
+    rate_tx: np.ndarray, p_tx: np.ndarray, serving_uav: np.ndarray, hover_w: float, n_uavs: int
+) -> np.ndarray:
+    """energy_efficiency from the rate and transmit power [..., V] (same shape), both already 0
+    for the unassociated EDs: the per-UAV sums of bits and of watts by a bincount each."""
+    shape = rate_tx.shape
     idx = _group_index(serving_uav, n_uavs, shape)
     n_bins = idx.size // shape[-1] * n_uavs
-    bits = np.bincount(idx, weights=tx[0].reshape(-1), minlength=n_bins)
-    watts = np.bincount(idx, weights=tx[1].reshape(-1), minlength=n_bins)
+    bits = np.bincount(idx, weights=rate_tx.reshape(-1), minlength=n_bins)
+    watts = np.bincount(idx, weights=p_tx.reshape(-1), minlength=n_bins)
     watts += hover_w
     return np.add.reduce(np.divide(bits, watts, out=watts).reshape(shape[:-1] + (n_uavs,)), axis=-1)
 
@@ -401,12 +403,14 @@ def margin_score(snr_db: np.ndarray, threshold_db: np.ndarray, associated: np.nd
     return _mean_over(_margin_points(snr_db, threshold_db), associated, np.add.reduce(associated, axis=-1), 0.0)
 
 
-def _margin_points(snr_db: np.ndarray, threshold_db: np.ndarray) -> np.ndarray:
-    m = np.subtract(snr_db, threshold_db)
-    score = np.maximum(m, -20.0)
-    np.minimum(score, 20.0, out=score)
-    score /= np.where(m >= 0.0, 20.0, 2.0)
-    return score
+def _margin_points(snr_db: np.ndarray, threshold_db: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """margin_score's points of each ED; `out` (may be snr_db itself) receives them."""
+    m = np.subtract(snr_db, threshold_db, out=out)
+    below = m < 0.0
+    np.maximum(m, -20.0, out=m)
+    np.minimum(m, 20.0, out=m)
+    m /= np.where(below, 2.0, 20.0)
+    return m
 
 
 def _mean_over(x: np.ndarray, associated: np.ndarray | None, n: np.ndarray, empty) -> np.ndarray:
@@ -515,15 +519,13 @@ def slot_metrics(
     # Quantities that are reduced the same way are computed into one [2, ...] buffer each, so
     # that each reduction is one NumPy call (a step at N = 1 is dominated by per-call costs).
     lin = np.empty((2,) + shape)  # SNR and SINR (linear) of every ED
-    tx = np.empty((2,) + shape)  # rate and transmit power of every ED (0 for silent EDs)
-    p_tx = tx[1]
     # Every ED associated (the usual case in larger layouts): the masks below are identities,
     # skipped (same values).
     everyone = bool(associated.all())
-    if everyone:
-        np.copyto(p_tx, p_w)
+    if everyone and p_w.shape == shape:
+        p_tx = p_w
     else:
-        np.multiply(p_w, associated, out=p_tx)  # silent EDs transmit nothing (P * False = 0)
+        p_tx = np.multiply(p_w, associated)  # silent EDs transmit nothing (P * False = 0)
     s_tx = np.multiply(p_tx, g_serving, out=lin[0])  # = rho_v for associated EDs, 0 for silent ones
     s_tx /= tables.noise_w  # snr(): P G / sigma^2
     if cfg.interference == "paper":
@@ -535,14 +537,14 @@ def slot_metrics(
     snr_db, sinr_db = db[0], db[1]
     # SINR = 0 for silent EDs, so their Shannon rate W log2(1) and their LoRa-PHY rate are 0.
     sf = None if cfg.rate_model == "shannon" else tables.sf[sf_idx]
-    rate_bps(sinr_lin, bw_hz, sf, thr_db, cfg.rate_model, cfg.lora_coding_rate, out=tx[0])
-    ee = _ee_of_tx(tx, serving_uav, tables.hover_w, cfg.n_uavs)  # Eq. (sys_ee)
-    rate_sum, p_total = np.add.reduce(tx, axis=-1)
+    rate = rate_bps(sinr_lin, bw_hz, sf, thr_db, cfg.rate_model, cfg.lora_coding_rate, out=np.empty(shape))
+    ee = _ee_of_tx(rate, p_tx, serving_uav, tables.hover_w, cfg.n_uavs)  # Eq. (sys_ee)
+    rate_sum, p_total = np.add.reduce(rate, axis=-1), np.add.reduce(p_tx, axis=-1)
     p_total = _p_total(p_total, tables.hover_w, cfg.n_uavs)
     xi = success_rate(sinr_db, thr_db, associated)
     # means over the associated EDs, in one reduction: beta's margin points and the SINR in dB
     n_assoc = np.full(shape[:-1], shape[-1]) if everyone else np.add.reduce(associated, axis=-1)
-    db[0] = _margin_points(snr_db, thr_db)
+    _margin_points(snr_db, thr_db, out=db[0])
     beta, mean_sinr_db = _mean_over(db, None if everyone else associated, n_assoc, _EMPTY_MEANS.reshape((2,) + (1,) * (db.ndim - 2)))
     return {
         "reward": reward(ee, xi, beta, p_total, cfg.reward),
