@@ -119,8 +119,8 @@ class BatchCore:
         self._uniform = np.zeros((n_envs, 3 * chunk * v))
         self._resample = self._uniform[:, : chunk * v].reshape(n_envs, chunk, v)
         self._new_mean_raw = self._uniform[:, chunk * v :].reshape(n_envs, chunk, 2, v)
-        # The re-draws those imply, found once per refill (see _refill): (scenario, step in the
-        # chunk, ED) of each, and the new v-bar there [2, K].
+        # The re-draws those imply, found once per refill (see _refill): scenario, step in the
+        # chunk and flat [N, V] index of each, and the new v-bar there [2, K].
         none = np.zeros(0, dtype=np.int64)
         self._redraws: tuple[np.ndarray, ...] = (none, none, none, np.zeros((2, 0)))
         self._cursor = np.zeros(n_envs, dtype=np.int64)
@@ -148,6 +148,7 @@ class BatchCore:
             and physics.gain_decreases_with_distance(cfg)
         )
         self._spacing = cfg.area_m / u
+        self._rebound_base = (self._env_idx * u)[:, None]  # flat index of (m, 0) in an [M, U] array
         self._row_base = (self._env_idx * v)[:, None]  # flat index of (e, 0) in an [N, V] array
         self._act_base = (self._env_idx * u)[:, None]  # flat index of (e, 0) in an [N, U] array
         self._grp_base = (self._env_idx * (u + 1))[:, None]  # groups: UAV 0..U-1, U = unassociated
@@ -244,6 +245,7 @@ class BatchCore:
         k, v = np.divmod(kv, self.cfg.n_eds)
         if rows is not None:
             e = rows[e]
+        ev = e * self.cfg.n_eds + v
         low = -mob.v_max_mps
         new = low + (mob.v_max_mps - low) * self._new_mean_raw[e, k, :, v].T  # Generator.uniform's formula
         if rows is not None:  # keep the other scenarios' re-draws
@@ -251,9 +253,9 @@ class BatchCore:
             other[rows] = False
             keep = other[self._redraws[0]]
             old = self._redraws
-            e, k, v = (np.concatenate((a[keep], b)) for a, b in zip(old[:3], (e, k, v)))
+            e, k, ev = (np.concatenate((a[keep], b)) for a, b in zip(old[:3], (e, k, ev)))
             new = np.concatenate((old[3][:, keep], new), axis=1)
-        self._redraws = (e, k, v, new)
+        self._redraws = (e, k, ev, new)
 
     @property
     def ed_xy(self) -> np.ndarray:
@@ -301,7 +303,7 @@ class BatchCore:
         elif k >= self._chunk:
             self._refill()
             k = 0
-        re, rk, rv, new = self._redraws
+        re, rk, rev, new = self._redraws
         if k is not None:  # the usual case (no partial reset): views, no gather copies
             gauss = self._gauss[:, k]
             self._cursor_same = k + 1
@@ -311,7 +313,7 @@ class BatchCore:
             hit = np.flatnonzero(rk == c.take(re))
         if hit.size:  # the v-bar re-draws of this step (rare: written where they happen)
             mvel = mvel.copy()  # (the previous slot's array may be kept, e.g. by the lookahead)
-            mvel[:, re[hit], rv[hit]] = new[:, hit]
+            mvel.reshape(2, -1)[:, rev[hit]] = new[:, hit]
         c += 1
         eth = mob.memory
         # vel = eth v + (1 - eth) v-bar + sigma sqrt(1 - eth^2) w, in this order.
@@ -396,10 +398,13 @@ class BatchCore:
         self.serving = greedy_from_nearest(near, d_h, cfg.comm_range_m, self.quota, cfg.n_uavs, self._binding_problem)
         self.associated = self.serving != UNASSOCIATED
         if self._rebound is not None:  # a quota bound: there some EDs are served by another UAV
-            m = self._rebound
-            near[m] = np.where(self.associated[m], self.serving[m], near[m])
-            d2[m] = physics.horizontal_distance_sq_to(self.ed_xy[m], self.uav_xy, near[m])
-            d_h[m] = np.sqrt(d2[m])
+            m, key, d = self._rebound  # (key = -d_h^2 and d_h of every pair there, [M, U, V])
+            near[m] = u_m = np.where(self.associated[m], self.serving[m], near[m])
+            at = u_m + self._rebound_base[: len(u_m)]  # flat index of each ED's pair in [M, U, V]
+            at *= cfg.n_eds
+            at += np.arange(cfg.n_eds)
+            d2[m] = np.negative(key.reshape(-1).take(at))
+            d_h[m] = d.reshape(-1).take(at)
         self._serving_idx = near  # unassociated EDs: their nearest UAV (any valid index)
         self.g_serving, self.g_db_serving = physics.channel_gain_sq(d2, cfg, with_db=True, d_h=d_h)
         self.d_h_serving = d_h
@@ -429,9 +434,10 @@ class BatchCore:
         """(-d_h^2, d_h) of every pair [M, U, V] of the scenarios in `mask` (where a quota
         binds). -d_h^2 orders the pairs as their gains do (G strictly decreases with d_h here),
         which is all the greedy matching looks at: no transcendental needed."""
-        self._rebound = mask
         d2 = physics.horizontal_distance_sq(self._xy[:, mask].transpose(1, 2, 0), self.uav_xy)
-        return np.negative(d2), np.sqrt(d2, out=d2)
+        key = np.negative(d2)
+        self._rebound = (mask, key, np.sqrt(d2, out=d2))  # (their serving pairs are read from these)
+        return self._rebound[1:]
 
     @property
     def d_h(self) -> np.ndarray:
