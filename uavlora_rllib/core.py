@@ -110,7 +110,7 @@ class BatchCore:
         self._mvel = np.zeros((2, n_envs, v))
         self.t = np.zeros(n_envs, dtype=np.int64)
         self._prev_alloc = np.full((n_envs, v, 3), -1, dtype=np.int64)
-        self._prev_parts: tuple | None = None  # (sf, tp, bw, associated) of the slot just played
+        self._prev_parts: tuple | None = None  # (sf, tp, bw, actions, associated) of the slot just played
         self._rngs: list[np.random.Generator] = [np.random.default_rng() for _ in range(n_envs)]
         self._chunk = chunk = NOISE_CHUNK
         self._gauss = np.zeros((n_envs, chunk, 2, v))  # per step: (x, y) noise of every ED
@@ -162,6 +162,9 @@ class BatchCore:
         self._pairs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         # per_uav action index -> (sf_idx, tp_idx, bw_idx), one row per joint action
         self._decode = np.stack(decode_joint_action(np.arange(cfg.n_joint_actions), cfg), axis=-1).astype(np.int64)
+        # per_uav action index -> its SF index and (P_W, W_Hz, rho_thr), for _per_uav_values
+        sf_a, tp_a, bw_a = self._decode.T
+        self._action_values = (sf_a.copy(), *physics.allocation_values(sf_a, tp_a, bw_a, self.tables))
         # Lookahead (single scenario): actions change neither mobility nor the association
         # (SPEC.md), so the positions, channels, association and observations of the next
         # `lookahead` slots are computed at once, by a second core whose batch axis is time;
@@ -595,32 +598,30 @@ class BatchCore:
     def _per_uav_values(self, actions: np.ndarray) -> tuple[np.ndarray, tuple, tuple]:
         """per_uav mode, large batches: each ED's SF index and (P_W, W_Hz, rho_thr) gathered
         from its serving UAV's values ([N, U]: U table look-ups per scenario instead of V),
-        and the parts prev_alloc builds the per-ED (sf, tp, bw) from when it is read."""
+        and (actions, flat serving-UAV index), from which prev_alloc gets the TP and BW
+        indices when it is read."""
         cfg = self.cfg
         actions = np.asarray(actions)
         self._check_range(actions, (self.n, cfg.n_uavs), self._n_joint)
         idx = self._serving_idx + self._act_base  # flat index of each ED's serving UAV in [N, U]
-        sf_u, tp_u, bw_u = decode_joint_action(actions, cfg)  # [N, U] each
-        per_uav = physics.allocation_values(sf_u, tp_u, bw_u, self.tables)
-        values = tuple(x.reshape(-1).take(idx) for x in per_uav)
-        sf = sf_u.reshape(-1).take(idx)
-        return sf, values, (sf, tp_u, bw_u, idx)
+        sf, *values = (table.take(actions).reshape(-1).take(idx) for table in self._action_values)
+        return sf, tuple(values), (actions.copy(), idx)  # (a copy: the caller may reuse its array)
 
     def step(self, actions: np.ndarray) -> StepResult:
         if not self._ready:
             raise RuntimeError("call reset() before step()")
         gains = None if self._nearest else self.gains
         if self.cfg.action_mode == "per_uav" and self._serving_idx.size > 4096:
-            sf, values, parts = self._per_uav_values(actions)
+            sf, values, actions_idx = self._per_uav_values(actions)
             tp = bw = None
         else:
-            sf, tp, bw = parts = self.allocations(actions)
-            values = None
+            sf, tp, bw = self.allocations(actions)
+            values = actions_idx = None
         metrics = physics.slot_metrics(
             gains, self._serving_idx, self.associated, sf, tp, bw, self.cfg, self.tables, g_serving=self.g_serving,
             values=values,
         )  # fmt: skip
-        self._prev_parts = (parts, None if self._all_associated else self.associated)
+        self._prev_parts = (sf, tp, bw, actions_idx, None if self._all_associated else self.associated)
         self.t += 1
         self._next_slot()
         return StepResult(self.obs, metrics["reward"], self.t >= self.cfg.episode_len, metrics)
@@ -630,11 +631,12 @@ class BatchCore:
         """Each ED's (sf_idx, tp_idx, bw_idx) in the slot just played [N, V, 3]; -1 where it was
         silent or no slot was played since the reset (built on first access)."""
         if self._prev_parts is not None:
-            parts, assoc = self._prev_parts
-            if len(parts) == 4:  # (sf, tp and bw per UAV, the flat serving-UAV index) of _per_uav_values
-                sf, tp_u, bw_u, idx = parts
-                parts = (sf, tp_u.reshape(-1).take(idx), bw_u.reshape(-1).take(idx))
-            prev = np.stack(parts, axis=-1)
+            sf, tp, bw, actions_idx, assoc = self._prev_parts
+            if tp is None:  # per_uav at large batches: decoded from the actions only now
+                actions, idx = actions_idx
+                _, tp_u, bw_u = decode_joint_action(actions, self.cfg)
+                tp, bw = tp_u.reshape(-1).take(idx), bw_u.reshape(-1).take(idx)
+            prev = np.stack((sf, tp, bw), axis=-1)
             if assoc is not None:
                 prev[~assoc] = -1
             self._prev_alloc, self._prev_parts = prev, None
