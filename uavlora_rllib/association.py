@@ -111,11 +111,14 @@ def _deferred_acceptance(g: np.ndarray, ok: np.ndarray, quota: int, first: np.nd
         key.sort(axis=-1)
         by = (key & ((1 << id_bits) - 1)).astype(np.int64)
         by += row_base[:m]
-        grouped = (key >> id_bits).astype(np.int64)
+        uav_sorted = key >> id_bits
+        grouped = uav_sorted.astype(np.int64)
         grouped += group_base[:m]  # flat (row, UAV) group of each sorted entry
-        counts = np.bincount(grouped.reshape(-1), minlength=m * (n_uavs + 1))
-        start = np.cumsum(counts) - counts  # first sorted position of each group (flat)
-        kept_sorted = (grouped - group_base[:m] < n_uavs) & (pos - (start.take(grouped) - row_base[:m]) < quota)
+        counts = np.bincount(grouped.reshape(-1), minlength=m * (n_uavs + 1)).reshape(m, n_uavs + 1)
+        start = np.cumsum(counts, axis=-1)
+        start -= counts  # first sorted position of each group within its row
+        kept_sorted = uav_sorted < n_uavs
+        kept_sorted &= pos - start.reshape(-1).take(grouped) < quota
         kept = np.empty_like(kept_sorted)
         kept.reshape(-1)[by.reshape(-1)] = kept_sorted.reshape(-1)
         held = np.where(kept, candidate, UNASSOCIATED)

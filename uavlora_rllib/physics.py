@@ -233,7 +233,9 @@ def horizontal_distance_sq_to(ed_xy: np.ndarray, uav_xy: np.ndarray, uav_idx: np
     The same operations, element by element, as `horizontal_distance_sq` (so the value equals
     that function's entry [..., uav_idx[v], v] bit for bit)."""
     dx = np.subtract(ed_xy[..., 0], uav_xy[:, 0].take(uav_idx))
-    dy = np.subtract(ed_xy[..., 1], uav_xy[:, 1].take(uav_idx))
+    y = uav_xy[:, 1]
+    # UAVs on one horizontal line (SPEC.md's layout): the same y for all, no gather needed
+    dy = np.subtract(ed_xy[..., 1], y[0] if (y == y[0]).all() else y.take(uav_idx))
     dx *= dx
     dy *= dy
     dx += dy
