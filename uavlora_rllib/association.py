@@ -177,10 +177,14 @@ def greedy_from_nearest(
     scenarios), [M, U, V] each: `key` is the gain or any strictly increasing function of it
     (the matching depends only on the order of the gains), e.g. -d_h^2."""
     reachable = d_h_nearest <= comm_range_m
-    serving = np.where(reachable, nearest, UNASSOCIATED)
+    everyone = bool(reachable.all())  # (the usual case: then no mask is needed)
+    serving = nearest.copy() if everyone else np.where(reachable, nearest, UNASSOCIATED)
     if quota < nearest.shape[-1]:  # otherwise no quota can bind
-        counts = physics.group_count(serving + 1, n_uavs + 1)  # group 0: unassociated
-        binding = (counts[..., 1:] > quota).any(axis=-1)
+        if everyone:
+            counts = physics.group_count(nearest, n_uavs)
+        else:
+            counts = physics.group_count(serving + 1, n_uavs + 1)[..., 1:]  # group 0: unassociated
+        binding = (counts > quota).any(axis=-1)
         if binding.any():
             g, d = full_problem(binding)
             ok = in_range_mask(d, comm_range_m)

@@ -324,13 +324,13 @@ class BatchCore:
         vel = self._clip_speed(vel)
         pos = vel * mob.dt_s
         pos += xy
-        low, high = pos < 0.0, pos > area
-        out = low | high
-        if out.any():  # mirror at the borders (few EDs: only theirs are touched)
-            i = np.flatnonzero(out)  # pos, vel: new C-contiguous arrays, so reshape(-1) is a view
-            pos_f, vel_f = pos.reshape(-1), vel.reshape(-1)
+        out = pos < 0.0
+        out |= pos > area
+        i = np.flatnonzero(out)
+        if i.size:  # mirror at the borders (few EDs: only theirs are touched)
+            pos_f, vel_f = pos.reshape(-1), vel.reshape(-1)  # new C-contiguous arrays: views
             p = pos_f[i]
-            p = np.where(low.reshape(-1)[i], -p, 2.0 * area - p)
+            p = np.where(p < 0.0, -p, 2.0 * area - p)
             np.minimum(p, area, out=p)  # guards a step longer than the area itself
             np.maximum(p, 0.0, out=p)
             pos_f[i] = p
