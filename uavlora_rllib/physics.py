@@ -411,7 +411,9 @@ def _margin_points(snr_db: np.ndarray, threshold_db: np.ndarray, out: np.ndarray
     below = m < 0.0
     np.maximum(m, -20.0, out=m)
     np.minimum(m, 20.0, out=m)
-    m /= np.where(below, 2.0, 20.0)
+    divisor = np.multiply(below, 2.0 - 20.0)  # 2 where below, 20 elsewhere (exact; np.where with
+    divisor += 20.0  # two scalars is ~3x slower here)
+    m /= divisor
     return m
 
 
