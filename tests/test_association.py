@@ -183,5 +183,9 @@ def test_greedy_from_nearest_equals_greedy(n, n_uavs, n_eds, quota, seed, r_comm
         assert want[i].tolist() == reference_greedy(gains[i], d_h[i], r_comm, quota)
     near = nearest_uav(xy, uav)
     d_near = np.sqrt(physics.horizontal_distance_sq_to(xy, uav, near))
-    got = greedy_from_nearest(near, d_near, r_comm, quota, n_uavs, lambda mask: (gains[mask], d_h[mask]))
+
+    def pair_keys(e, v, u=None):  # the gains as keys
+        return (gains[e, :, v], d_h[e, :, v]) if u is None else (gains[e, u, v], d_h[e, u, v])
+
+    got = greedy_from_nearest(near, d_near, r_comm, quota, n_uavs, pair_keys)
     assert np.array_equal(got, want)

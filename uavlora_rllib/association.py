@@ -11,9 +11,10 @@ serial-dictatorship matching. Deferred acceptance runs in rounds that are vector
 the batch, the EDs and the UAVs: each round every unmatched ED proposes to its next
 preferred UAV, and each UAV keeps its Lambda_max highest-priority candidates. Scenarios
 where no quota binds (the default layout) skip it: there every ED simply takes its best
-in-range UAV (one argmax). At most V * U rounds, usually
-<= U. Cost per round O(N U V), plus one O(N V log V) sort; a scenario leaves the rounds once
-none of its EDs is rejected (most are matched after one or two).
+in-range UAV (one argmax). At most V * U rounds, usually <= U. Cost per round O(N V) plus
+O(U) per rejected ED (its keys to every UAV are asked for only then), and one O(N V log V)
+sort; a scenario leaves the rounds once none of its EDs is rejected (most are matched after
+one or two).
 
 optimal (extension): the assignment that maximises the total linear gain under the quota,
 solved per scenario with scipy's linear_sum_assignment on min(Lambda_max, V) replicated
@@ -49,7 +50,10 @@ def greedy_association(gains: np.ndarray, d_h: np.ndarray, comm_range_m: float, 
     serving = np.where(reachable, first, UNASSOCIATED)
     binding = (counts > quota).any(axis=-1)
     if binding.any():
-        serving[binding] = _deferred_acceptance(g[binding], ok[binding], quota)
+        g_b = g[binding]
+        first_b = first[binding]
+        best = np.take_along_axis(g_b, first_b[:, None, :], axis=1)[:, 0]  # = g_b.max(axis=1)
+        serving[binding] = _deferred_acceptance(best, first_b, quota, n_uavs, lambda e, v: g_b[e, :, v])
     return serving
 
 
@@ -72,25 +76,27 @@ def has_ties(key: np.ndarray, order: np.ndarray) -> bool:
     return bool((ks[:, 1:] == ks[:, :-1]).any())
 
 
-def _deferred_acceptance(g: np.ndarray, ok: np.ndarray, quota: int, first: np.ndarray | None = None) -> np.ndarray:
+def _deferred_acceptance(
+    best: np.ndarray, first: np.ndarray, quota: int, n_uavs: int, rows: Callable[[np.ndarray, np.ndarray], np.ndarray]
+) -> np.ndarray:
     """ED-proposing deferred acceptance with the common priority order (see module docstring).
 
-    g: gains with -inf where out of range. Each round, every ED rejected in the previous one
-    proposes to its best in-range UAV not yet tried (argmax over the UAVs, ties: lowest index,
-    i.e. the next entry of its preference list); EDs held stay candidates of their UAV, and
-    each UAV keeps its `quota` highest-priority candidates. `first`: each ED's first choice
-    [N, V] when the caller knows it (the argmax over the UAVs of g)."""
-    n, n_uavs, n_eds = g.shape
-    # Priority: descending best in-range gain; ties by ED index (stable sort).
-    best = g.max(axis=1)  # [N, V]; -inf: no UAV in range
+    best [N, V]: each ED's highest key (gain, or any strictly increasing function of it) over
+    its in-range UAVs, -inf when none is in range; first [N, V]: the UAV that has it (the
+    argmax, ties: lowest index); rows(e, v) [K, U]: the keys of the EDs (e[k], v[k]) to every
+    UAV, -inf where out of range (asked only for rejected EDs: a few per round). Each round,
+    every ED rejected in the previous one proposes to its best in-range UAV not yet tried
+    (argmax over the UAVs, ties: lowest index, i.e. the next entry of its preference list);
+    EDs held stay candidates of their UAV, and each UAV keeps its `quota` highest-priority
+    candidates."""
+    n, n_eds = best.shape
+    # Priority: descending best in-range key; ties by ED index (stable sort).
     order = stable_argsort(-best)  # [N, V] ED ids, best first
     row_base = (np.arange(n) * n_eds)[:, None]
     order += row_base  # flat indices into [N, V] (flat takes: much faster than fancy indexing here)
-    # [N V', U]: row e V + i = the gains of scenario e's i-th ED in priority order, contiguous
-    # along U; UAVs already tried are set to -inf
-    pref = np.ascontiguousarray(g.transpose(0, 2, 1)).reshape(n * n_eds, n_uavs).take(order.reshape(-1), axis=0)
-    candidate = np.argmax(pref, axis=-1).reshape(n, n_eds) if first is None else first.reshape(-1).take(order)
+    candidate = first.reshape(-1).take(order)  # first choices, in priority order
     candidate[best.reshape(-1).take(order) == -np.inf] = UNASSOCIATED
+    tried = np.zeros((n * n_eds, n_uavs), dtype=bool)  # per priority position: UAVs that rejected it
     pos = np.arange(n_eds)
     # Each round's sort key: (candidate UAV, priority position) in one small integer, sorted by
     # np.sort (SIMD; positions are distinct, so any sort is stable here).
@@ -129,15 +135,15 @@ def _deferred_acceptance(g: np.ndarray, ok: np.ndarray, quota: int, first: np.nd
             if not going.any():
                 break
             active, held, rejected, candidate = active[going], held[going], rejected[going], candidate[going]
-        e, v = np.nonzero(rejected)  # proposers and displaced EDs move on to their next choice
-        ev = active[e] * n_eds + v  # their rows in pref
-        rows = pref[ev]  # [K, U]
-        rows[np.arange(len(e)), candidate[e, v]] = -np.inf
-        pref[ev] = rows
-        nxt = np.argmax(rows, axis=-1)
-        has_next = rows[np.arange(len(e)), nxt] > -np.inf
+        e, i = np.nonzero(rejected)  # proposers and displaced EDs move on to their next choice
+        at = active[e] * n_eds + i  # their priority rows
+        tried[at, candidate[e, i]] = True
+        keys = rows(active[e], order.reshape(-1).take(at) - row_base[active[e], 0])  # [K, U]
+        keys[tried[at]] = -np.inf
+        nxt = np.argmax(keys, axis=-1)
+        has_next = keys[np.arange(len(e)), nxt] > -np.inf
         candidate = held
-        candidate[e[has_next], v[has_next]] = nxt[has_next]
+        candidate[e[has_next], i[has_next]] = nxt[has_next]
     serving = np.empty_like(held_all)
     serving.reshape(-1)[order] = held_all
     return serving
@@ -165,7 +171,7 @@ def greedy_from_nearest(
     comm_range_m: float,
     quota: int,
     n_uavs: int,
-    full_problem: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+    pair_keys: Callable[..., tuple[np.ndarray, np.ndarray]],
 ) -> np.ndarray:
     """`greedy_association` where the max-gain UAV is the nearest one (gain strictly decreasing
     in d_h, `physics.gain_decreases_with_distance`), without the per-pair gains.
@@ -173,9 +179,11 @@ def greedy_from_nearest(
     Each ED's first choice is its nearest UAV if that one is in range, and no UAV is in range
     otherwise (all others are farther). Where those first choices fit in every quota (the
     default layout) that IS the greedy matching. Scenarios where a quota binds get the full
-    greedy matching (deferred acceptance) on (key, d_h) = full_problem(mask of those
-    scenarios), [M, U, V] each: `key` is the gain or any strictly increasing function of it
-    (the matching depends only on the order of the gains), e.g. -d_h^2."""
+    greedy matching (deferred acceptance) on keys from pair_keys(e, v, u=None) -> (key, d_h):
+    of the EDs (e[k], v[k]) to UAV u[k] ([K] each), or to every UAV when u is None ([K, U]
+    each). `key` is the gain or any strictly increasing function of it (the matching depends
+    only on the order of the gains), e.g. -d_h^2; it is asked for the binding scenarios' EDs
+    at their nearest UAV and, each round, for the few EDs rejected."""
     reachable = d_h_nearest <= comm_range_m
     everyone = bool(reachable.all())  # (the usual case: then no mask is needed)
     serving = nearest.copy() if everyone else np.where(reachable, nearest, UNASSOCIATED)
@@ -186,9 +194,19 @@ def greedy_from_nearest(
             counts = physics.group_count(serving + 1, n_uavs + 1)[..., 1:]  # group 0: unassociated
         binding = (counts > quota).any(axis=-1)
         if binding.any():
-            g, d = full_problem(binding)
-            ok = in_range_mask(d, comm_range_m)
-            serving[binding] = _deferred_acceptance(np.where(ok, g, -np.inf), ok, quota, nearest[binding])
+            b = np.flatnonzero(binding)
+            n_eds = nearest.shape[-1]
+            e, v = np.repeat(b, n_eds), np.tile(np.arange(n_eds), len(b))
+            first = nearest[b]
+            best = pair_keys(e, v, first.reshape(-1))[0].reshape(first.shape)
+            best[~reachable[b]] = -np.inf
+
+            def rows(e_b: np.ndarray, v: np.ndarray) -> np.ndarray:
+                key, d = pair_keys(b[e_b], v)
+                key[~in_range_mask(d, comm_range_m)] = -np.inf
+                return key
+
+            serving[b] = _deferred_acceptance(best, first, quota, n_uavs, rows)
     return serving
 
 

@@ -148,7 +148,6 @@ class BatchCore:
             and physics.gain_decreases_with_distance(cfg)
         )
         self._spacing = cfg.area_m / u
-        self._rebound_base = (self._env_idx * u)[:, None]  # flat index of (m, 0) in an [M, U] array
         self._row_base = (self._env_idx * v)[:, None]  # flat index of (e, 0) in an [N, V] array
         self._act_base = (self._env_idx * u)[:, None]  # flat index of (e, 0) in an [N, U] array
         self._grp_base = (self._env_idx * (u + 1))[:, None]  # groups: UAV 0..U-1, U = unassociated
@@ -395,17 +394,16 @@ class BatchCore:
         near = nearest_uav_on_line(self._xy[0], self._spacing, cfg.n_uavs)
         d2 = physics.horizontal_distance_sq_to(self.ed_xy, self.uav_xy, near)
         d_h = np.sqrt(d2)
-        self._rebound = None
-        self.serving = greedy_from_nearest(near, d_h, cfg.comm_range_m, self.quota, cfg.n_uavs, self._binding_problem)
+        self.serving = greedy_from_nearest(near, d_h, cfg.comm_range_m, self.quota, cfg.n_uavs, self._pair_keys)
         self.associated = self.serving != UNASSOCIATED
-        if self._rebound is not None:  # a quota bound: there some EDs are served by another UAV
-            m, key, d = self._rebound  # (key = -d_h^2 and d_h of every pair there, [M, U, V])
-            near[m] = u_m = np.where(self.associated[m], self.serving[m], near[m])
-            at = u_m + self._rebound_base[: len(u_m)]  # flat index of each ED's pair in [M, U, V]
-            at *= cfg.n_eds
-            at += np.arange(cfg.n_eds)
-            d2[m] = np.negative(key.reshape(-1).take(at))
-            d_h[m] = d.reshape(-1).take(at)
+        # Where a quota bound, some EDs are served by another UAV than their nearest one.
+        moved = np.flatnonzero(self.serving != near)
+        moved = moved[self.serving.reshape(-1)[moved] != UNASSOCIATED]
+        if moved.size:
+            u_moved = near.reshape(-1)[moved] = self.serving.reshape(-1)[moved]
+            d2_moved = physics.horizontal_distance_sq_to(self.ed_xy.reshape(-1, 2)[moved], self.uav_xy, u_moved)
+            d2.reshape(-1)[moved] = d2_moved
+            d_h.reshape(-1)[moved] = np.sqrt(d2_moved)
         self._serving_idx = near  # unassociated EDs: their nearest UAV (any valid index)
         self.g_serving, self.g_db_serving = physics.channel_gain_sq(d2, cfg, with_db=True, d_h=d_h)
         self.d_h_serving = d_h
@@ -431,14 +429,18 @@ class BatchCore:
             self._pairs = (np.sqrt(d2, out=d2), gains, gain_db)
         return self._pairs
 
-    def _binding_problem(self, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(-d_h^2, d_h) of every pair [M, U, V] of the scenarios in `mask` (where a quota
-        binds). -d_h^2 orders the pairs as their gains do (G strictly decreases with d_h here),
-        which is all the greedy matching looks at: no transcendental needed."""
-        d2 = physics.horizontal_distance_sq(self._xy[:, mask].transpose(1, 2, 0), self.uav_xy)
-        key = np.negative(d2)
-        self._rebound = (mask, key, np.sqrt(d2, out=d2))  # (their serving pairs are read from these)
-        return self._rebound[1:]
+    def _pair_keys(self, e: np.ndarray, v: np.ndarray, u: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(-d_h^2, d_h) of the EDs (e[k], v[k]) to UAV u[k] ([K]), or to every UAV when u is None
+        ([K, U]): the keys greedy_from_nearest asks for where a quota binds. -d_h^2 orders the
+        pairs as their gains do (G strictly decreases with d_h here), which is all the greedy
+        matching looks at: no transcendental needed. (Same operations as the d_h^2 of the
+        nearest UAV's channel, element by element.)"""
+        xy = self._xy[:, e, v].T  # [K, 2]
+        if u is None:
+            d2 = physics.horizontal_distance_sq(xy, self.uav_xy).T  # [K, U]
+        else:
+            d2 = physics.horizontal_distance_sq_to(xy, self.uav_xy, u)
+        return np.negative(d2), np.sqrt(d2)
 
     @property
     def d_h(self) -> np.ndarray:
