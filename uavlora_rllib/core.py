@@ -401,7 +401,8 @@ class BatchCore:
         moved = moved[self.serving.reshape(-1)[moved] != UNASSOCIATED]
         if moved.size:
             u_moved = near.reshape(-1)[moved] = self.serving.reshape(-1)[moved]
-            d2_moved = physics.horizontal_distance_sq_to(self.ed_xy.reshape(-1, 2)[moved], self.uav_xy, u_moved)
+            xy_moved = self._xy.reshape(2, -1)[:, moved].T  # [K, 2]
+            d2_moved = physics.horizontal_distance_sq_to(xy_moved, self.uav_xy, u_moved)
             d2.reshape(-1)[moved] = d2_moved
             d_h.reshape(-1)[moved] = np.sqrt(d2_moved)
         self._serving_idx = near  # unassociated EDs: their nearest UAV (any valid index)
