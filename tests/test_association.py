@@ -184,8 +184,10 @@ def test_greedy_from_nearest_equals_greedy(n, n_uavs, n_eds, quota, seed, r_comm
     near = nearest_uav(xy, uav)
     d_near = np.sqrt(physics.horizontal_distance_sq_to(xy, uav, near))
 
-    def pair_keys(e, v, u=None):  # the gains as keys
-        return (gains[e, :, v], d_h[e, :, v]) if u is None else (gains[e, u, v], d_h[e, u, v])
+    def nearest_keys(b):  # the gains as keys
+        return np.take_along_axis(gains[b], near[b][:, None, :], axis=1)[:, 0]
 
-    got = greedy_from_nearest(near, d_near, r_comm, quota, n_uavs, pair_keys)
+    got = greedy_from_nearest(
+        near, d_near, r_comm, quota, n_uavs, nearest_keys, lambda e, v: (gains[e, :, v], d_h[e, :, v])
+    )
     assert np.array_equal(got, want)

@@ -171,7 +171,8 @@ def greedy_from_nearest(
     comm_range_m: float,
     quota: int,
     n_uavs: int,
-    pair_keys: Callable[..., tuple[np.ndarray, np.ndarray]],
+    nearest_keys: Callable[[np.ndarray], np.ndarray],
+    pair_keys: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]],
 ) -> np.ndarray:
     """`greedy_association` where the max-gain UAV is the nearest one (gain strictly decreasing
     in d_h, `physics.gain_decreases_with_distance`), without the per-pair gains.
@@ -179,11 +180,11 @@ def greedy_from_nearest(
     Each ED's first choice is its nearest UAV if that one is in range, and no UAV is in range
     otherwise (all others are farther). Where those first choices fit in every quota (the
     default layout) that IS the greedy matching. Scenarios where a quota binds get the full
-    greedy matching (deferred acceptance) on keys from pair_keys(e, v, u=None) -> (key, d_h):
-    of the EDs (e[k], v[k]) to UAV u[k] ([K] each), or to every UAV when u is None ([K, U]
-    each). `key` is the gain or any strictly increasing function of it (the matching depends
-    only on the order of the gains), e.g. -d_h^2; it is asked for the binding scenarios' EDs
-    at their nearest UAV and, each round, for the few EDs rejected."""
+    greedy matching (deferred acceptance) on keys: nearest_keys(b) [M, V], the key of every ED
+    of the scenarios b [M] at its nearest UAV, and pair_keys(e, v) -> (key, d_h) [K, U] each,
+    of the EDs (e[k], v[k]) to every UAV (asked, each round, only for the few EDs rejected).
+    `key` is the gain or any strictly increasing function of it (the matching depends only on
+    the order of the gains), e.g. -d_h^2."""
     reachable = d_h_nearest <= comm_range_m
     everyone = bool(reachable.all())  # (the usual case: then no mask is needed)
     serving = nearest.copy() if everyone else np.where(reachable, nearest, UNASSOCIATED)
@@ -195,10 +196,7 @@ def greedy_from_nearest(
         binding = (counts > quota).any(axis=-1)
         if binding.any():
             b = np.flatnonzero(binding)
-            n_eds = nearest.shape[-1]
-            e, v = np.repeat(b, n_eds), np.tile(np.arange(n_eds), len(b))
-            first = nearest[b]
-            best = pair_keys(e, v, first.reshape(-1))[0].reshape(first.shape)
+            best = nearest_keys(b)
             best[~reachable[b]] = -np.inf
 
             def rows(e_b: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -206,7 +204,7 @@ def greedy_from_nearest(
                 key[~in_range_mask(d, comm_range_m)] = -np.inf
                 return key
 
-            serving[b] = _deferred_acceptance(best, first, quota, n_uavs, rows)
+            serving[b] = _deferred_acceptance(best, nearest[b], quota, n_uavs, rows)
     return serving
 
 

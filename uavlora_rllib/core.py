@@ -394,7 +394,9 @@ class BatchCore:
         near = nearest_uav_on_line(self._xy[0], self._spacing, cfg.n_uavs)
         d2 = physics.horizontal_distance_sq_to(self.ed_xy, self.uav_xy, near)
         d_h = np.sqrt(d2)
-        self.serving = greedy_from_nearest(near, d_h, cfg.comm_range_m, self.quota, cfg.n_uavs, self._pair_keys)
+        self.serving = greedy_from_nearest(
+            near, d_h, cfg.comm_range_m, self.quota, cfg.n_uavs, lambda b: np.negative(d2[b]), self._pair_keys
+        )
         self.associated = self.serving != UNASSOCIATED
         # Where a quota bound, some EDs are served by another UAV than their nearest one.
         moved = np.flatnonzero(self.serving != near)
@@ -430,17 +432,13 @@ class BatchCore:
             self._pairs = (np.sqrt(d2, out=d2), gains, gain_db)
         return self._pairs
 
-    def _pair_keys(self, e: np.ndarray, v: np.ndarray, u: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(-d_h^2, d_h) of the EDs (e[k], v[k]) to UAV u[k] ([K]), or to every UAV when u is None
-        ([K, U]): the keys greedy_from_nearest asks for where a quota binds. -d_h^2 orders the
-        pairs as their gains do (G strictly decreases with d_h here), which is all the greedy
-        matching looks at: no transcendental needed. (Same operations as the d_h^2 of the
-        nearest UAV's channel, element by element.)"""
-        xy = self._xy[:, e, v].T  # [K, 2]
-        if u is None:
-            d2 = physics.horizontal_distance_sq(xy, self.uav_xy).T  # [K, U]
-        else:
-            d2 = physics.horizontal_distance_sq_to(xy, self.uav_xy, u)
+    def _pair_keys(self, e: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(-d_h^2, d_h) [K, U] of the EDs (e[k], v[k]) to every UAV: the keys greedy_from_nearest
+        asks for where a quota binds (with -d_h^2 at the nearest UAV, see _observe_nearest).
+        -d_h^2 orders the pairs as their gains do (G strictly decreases with d_h here), which is
+        all the greedy matching looks at: no transcendental needed. (Same operations as the
+        d_h^2 of the nearest UAV's channel, element by element.)"""
+        d2 = physics.horizontal_distance_sq(self._xy[:, e, v].T, self.uav_xy).T  # [K, U]
         return np.negative(d2), np.sqrt(d2)
 
     @property
