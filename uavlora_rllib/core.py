@@ -38,8 +38,8 @@ from uavlora_rllib.association import (
     UNASSOCIATED,
     associate,
     greedy_from_nearest,
+    group_sort,
     nearest_uav_on_line,
-    stable_argsort,
 )
 from uavlora_rllib.scenario import ScenarioConfig
 
@@ -463,7 +463,9 @@ class BatchCore:
         position minus the start of its UAV's run (an exclusive cumulative sum of the counts)."""
         n, v, u = self.n, self.cfg.n_eds, self.cfg.n_uavs
         grp = self._serving_idx if self._all_associated else np.where(self.associated, self._serving_idx, u)
-        order, grouped = self._group_order(grp)  # flat indices into [N, V]; UAV ids in that order
+        # EDs by (serving UAV, descending gain, ED id): each UAV's EDs form a run in gain order
+        order, grouped = group_sort(self.g_serving, grp, u + 1, descending=True)
+        order += self._row_base  # flat indices into [N, V]
         grouped += self._grp_base
         counts = np.bincount(grouped.reshape(-1), minlength=n * (u + 1)).reshape(n, u + 1)
         start = np.cumsum(counts, axis=-1)
@@ -475,48 +477,6 @@ class BatchCore:
         slot_of_ed.reshape(-1)[order] = slot
         self.slot_of_ed = slot_of_ed
         self._counts = counts[:, :u]
-
-    _KEY_SORT_MIN = 2048  # EDs in a batch from which _group_order's key sort is the faster
-
-    def _group_order(self, grp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The flat [N, V] indices of the EDs sorted by (grp, descending g_serving, ED id) per
-        scenario, and grp in that order.
-
-        Usually one np.sort (SIMD; an argsort costs ~3.5x more) of an int64 key that carries
-        the ED id in its low bits: key = (grp, rank part of g, ED id). For g >= 0 the bit
-        pattern of a float64, read as an int64, increases with g, so (max bits - bits of g)
-        orders by descending gain; it is shifted right by `drop` bits to leave room for the
-        group and the id. Truncation keeps the order (never swaps two gains), and when no
-        two EDs of one group share a truncated value it keeps them apart, so the order is
-        then exactly that of the full gains, ties by ED id; where two share one (rare, and
-        always so for equal gains when drop > 0) the two stable sorts below decide."""
-        n, v, u = self.n, self.cfg.n_eds, self.cfg.n_uavs
-        g = self.g_serving
-        # (small batches: the two sorts, fewer NumPy calls)
-        bits = g.view(np.int64) if g.flags.c_contiguous and g.size > self._KEY_SORT_MIN else None
-        lo, hi = (int(bits.min()), int(bits.max())) if bits is not None else (-1, 0)
-        if lo >= 0:
-            id_bits = max(int(v - 1).bit_length(), 1)
-            g_room = 63 - int(u).bit_length() - id_bits  # U + 1 groups: ids 0 .. U
-            drop = max(0, (hi - lo).bit_length() - g_room)
-            key = np.subtract(hi, bits)
-            key >>= drop
-            key |= np.left_shift(grp, g_room)
-            key <<= id_bits
-            key |= self._positions
-            key.sort(axis=-1)
-            head = key >> id_bits  # (group, truncated gain)
-            if drop == 0 or not (head[:, 1:] == head[:, :-1]).any():
-                key &= (1 << id_bits) - 1
-                key += self._row_base
-                return key, np.right_shift(head, g_room, out=head)
-        order = stable_argsort(np.negative(g))
-        order += self._row_base
-        grp_sorted = grp.reshape(-1).take(order)
-        # U <= 64 (ScenarioConfig): ids fit in int8, whose stable sort is a radix sort (faster for long rows).
-        by = np.argsort(grp_sorted.astype(np.int8) if v > 32 else grp_sorted, axis=-1, kind="stable")
-        by += self._row_base
-        return order.reshape(-1).take(by), grp_sorted.reshape(-1).take(by)
 
     def _gain_feature(self, gain_db: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         x = np.subtract(gain_db, self._gain_db_mid, out=out)
