@@ -555,6 +555,6 @@ def test_slot_is_the_rank_by_gain_ties_by_ed_id(n_eds, n_uavs):
             if u < 0:
                 assert core.slot_of_ed[i, v] == -1
                 continue
-            rivals = [w for w in range(n_eds) if serving[i, w] == u and (g[i, w] > g[i, v] or (g[i, w] == g[i, v] and w < v))]
-            assert core.slot_of_ed[i, v] == len(rivals)
+            ahead = [w for w in range(n_eds) if serving[i, w] == u and (g[i, w], -w) > (g[i, v], -v)]
+            assert core.slot_of_ed[i, v] == len(ahead)
         np.testing.assert_array_equal(core._counts[i], np.bincount(serving[i][serving[i] >= 0], minlength=n_uavs))

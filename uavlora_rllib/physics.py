@@ -549,7 +549,8 @@ def slot_metrics(
     # means over the associated EDs, in one reduction: beta's margin points and the SINR in dB
     n_assoc = np.full(shape[:-1], shape[-1]) if everyone else np.add.reduce(associated, axis=-1)
     _margin_points(snr_db, thr_db, out=db[0])
-    beta, mean_sinr_db = _mean_over(db, None if everyone else associated, n_assoc, _EMPTY_MEANS.reshape((2,) + (1,) * (db.ndim - 2)))
+    empty = _EMPTY_MEANS.reshape((2,) + (1,) * (db.ndim - 2))
+    beta, mean_sinr_db = _mean_over(db, None if everyone else associated, n_assoc, empty)
     return {
         "reward": reward(ee, xi, beta, p_total, cfg.reward),
         "ee_sys": ee,
