@@ -183,5 +183,37 @@ def test_greedy_from_nearest_equals_greedy(n, n_uavs, n_eds, quota, seed, r_comm
         assert want[i].tolist() == reference_greedy(gains[i], d_h[i], r_comm, quota)
     near = nearest_uav(xy, uav)
     d_near = np.sqrt(physics.horizontal_distance_sq_to(xy, uav, near))
-    got = greedy_from_nearest(near, d_near, r_comm, quota, n_uavs, lambda mask: (gains[mask], d_h[mask]))
+
+    def nearest_keys(b):  # the gains as keys
+        return np.take_along_axis(gains[b], near[b][:, None, :], axis=1)[:, 0]
+
+    got = greedy_from_nearest(
+        near, d_near, r_comm, quota, n_uavs, nearest_keys, lambda e, v: (gains[e, :, v], d_h[e, :, v])
+    )
     assert np.array_equal(got, want)
+
+
+@pytest.mark.parametrize("descending", [False, True])
+@pytest.mark.parametrize("n_groups", [None, 3, 65])
+@pytest.mark.parametrize("kind", ["positive", "mixed", "ties"])
+def test_group_sort_is_a_stable_sort_by_group_then_value(descending, n_groups, kind):
+    """group_sort against np.lexsort (stable), on batches large enough for its key sort, with
+    signs, zeros of both signs, infinities, wide ranges and ties (its fallback)."""
+    from uavlora_rllib.association import KEY_SORT_MIN, group_sort
+
+    rng = np.random.default_rng(7)
+    n, v = KEY_SORT_MIN // 50 + 1, 100
+    x = rng.lognormal(0.0, 10.0, (n, v))  # spans many binades: the key truncates
+    if kind != "positive":
+        x *= rng.choice([-1.0, 1.0], x.shape)
+        x[:, :2] = [-np.inf, np.inf]
+    if kind == "ties":
+        x[:, 1::2] = x[:, 0::2]
+        x[:, 2:4] = [0.0, -0.0]
+    groups = None if n_groups is None else rng.integers(0, n_groups, (n, v))
+    order, got_groups = group_sort(x, groups, n_groups or 1, descending)
+    keys = -x if descending else x
+    want = np.stack([np.lexsort((keys[i],) if groups is None else (keys[i], groups[i])) for i in range(n)])
+    np.testing.assert_array_equal(order, want)
+    if groups is not None:
+        np.testing.assert_array_equal(got_groups, np.take_along_axis(groups, want, axis=-1))

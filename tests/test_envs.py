@@ -535,3 +535,26 @@ def test_step_scores_the_gains_the_core_exposes():
         res = core.step(a)
         for key in physics.SLOT_METRICS:
             assert np.array_equal(res.metrics[key], want[key]), key
+
+
+@pytest.mark.parametrize("n_eds,n_uavs", [(100, 8), (10, 2), (40, 64)])
+def test_slot_is_the_rank_by_gain_ties_by_ed_id(n_eds, n_uavs):
+    """slot_of_ed and the counts against their definition, with tied gains (EDs at the same
+    place) to exercise the sorts' tie handling."""
+    cfg = make_cfg(n_eds=n_eds, n_uavs=n_uavs)
+    core = BatchCore(cfg, 5)
+    core.reset(3)
+    xy = core.ed_xy  # a view: writing moves the EDs
+    xy[1, 1::2] = xy[1, 0::2]  # scenario 1: pairs of EDs at the same place
+    xy[2] = xy[2, 0]  # scenario 2: all at one place
+    core._observe()
+    g, serving = core.g_serving, core.serving
+    for i in range(core.n):
+        for v in range(n_eds):
+            u = serving[i, v]
+            if u < 0:
+                assert core.slot_of_ed[i, v] == -1
+                continue
+            ahead = [w for w in range(n_eds) if serving[i, w] == u and (g[i, w], -w) > (g[i, v], -v)]
+            assert core.slot_of_ed[i, v] == len(ahead)
+        np.testing.assert_array_equal(core._counts[i], np.bincount(serving[i][serving[i] >= 0], minlength=n_uavs))

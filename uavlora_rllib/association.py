@@ -11,8 +11,10 @@ serial-dictatorship matching. Deferred acceptance runs in rounds that are vector
 the batch, the EDs and the UAVs: each round every unmatched ED proposes to its next
 preferred UAV, and each UAV keeps its Lambda_max highest-priority candidates. Scenarios
 where no quota binds (the default layout) skip it: there every ED simply takes its best
-in-range UAV (one argmax). At most V * U rounds, usually
-<= U. Cost per round O(N U V), plus one O(N V log V) sort.
+in-range UAV (one argmax). At most V * U rounds, usually <= U. Cost per round O(N V) plus
+O(U) per rejected ED (its keys to every UAV are asked for only then), and one O(N V log V)
+sort; a scenario leaves the rounds once none of its EDs is rejected (most are matched after
+one or two).
 
 optimal (extension): the assignment that maximises the total linear gain under the quota,
 solved per scenario with scipy's linear_sum_assignment on min(Lambda_max, V) replicated
@@ -48,68 +50,161 @@ def greedy_association(gains: np.ndarray, d_h: np.ndarray, comm_range_m: float, 
     serving = np.where(reachable, first, UNASSOCIATED)
     binding = (counts > quota).any(axis=-1)
     if binding.any():
-        serving[binding] = _deferred_acceptance(g[binding], ok[binding], quota)
+        g_b = g[binding]
+        first_b = first[binding]
+        best = np.take_along_axis(g_b, first_b[:, None, :], axis=1)[:, 0]  # = g_b.max(axis=1)
+        serving[binding] = _deferred_acceptance(best, first_b, quota, n_uavs, lambda e, v: g_b[e, :, v])
     return serving
 
 
 def stable_argsort(key: np.ndarray) -> np.ndarray:
     """np.argsort(key, axis=-1, kind="stable") for [N, V]: the (SIMD) quicksort when no row has
     tied keys (then every sort gives the same order), else the stable sort."""
-    if key.shape[-1] <= 32:
+    if key.shape[-1] <= 32 or key.ndim != 2:
         return np.argsort(key, axis=-1, kind="stable")
     order = np.argsort(key, axis=-1)
-    ks = np.take_along_axis(key, order, axis=-1)
-    if (ks[..., 1:] == ks[..., :-1]).any():
+    if has_ties(key, order):
         return np.argsort(key, axis=-1, kind="stable")
     return order
 
 
-def _deferred_acceptance(g: np.ndarray, ok: np.ndarray, quota: int, first: np.ndarray | None = None) -> np.ndarray:
+KEY_SORT_MIN = 2048  # elements from which group_sort's one key sort beats the stable sorts
+
+
+def group_sort(
+    values: np.ndarray, groups: np.ndarray | None = None, n_groups: int = 1, descending: bool = False
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Per row of values [N, V] (float64): the indices sorted by (group, value, index), values
+    ascending or descending, and the groups [N, V] (int, 0 .. n_groups - 1; None: one group)
+    in that order. Ties keep the index order, as a stable sort.
+
+    Usually one np.sort (SIMD; an argsort costs ~3.5x more) of an int64 key that carries the
+    index in its low bits: (group, rank part of the value, index). A float64's bit pattern,
+    read as an int64, increases with the value for values >= 0 (and, with its low 63 bits
+    flipped, for negative ones), so (bits - min) or (max - bits) orders the values; it is
+    shifted right by `drop` bits to leave room for the group and the index. Truncation keeps
+    the order (never swaps two values), and where no two entries of a group share a
+    truncated value the order is exactly that of the full values; where two do (rare, and
+    always so for equal values when drop > 0), the stable sorts decide."""
+    n, v = values.shape
+    if values.size > KEY_SORT_MIN and values.flags.c_contiguous:
+        bits = values.view(np.int64)
+        lo = int(bits.min())
+        if lo < 0:  # negative values (or -0.0): map to an order-preserving pattern
+            bits = np.add(values, 0.0).view(np.int64)  # (-0.0 + 0.0 = +0.0: equal values, one key)
+            bits ^= (bits >> 63) & 0x7FFF_FFFF_FFFF_FFFF
+            lo = int(bits.min())
+        hi = int(bits.max())
+        id_bits = max(int(v - 1).bit_length(), 1)
+        room = 63 - id_bits - (int(n_groups - 1).bit_length() if groups is not None else 0)
+        drop = max(0, (hi - lo).bit_length() - room)
+        while (hi >> drop) - (lo >> drop) >> room:  # (shifting first: hi - lo may overflow int64)
+            drop += 1
+        if drop:
+            bits = np.right_shift(bits, drop)
+            lo, hi = lo >> drop, hi >> drop
+        key = np.subtract(hi, bits) if descending else np.subtract(bits, lo)
+        if groups is not None:
+            key |= np.left_shift(groups.astype(np.int64, copy=False), room)
+        key <<= id_bits
+        key |= np.arange(v)
+        key.sort(axis=-1)
+        head = key >> id_bits  # (group, truncated value)
+        if drop == 0 or not (head[:, 1:] == head[:, :-1]).any():
+            key &= (1 << id_bits) - 1
+            return key, None if groups is None else np.right_shift(head, room, out=head)
+    order = stable_argsort(np.negative(values) if descending else values)
+    if groups is None:
+        return order, None
+    row_base = (np.arange(n) * v)[:, None]
+    order += row_base
+    grp_sorted = groups.reshape(-1).take(order)
+    # n_groups <= 128 here (U + 1 <= 65): ids fit in int8, whose stable sort is a radix sort.
+    by = np.argsort(grp_sorted.astype(np.int8) if v > 32 else grp_sorted, axis=-1, kind="stable")
+    by += row_base
+    order = order.reshape(-1).take(by)
+    order -= row_base
+    return order, grp_sorted.reshape(-1).take(by)
+
+
+def has_ties(key: np.ndarray, order: np.ndarray) -> bool:
+    """Whether a row of key [N, V], sorted by order [N, V] (its argsort), has two equal keys.
+    (One flat take: np.take_along_axis costs ~6x more here.)"""
+    n, v = key.shape
+    ks = key.reshape(-1).take(order + (np.arange(n) * v)[:, None])
+    return bool((ks[:, 1:] == ks[:, :-1]).any())
+
+
+def _deferred_acceptance(
+    best: np.ndarray, first: np.ndarray, quota: int, n_uavs: int, rows: Callable[[np.ndarray, np.ndarray], np.ndarray]
+) -> np.ndarray:
     """ED-proposing deferred acceptance with the common priority order (see module docstring).
 
-    g: gains with -inf where out of range. Each round, every ED rejected in the previous one
-    proposes to its best in-range UAV not yet tried (argmax over the UAVs, ties: lowest index,
-    i.e. the next entry of its preference list); EDs held stay candidates of their UAV, and
-    each UAV keeps its `quota` highest-priority candidates. `first`: each ED's first choice
-    [N, V] when the caller knows it (the argmax over the UAVs of g)."""
-    n, n_uavs, n_eds = g.shape
-    # Priority: descending best in-range gain; ties by ED index (stable sort).
-    best = g.max(axis=1)  # [N, V]; -inf: no UAV in range
-    order = stable_argsort(-best)  # [N, V] ED ids, best first
-    rows = np.arange(n)[:, None]
-    # [N, V', U] in priority order, contiguous along U; UAVs already tried are set to -inf
-    pref = np.ascontiguousarray(g.transpose(0, 2, 1))[rows, order]
-    candidate = np.argmax(pref, axis=-1) if first is None else first[rows, order]  # first choices
-    candidate[best[rows, order] == -np.inf] = UNASSOCIATED
-    pos = np.arange(n_eds)
-    group_base = (np.arange(n) * (n_uavs + 1))[:, None]
+    best [N, V]: each ED's highest key (gain, or any strictly increasing function of it) over
+    its in-range UAVs, -inf when none is in range; first [N, V]: the UAV that has it (the
+    argmax, ties: lowest index); rows(e, v) [K, U]: the keys of the EDs (e[k], v[k]) to every
+    UAV, -inf where out of range (asked only for rejected EDs: a few per round). Each round,
+    every ED rejected in the previous one proposes to its best in-range UAV not yet tried
+    (argmax over the UAVs, ties: lowest index, i.e. the next entry of its preference list);
+    EDs held stay candidates of their UAV, and each UAV keeps its `quota` highest-priority
+    candidates."""
+    n, n_eds = best.shape
+    # Priority: descending best in-range key; ties by ED index (stable sort).
+    order = group_sort(best, descending=True)[0]  # [N, V] ED ids, best first
     row_base = (np.arange(n) * n_eds)[:, None]
+    order += row_base  # flat indices into [N, V] (flat takes: much faster than fancy indexing here)
+    candidate = first.reshape(-1).take(order)  # first choices, in priority order
+    candidate[best.reshape(-1).take(order) == -np.inf] = UNASSOCIATED
+    tried = np.zeros((n * n_eds, n_uavs), dtype=bool)  # per priority position: UAVs that rejected it
+    pos = np.arange(n_eds)
+    # Each round's sort key: (candidate UAV, priority position) in one small integer, sorted by
+    # np.sort (SIMD; positions are distinct, so any sort is stable here).
+    id_bits = max(int(n_eds - 1).bit_length(), 1)
+    key_type = np.int16 if (n_uavs + 1) << id_bits <= 1 << 15 else np.int64
+    key_pos = pos.astype(key_type)
+    group_base = (np.arange(n) * (n_uavs + 1))[:, None]
+    held_all = np.empty((n, n_eds), dtype=np.int64)  # the final matching, in priority order
+    active = np.arange(n)  # scenarios still with rejected EDs (the others are done)
     while True:
         # A UAV keeps a candidate iff fewer than `quota` of its candidates come earlier in the
-        # priority order (the columns): rank each candidate within its UAV by a stable sort of
-        # the UAV ids (U + 1 = none), as in BatchCore._slots.
-        grp = np.where(candidate == UNASSOCIATED, n_uavs, candidate)
-        by = np.argsort(grp.astype(np.int8), axis=-1, kind="stable")  # U <= 64
-        by += row_base
-        grouped = grp.reshape(-1).take(by) + group_base  # flat (row, UAV) group of each sorted entry
-        counts = np.bincount(grouped.reshape(-1), minlength=n * (n_uavs + 1))
-        start = np.cumsum(counts) - counts  # first sorted position of each group (flat)
-        kept_sorted = (grouped - group_base < n_uavs) & (pos - (start.take(grouped) - row_base) < quota)
+        # priority order (the columns): rank each candidate within its UAV by sorting
+        # (UAV id (U = none), position), as in BatchCore._slots.
+        m = len(active)
+        key = np.where(candidate == UNASSOCIATED, n_uavs, candidate).astype(key_type)
+        key <<= id_bits
+        key |= key_pos
+        key.sort(axis=-1)
+        by = (key & ((1 << id_bits) - 1)).astype(np.int64)
+        by += row_base[:m]
+        uav_sorted = key >> id_bits
+        grouped = uav_sorted.astype(np.int64)
+        grouped += group_base[:m]  # flat (row, UAV) group of each sorted entry
+        counts = np.bincount(grouped.reshape(-1), minlength=m * (n_uavs + 1)).reshape(m, n_uavs + 1)
+        start = np.cumsum(counts, axis=-1)
+        start -= counts  # first sorted position of each group within its row
+        kept_sorted = uav_sorted < n_uavs
+        kept_sorted &= pos - start.reshape(-1).take(grouped) < quota
         kept = np.empty_like(kept_sorted)
         kept.reshape(-1)[by.reshape(-1)] = kept_sorted.reshape(-1)
         held = np.where(kept, candidate, UNASSOCIATED)
         rejected = (candidate != UNASSOCIATED) & ~kept
-        if not rejected.any():
-            break
-        e, v = np.nonzero(rejected)  # proposers and displaced EDs move on to their next choice
-        pref[e, v, candidate[e, v]] = -np.inf
-        rows = pref[e, v]  # [K, U]
-        nxt = np.argmax(rows, axis=-1)
-        has_next = rows[np.arange(len(e)), nxt] > -np.inf
+        going = rejected.any(axis=-1)
+        if not going.all():  # scenarios without a rejection are matched; later rounds skip them
+            held_all[active[~going]] = held[~going]
+            if not going.any():
+                break
+            active, held, rejected, candidate = active[going], held[going], rejected[going], candidate[going]
+        e, i = np.nonzero(rejected)  # proposers and displaced EDs move on to their next choice
+        at = active[e] * n_eds + i  # their priority rows
+        tried[at, candidate[e, i]] = True
+        keys = rows(active[e], order.reshape(-1).take(at) - row_base[active[e], 0])  # [K, U]
+        keys[tried[at]] = -np.inf
+        nxt = np.argmax(keys, axis=-1)
+        has_next = keys[np.arange(len(e)), nxt] > -np.inf
         candidate = held
-        candidate[e[has_next], v[has_next]] = nxt[has_next]
-    serving = np.empty_like(held)
-    np.put_along_axis(serving, order, held, axis=-1)
+        candidate[e[has_next], i[has_next]] = nxt[has_next]
+    serving = np.empty_like(held_all)
+    serving.reshape(-1)[order] = held_all
     return serving
 
 
@@ -135,7 +230,8 @@ def greedy_from_nearest(
     comm_range_m: float,
     quota: int,
     n_uavs: int,
-    full_problem: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+    nearest_keys: Callable[[np.ndarray], np.ndarray],
+    pair_keys: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]],
 ) -> np.ndarray:
     """`greedy_association` where the max-gain UAV is the nearest one (gain strictly decreasing
     in d_h, `physics.gain_decreases_with_distance`), without the per-pair gains.
@@ -143,18 +239,31 @@ def greedy_from_nearest(
     Each ED's first choice is its nearest UAV if that one is in range, and no UAV is in range
     otherwise (all others are farther). Where those first choices fit in every quota (the
     default layout) that IS the greedy matching. Scenarios where a quota binds get the full
-    greedy matching (deferred acceptance) on (key, d_h) = full_problem(mask of those
-    scenarios), [M, U, V] each: `key` is the gain or any strictly increasing function of it
-    (the matching depends only on the order of the gains), e.g. -d_h^2."""
+    greedy matching (deferred acceptance) on keys: nearest_keys(b) [M, V], the key of every ED
+    of the scenarios b [M] at its nearest UAV, and pair_keys(e, v) -> (key, d_h) [K, U] each,
+    of the EDs (e[k], v[k]) to every UAV (asked, each round, only for the few EDs rejected).
+    `key` is the gain or any strictly increasing function of it (the matching depends only on
+    the order of the gains), e.g. -d_h^2."""
     reachable = d_h_nearest <= comm_range_m
-    serving = np.where(reachable, nearest, UNASSOCIATED)
+    everyone = bool(reachable.all())  # (the usual case: then no mask is needed)
+    serving = nearest.copy() if everyone else np.where(reachable, nearest, UNASSOCIATED)
     if quota < nearest.shape[-1]:  # otherwise no quota can bind
-        counts = physics.group_sum(reachable, nearest, n_uavs)
+        if everyone:
+            counts = physics.group_count(nearest, n_uavs)
+        else:
+            counts = physics.group_count(serving + 1, n_uavs + 1)[..., 1:]  # group 0: unassociated
         binding = (counts > quota).any(axis=-1)
         if binding.any():
-            g, d = full_problem(binding)
-            ok = in_range_mask(d, comm_range_m)
-            serving[binding] = _deferred_acceptance(np.where(ok, g, -np.inf), ok, quota, nearest[binding])
+            b = np.flatnonzero(binding)
+            best = nearest_keys(b)
+            best[~reachable[b]] = -np.inf
+
+            def rows(e_b: np.ndarray, v: np.ndarray) -> np.ndarray:
+                key, d = pair_keys(b[e_b], v)
+                key[~in_range_mask(d, comm_range_m)] = -np.inf
+                return key
+
+            serving[b] = _deferred_acceptance(best, nearest[b], quota, n_uavs, rows)
     return serving
 
 

@@ -38,8 +38,8 @@ from uavlora_rllib.association import (
     UNASSOCIATED,
     associate,
     greedy_from_nearest,
+    group_sort,
     nearest_uav_on_line,
-    stable_argsort,
 )
 from uavlora_rllib.scenario import ScenarioConfig
 
@@ -110,7 +110,7 @@ class BatchCore:
         self._mvel = np.zeros((2, n_envs, v))
         self.t = np.zeros(n_envs, dtype=np.int64)
         self._prev_alloc = np.full((n_envs, v, 3), -1, dtype=np.int64)
-        self._prev_parts: tuple | None = None  # (sf, tp, bw, associated) of the slot just played
+        self._prev_parts: tuple | None = None  # (sf, tp, bw, actions, associated) of the slot just played
         self._rngs: list[np.random.Generator] = [np.random.default_rng() for _ in range(n_envs)]
         self._chunk = chunk = NOISE_CHUNK
         self._gauss = np.zeros((n_envs, chunk, 2, v))  # per step: (x, y) noise of every ED
@@ -119,6 +119,10 @@ class BatchCore:
         self._uniform = np.zeros((n_envs, 3 * chunk * v))
         self._resample = self._uniform[:, : chunk * v].reshape(n_envs, chunk, v)
         self._new_mean_raw = self._uniform[:, chunk * v :].reshape(n_envs, chunk, 2, v)
+        # The re-draws those imply, found once per refill (see _refill): scenario, step in the
+        # chunk and flat [N, V] index of each, and the new v-bar there [2, K].
+        none = np.zeros(0, dtype=np.int64)
+        self._redraws: tuple[np.ndarray, ...] = (none, none, none, np.zeros((2, 0)))
         self._cursor = np.zeros(n_envs, dtype=np.int64)
         self._cursor_same: int | None = 0  # the cursor of every scenario while they agree
         self._noise_scale = cfg.mobility.sigma * float(np.sqrt(1.0 - cfg.mobility.memory**2))
@@ -153,13 +157,14 @@ class BatchCore:
         q1 = self.quota + 1
         self._obs_rows_base = (self._env_idx * (u * q1 * OBS_ROW))[:, None]  # flat offsets
         self._obs_garbage = n_envs * u * q1 * OBS_ROW
-        template = np.zeros((n_envs * u * q1 + 1, OBS_ROW))
-        extra = template[:-1].reshape(n_envs, u, q1 * OBS_ROW)
-        extra[..., self.quota * OBS_ROW + 1 : self.quota * OBS_ROW + OBS_EXTRA] = self._obs_extra_xy
-        self._obs_template = template
+        self._obs_buf_shape = (n_envs * u * q1 + 1, OBS_ROW)
+        self._obs_scratch: np.ndarray | None = None
         self._pairs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         # per_uav action index -> (sf_idx, tp_idx, bw_idx), one row per joint action
         self._decode = np.stack(decode_joint_action(np.arange(cfg.n_joint_actions), cfg), axis=-1).astype(np.int64)
+        # per_uav action index -> its SF index and (P_W, W_Hz, rho_thr), for _per_uav_values
+        sf_a, tp_a, bw_a = self._decode.T
+        self._action_values = (sf_a.copy(), *physics.allocation_values(sf_a, tp_a, bw_a, self.tables))
         # Lookahead (single scenario): actions change neither mobility nor the association
         # (SPEC.md), so the positions, channels, association and observations of the next
         # `lookahead` slots are computed at once, by a second core whose batch axis is time;
@@ -218,6 +223,7 @@ class BatchCore:
             rng = self._rngs[i]
             rng.standard_normal(out=self._gauss[i])
             rng.random(out=self._uniform[i])
+        self._find_redraws(rows)
         # stored as sigma sqrt(1 - eth^2) w, the term Eq. (gm) adds (one scaling for all rows)
         if rows is None:
             self._gauss *= self._noise_scale
@@ -225,6 +231,31 @@ class BatchCore:
         else:
             self._gauss[rows] *= self._noise_scale
             self._cursor[rows] = 0
+
+    def _find_redraws(self, rows: np.ndarray | None) -> None:
+        """The v-bar re-draws of the fresh chunk of the scenarios `rows` (None: all), where the
+        test draw is below the re-draw probability (rare: ~1% of the EDs per step). Finding them
+        once per refill, on the buffer's contiguous rows, is cheaper than testing an [N, V]
+        slice of it (one row per scenario, 77 KB apart) every step."""
+        mob = self.cfg.mobility
+        tests = self._uniform[:, : self._resample[0].size]  # [N, chunk V] (contiguous rows)
+        if rows is not None:
+            tests = tests[rows]
+        e, kv = np.divmod(np.flatnonzero(tests < mob.mean_resample_prob), tests.shape[1])  # (3-D nonzero: 10x slower)
+        k, v = np.divmod(kv, self.cfg.n_eds)
+        if rows is not None:
+            e = rows[e]
+        ev = e * self.cfg.n_eds + v
+        low = -mob.v_max_mps
+        new = low + (mob.v_max_mps - low) * self._new_mean_raw[e, k, :, v].T  # Generator.uniform's formula
+        if rows is not None:  # keep the other scenarios' re-draws
+            other = np.ones(self.n, dtype=bool)
+            other[rows] = False
+            keep = other[self._redraws[0]]
+            old = self._redraws
+            e, k, ev = (np.concatenate((a[keep], b)) for a, b in zip(old[:3], (e, k, ev)))
+            new = np.concatenate((old[3][:, keep], new), axis=1)
+        self._redraws = (e, k, ev, new)
 
     @property
     def ed_xy(self) -> np.ndarray:
@@ -272,18 +303,17 @@ class BatchCore:
         elif k >= self._chunk:
             self._refill()
             k = 0
+        re, rk, rev, new = self._redraws
         if k is not None:  # the usual case (no partial reset): views, no gather copies
-            gauss, resample, new_raw = self._gauss[:, k], self._resample[:, k], self._new_mean_raw[:, k]
+            gauss = self._gauss[:, k]
             self._cursor_same = k + 1
+            hit = np.flatnonzero(rk == k)
         else:
             gauss = self._gauss[self._env_idx, c]
-            resample, new_raw = self._resample[self._env_idx, c], self._new_mean_raw[self._env_idx, c]
-        redraw = resample < mob.mean_resample_prob
-        if redraw.any():  # (rare: written where it happens)
-            e, v = np.nonzero(redraw)
-            low = -mob.v_max_mps
+            hit = np.flatnonzero(rk == c.take(re))
+        if hit.size:  # the v-bar re-draws of this step (rare: written where they happen)
             mvel = mvel.copy()  # (the previous slot's array may be kept, e.g. by the lookahead)
-            mvel[:, e, v] = low + (mob.v_max_mps - low) * new_raw[e, :, v].T  # Generator.uniform's formula
+            mvel.reshape(2, -1)[:, rev[hit]] = new[:, hit]
         c += 1
         eth = mob.memory
         # vel = eth v + (1 - eth) v-bar + sigma sqrt(1 - eth^2) w, in this order.
@@ -293,13 +323,13 @@ class BatchCore:
         vel = self._clip_speed(vel)
         pos = vel * mob.dt_s
         pos += xy
-        low, high = pos < 0.0, pos > area
-        out = low | high
-        if out.any():  # mirror at the borders (few EDs: only theirs are touched)
-            i = np.flatnonzero(out)  # pos, vel: new C-contiguous arrays, so reshape(-1) is a view
-            pos_f, vel_f = pos.reshape(-1), vel.reshape(-1)
+        out = pos < 0.0
+        out |= pos > area
+        i = np.flatnonzero(out)
+        if i.size:  # mirror at the borders (few EDs: only theirs are touched)
+            pos_f, vel_f = pos.reshape(-1), vel.reshape(-1)  # new C-contiguous arrays: views
             p = pos_f[i]
-            p = np.where(low.reshape(-1)[i], -p, 2.0 * area - p)
+            p = np.where(p < 0.0, -p, 2.0 * area - p)
             np.minimum(p, area, out=p)  # guards a step longer than the area itself
             np.maximum(p, 0.0, out=p)
             pos_f[i] = p
@@ -364,16 +394,21 @@ class BatchCore:
         near = nearest_uav_on_line(self._xy[0], self._spacing, cfg.n_uavs)
         d2 = physics.horizontal_distance_sq_to(self.ed_xy, self.uav_xy, near)
         d_h = np.sqrt(d2)
-        self._rebound = None
-        self.serving = greedy_from_nearest(near, d_h, cfg.comm_range_m, self.quota, cfg.n_uavs, self._binding_problem)
+        self.serving = greedy_from_nearest(
+            near, d_h, cfg.comm_range_m, self.quota, cfg.n_uavs, lambda b: np.negative(d2[b]), self._pair_keys
+        )
         self.associated = self.serving != UNASSOCIATED
-        if self._rebound is not None:  # a quota bound: there some EDs are served by another UAV
-            m = self._rebound
-            near[m] = np.where(self.associated[m], self.serving[m], near[m])
-            d2[m] = physics.horizontal_distance_sq_to(self.ed_xy[m], self.uav_xy, near[m])
-            d_h[m] = np.sqrt(d2[m])
+        # Where a quota bound, some EDs are served by another UAV than their nearest one.
+        moved = np.flatnonzero(self.serving != near)
+        moved = moved[self.serving.reshape(-1)[moved] != UNASSOCIATED]
+        if moved.size:
+            u_moved = near.reshape(-1)[moved] = self.serving.reshape(-1)[moved]
+            xy_moved = self._xy.reshape(2, -1)[:, moved].T  # [K, 2]
+            d2_moved = physics.horizontal_distance_sq_to(xy_moved, self.uav_xy, u_moved)
+            d2.reshape(-1)[moved] = d2_moved
+            d_h.reshape(-1)[moved] = np.sqrt(d2_moved)
         self._serving_idx = near  # unassociated EDs: their nearest UAV (any valid index)
-        self.g_serving, self.g_db_serving = physics.channel_gain_sq(d2, cfg, with_db=True)
+        self.g_serving, self.g_db_serving = physics.channel_gain_sq(d2, cfg, with_db=True, d_h=d_h)
         self.d_h_serving = d_h
 
     def _observe_pairs(self) -> None:
@@ -397,13 +432,14 @@ class BatchCore:
             self._pairs = (np.sqrt(d2, out=d2), gains, gain_db)
         return self._pairs
 
-    def _binding_problem(self, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(-d_h^2, d_h) of every pair [M, U, V] of the scenarios in `mask` (where a quota
-        binds). -d_h^2 orders the pairs as their gains do (G strictly decreases with d_h here),
-        which is all the greedy matching looks at: no transcendental needed."""
-        self._rebound = mask
-        d2 = physics.horizontal_distance_sq(self._xy[:, mask].transpose(1, 2, 0), self.uav_xy)
-        return np.negative(d2), np.sqrt(d2, out=d2)
+    def _pair_keys(self, e: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(-d_h^2, d_h) [K, U] of the EDs (e[k], v[k]) to every UAV: the keys greedy_from_nearest
+        asks for where a quota binds (with -d_h^2 at the nearest UAV, see _observe_nearest).
+        -d_h^2 orders the pairs as their gains do (G strictly decreases with d_h here), which is
+        all the greedy matching looks at: no transcendental needed. (Same operations as the
+        d_h^2 of the nearest UAV's channel, element by element.)"""
+        d2 = physics.horizontal_distance_sq(self._xy[:, e, v].T, self.uav_xy).T  # [K, U]
+        return np.negative(d2), np.sqrt(d2)
 
     @property
     def d_h(self) -> np.ndarray:
@@ -422,56 +458,62 @@ class BatchCore:
 
     def _slots(self) -> None:
         """slot_of_ed [N, V]: rank of each served ED by gain among its UAV's EDs (ties by ED id;
-        -1 if unassociated), and the served counts [N, U]. A stable sort by gain, then a stable
-        sort by serving UAV: each UAV's EDs form a run in gain order, and an ED's slot is its
+        -1 if unassociated), and the served counts [N, U]. The EDs are sorted by (serving UAV,
+        descending gain, ED id): each UAV's EDs form a run in gain order, and an ED's slot is its
         position minus the start of its UAV's run (an exclusive cumulative sum of the counts)."""
         n, v, u = self.n, self.cfg.n_eds, self.cfg.n_uavs
         grp = self._serving_idx if self._all_associated else np.where(self.associated, self._serving_idx, u)
-        order = stable_argsort(np.negative(self.g_serving))
+        # EDs by (serving UAV, descending gain, ED id): each UAV's EDs form a run in gain order
+        order, grouped = group_sort(self.g_serving, grp, u + 1, descending=True)
         order += self._row_base  # flat indices into [N, V]
-        grp_sorted = grp.reshape(-1).take(order)
-        # U <= 64 (ScenarioConfig): ids fit in int8, whose stable sort is a radix sort (faster for long rows).
-        by = np.argsort(grp_sorted.astype(np.int8) if v > 32 else grp_sorted, axis=-1, kind="stable")
-        by += self._row_base
-        grouped = grp_sorted.reshape(-1).take(by)  # [N, V] non-decreasing per row
-        counts = np.bincount((grouped + self._grp_base).reshape(-1), minlength=n * (u + 1)).reshape(n, u + 1)
+        grouped += self._grp_base
+        counts = np.bincount(grouped.reshape(-1), minlength=n * (u + 1)).reshape(n, u + 1)
         start = np.cumsum(counts, axis=-1)
         start -= counts
-        slot = self._positions - start.reshape(-1).take(grouped + self._grp_base)
+        slot = self._positions - start.reshape(-1).take(grouped)
         if not self._all_associated:
-            slot[grouped == u] = -1
+            slot[grouped - self._grp_base == u] = -1
         slot_of_ed = np.empty((n, v), dtype=np.int64)
-        slot_of_ed.reshape(-1)[order.reshape(-1).take(by)] = slot
+        slot_of_ed.reshape(-1)[order] = slot
         self.slot_of_ed = slot_of_ed
         self._counts = counts[:, :u]
 
-    def _gain_feature(self, gain_db: np.ndarray) -> np.ndarray:
-        return (gain_db - self._gain_db_mid) / self._gain_db_half
+    def _gain_feature(self, gain_db: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        x = np.subtract(gain_db, self._gain_db_mid, out=out)
+        return np.divide(x, self._gain_db_half, out=x)
 
     def _build_obs(self) -> np.ndarray:
         cfg, n, q, n_u = self.cfg, self.n, self.quota, self.cfg.n_uavs
         q1 = q + 1
-        # Row of ED v: (e U + u) (quota + 1) + slot; unassociated EDs: the scratch row. Each
-        # feature is written by its own flat scatter from a contiguous array (NumPy's loops
-        # over a trailing axis of 2 or 4 are slow).
+        # Row of ED v: (e U + u) (quota + 1) + slot; unassociated EDs: the scratch row. A row is
+        # two complex128 (16-byte) pairs, (x, y) and (d, G), each written by one flat scatter
+        # from a contiguous array (half the scatters of one per feature; NumPy's loops over a
+        # trailing axis of 2 or 4 are slow).
         start = self._serving_idx * (q1 * OBS_ROW)
         start += self._obs_rows_base
         start += OBS_ROW * self.slot_of_ed
         if not self._all_associated:
             start = np.where(self.associated, start, self._obs_garbage)
-        buf = self._obs_template.copy()
-        flat = buf.reshape(-1)
-        xy = np.multiply(self._xy, 2.0 / cfg.area_m)
-        xy -= 1.0
-        flat[start] = xy[0]
+        start >>= 1  # float64 index -> complex128 index (rows start at multiples of 4)
+        # np.zeros, not a copy of a template: a buffer of this size comes zeroed from the OS
+        # (calloc), so this skips reading and copying one (0.05-0.5 ms of ~10 per step at
+        # V=100/U=8/N=1024 in A/B runs); the extras are written below.
+        buf = np.zeros(self._obs_buf_shape)
+        pairs = buf.reshape(-1).view(np.complex128)
+        if self._obs_scratch is None or self._obs_scratch.shape != start.shape:
+            self._obs_scratch = np.empty(start.shape, dtype=np.complex128)
+        val = self._obs_scratch  # (private, overwritten every step: no fresh 1.6 MB per step)
+        for k, part in enumerate((val.real, val.imag)):  # x, y -> 2 p / L - 1
+            np.multiply(self._xy[k], 2.0 / cfg.area_m, out=part)
+            part -= 1.0
+        pairs[start] = val
+        np.divide(self.d_h_serving, cfg.comm_range_m, out=val.real)
+        self._gain_feature(self.g_db_serving, out=val.imag)
         start += 1
-        flat[start] = xy[1]
-        start += 1
-        flat[start] = np.divide(self.d_h_serving, cfg.comm_range_m)
-        start += 1
-        flat[start] = self._gain_feature(self.g_db_serving)
+        pairs[start] = val
         obs = buf[:-1].reshape(n, n_u, q1 * OBS_ROW)
         np.divide(self._counts, q, out=obs[..., q * OBS_ROW])
+        obs[..., q * OBS_ROW + 1 : q * OBS_ROW + OBS_EXTRA] = self._obs_extra_xy
         return obs[..., : q * OBS_ROW + OBS_EXTRA]
 
     # ------------------------------------------------------------------ actions
@@ -517,15 +559,33 @@ class BatchCore:
             )
 
     # ------------------------------------------------------------------ step
+    def _per_uav_values(self, actions: np.ndarray) -> tuple[np.ndarray, tuple, tuple]:
+        """per_uav mode, large batches: each ED's SF index and (P_W, W_Hz, rho_thr) gathered
+        from its serving UAV's values ([N, U]: U table look-ups per scenario instead of V),
+        and (actions, flat serving-UAV index), from which prev_alloc gets the TP and BW
+        indices when it is read."""
+        cfg = self.cfg
+        actions = np.asarray(actions)
+        self._check_range(actions, (self.n, cfg.n_uavs), self._n_joint)
+        idx = self._serving_idx + self._act_base  # flat index of each ED's serving UAV in [N, U]
+        sf, *values = (table.take(actions).reshape(-1).take(idx) for table in self._action_values)
+        return sf, tuple(values), (actions.copy(), idx)  # (a copy: the caller may reuse its array)
+
     def step(self, actions: np.ndarray) -> StepResult:
         if not self._ready:
             raise RuntimeError("call reset() before step()")
-        sf, tp, bw = self.allocations(actions)
         gains = None if self._nearest else self.gains
+        if self.cfg.action_mode == "per_uav" and self._serving_idx.size > 4096:
+            sf, values, actions_idx = self._per_uav_values(actions)
+            tp = bw = None
+        else:
+            sf, tp, bw = self.allocations(actions)
+            values = actions_idx = None
         metrics = physics.slot_metrics(
-            gains, self._serving_idx, self.associated, sf, tp, bw, self.cfg, self.tables, g_serving=self.g_serving
-        )
-        self._prev_parts = (sf, tp, bw, None if self._all_associated else self.associated)
+            gains, self._serving_idx, self.associated, sf, tp, bw, self.cfg, self.tables, g_serving=self.g_serving,
+            values=values,
+        )  # fmt: skip
+        self._prev_parts = (sf, tp, bw, actions_idx, None if self._all_associated else self.associated)
         self.t += 1
         self._next_slot()
         return StepResult(self.obs, metrics["reward"], self.t >= self.cfg.episode_len, metrics)
@@ -535,7 +595,11 @@ class BatchCore:
         """Each ED's (sf_idx, tp_idx, bw_idx) in the slot just played [N, V, 3]; -1 where it was
         silent or no slot was played since the reset (built on first access)."""
         if self._prev_parts is not None:
-            sf, tp, bw, assoc = self._prev_parts
+            sf, tp, bw, actions_idx, assoc = self._prev_parts
+            if tp is None:  # per_uav at large batches: decoded from the actions only now
+                actions, idx = actions_idx
+                _, tp_u, bw_u = decode_joint_action(actions, self.cfg)
+                tp, bw = tp_u.reshape(-1).take(idx), bw_u.reshape(-1).take(idx)
             prev = np.stack((sf, tp, bw), axis=-1)
             if assoc is not None:
                 prev[~assoc] = -1

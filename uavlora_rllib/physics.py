@@ -72,6 +72,14 @@ def group_sum(values: np.ndarray, groups: np.ndarray, n_groups: int) -> np.ndarr
     return np.bincount(idx, weights=w, minlength=n_bins).reshape(shape[:-1] + (n_groups,))
 
 
+def group_count(groups: np.ndarray, n_groups: int) -> np.ndarray:
+    """sum_v [groups_v == g] along the last axis, as int64: [..., V] -> [..., n_groups] (one
+    unweighted np.bincount, faster than group_sum with boolean weights)."""
+    idx = _group_index(groups, n_groups, groups.shape)
+    n_bins = (idx.size // groups.shape[-1]) * n_groups if idx.size else 0
+    return np.bincount(idx, minlength=n_bins).reshape(groups.shape[:-1] + (n_groups,))
+
+
 # ---------------------------------------------------------------- unit conversions
 def dbm_to_w(p_dbm: np.ndarray | float) -> np.ndarray:
     return np.power(10.0, (np.asarray(p_dbm, dtype=np.float64) - 30.0) / 10.0)
@@ -148,11 +156,12 @@ def channel_gain(d_h: np.ndarray | float, cfg: ScenarioConfig) -> np.ndarray:
     return db_to_lin(-path_loss_db(d_h, cfg))
 
 
-def channel_gain_sq(d2_h: np.ndarray, cfg: ScenarioConfig, with_db: bool = False):
+def channel_gain_sq(d2_h: np.ndarray, cfg: ScenarioConfig, with_db: bool = False, d_h: np.ndarray | None = None):
     """G = 10^(-L/10) of Eq. (a2g_pl) from the SQUARED horizontal distance d2_h = d_h^2, with
     the transcendentals this CPU's NumPy vectorises (sqrt, arctan, exp, log10) instead of
     arctan2 and 10^x. Same value as `channel_gain(sqrt(d2_h))` up to rounding (tested to 1e-12
-    relative). Returns G, or (G, G_dB) with G_dB = -L when `with_db`.
+    relative). Returns G, or (G, G_dB) with G_dB = -L when `with_db`. `d_h`: sqrt(d2_h) when the
+    caller has it (sqrt is correctly rounded: the same values, one pass fewer).
 
     Derivation. With d3^2 = d2_h + h^2 and K0 = 20 log10(4 pi f / c),
       L = 10 log10(d3^2) + K0 + eta_LoS P + eta_NLoS (1 - P)
@@ -169,8 +178,11 @@ def channel_gain_sq(d2_h: np.ndarray, cfg: ScenarioConfig, with_db: bool = False
         return (out[0][0], out[1][0]) if with_db else out[0]
     h = cfg.altitude_m
     d3_sq = np.add(d2_h, h * h)
-    t = np.sqrt(d2_h)
-    t *= 1.0 / h
+    if d_h is None:
+        t = np.sqrt(d2_h)
+        t *= 1.0 / h
+    else:
+        t = np.multiply(d_h, 1.0 / h)
     np.arctan(t, out=t)
     t *= cfg.los_b * _DEG_PER_RAD
     t += cfg.los_b * (cfg.los_a - 90.0)
@@ -221,7 +233,9 @@ def horizontal_distance_sq_to(ed_xy: np.ndarray, uav_xy: np.ndarray, uav_idx: np
     The same operations, element by element, as `horizontal_distance_sq` (so the value equals
     that function's entry [..., uav_idx[v], v] bit for bit)."""
     dx = np.subtract(ed_xy[..., 0], uav_xy[:, 0].take(uav_idx))
-    dy = np.subtract(ed_xy[..., 1], uav_xy[:, 1].take(uav_idx))
+    y = uav_xy[:, 1]
+    # UAVs on one horizontal line (SPEC.md's layout): the same y for all, no gather needed
+    dy = np.subtract(ed_xy[..., 1], y[0] if (y == y[0]).all() else y.take(uav_idx))
     dx *= dx
     dy *= dy
     dx += dy
@@ -355,21 +369,22 @@ def energy_efficiency(
     """EE_sys[t] = sum_u (sum_v a_uv R_uv) / (sum_v a_uv P_v + P_hover_u), bits per joule, one slot.
 
     serving_uav: any valid UAV index where the ED is unassociated."""
-    tx = np.stack(np.broadcast_arrays(np.where(associated, rate, 0.0), np.where(associated, tx_power_w, 0.0)))
-    return _ee_of_tx(tx, np.asarray(serving_uav), hover_w, n_uavs)
+    rate_tx, p_tx = np.broadcast_arrays(np.where(associated, rate, 0.0), np.where(associated, tx_power_w, 0.0))
+    return _ee_of_tx(rate_tx, p_tx, np.asarray(serving_uav), hover_w, n_uavs)
 
 
-def _ee_of_tx(tx: np.ndarray, serving_uav: np.ndarray, hover_w: float, n_uavs: int) -> np.ndarray:
-    """energy_efficiency from tx [2, ..., V] = (rate, transmit power), both already 0 for the
-    unassociated EDs: the per-UAV sums of bits and watts by one bincount over the batch."""
-    shape = tx.shape[1:]
+def _ee_of_tx(
+    rate_tx: np.ndarray, p_tx: np.ndarray, serving_uav: np.ndarray, hover_w: float, n_uavs: int
+) -> np.ndarray:
+    """energy_efficiency from the rate and transmit power [..., V] (same shape), both already 0
+    for the unassociated EDs: the per-UAV sums of bits and of watts by a bincount each."""
+    shape = rate_tx.shape
     idx = _group_index(serving_uav, n_uavs, shape)
     n_bins = idx.size // shape[-1] * n_uavs
-    per_uav = np.bincount(np.concatenate((idx, idx + n_bins)), weights=tx.reshape(-1), minlength=2 * n_bins)
-    per_uav = per_uav.reshape((2,) + shape[:-1] + (n_uavs,))
-    watts = per_uav[1]
+    bits = np.bincount(idx, weights=rate_tx.reshape(-1), minlength=n_bins)
+    watts = np.bincount(idx, weights=p_tx.reshape(-1), minlength=n_bins)
     watts += hover_w
-    return np.add.reduce(np.divide(per_uav[0], watts, out=watts), axis=-1)
+    return np.add.reduce(np.divide(bits, watts, out=watts).reshape(shape[:-1] + (n_uavs,)), axis=-1)
 
 
 def success_rate(
@@ -390,18 +405,23 @@ def margin_score(snr_db: np.ndarray, threshold_db: np.ndarray, associated: np.nd
     return _mean_over(_margin_points(snr_db, threshold_db), associated, np.add.reduce(associated, axis=-1), 0.0)
 
 
-def _margin_points(snr_db: np.ndarray, threshold_db: np.ndarray) -> np.ndarray:
-    m = np.subtract(snr_db, threshold_db)
-    score = np.maximum(m, -20.0)
-    np.minimum(score, 20.0, out=score)
-    score /= np.where(m >= 0.0, 20.0, 2.0)
-    return score
+def _margin_points(snr_db: np.ndarray, threshold_db: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """margin_score's points of each ED; `out` (may be snr_db itself) receives them."""
+    m = np.subtract(snr_db, threshold_db, out=out)
+    below = m < 0.0
+    np.maximum(m, -20.0, out=m)
+    np.minimum(m, 20.0, out=m)
+    divisor = np.multiply(below, 2.0 - 20.0)  # 2 where below, 20 elsewhere (exact; np.where with
+    divisor += 20.0  # two scalars is ~3x slower here)
+    m /= divisor
+    return m
 
 
-def _mean_over(x: np.ndarray, associated: np.ndarray, n: np.ndarray, empty) -> np.ndarray:
+def _mean_over(x: np.ndarray, associated: np.ndarray | None, n: np.ndarray, empty) -> np.ndarray:
     """Mean of x over the n associated EDs (last axis; x may stack several quantities in front,
-    [k, ..., V], each reduced by the one call); `empty` (broadcast) where none is associated."""
-    total = np.add.reduce(np.where(associated, x, 0.0), axis=-1)
+    [k, ..., V], each reduced by the one call); `empty` (broadcast) where none is associated.
+    associated None: every ED is (the same sums, without the masking pass)."""
+    total = np.add.reduce(x if associated is None else np.where(associated, x, 0.0), axis=-1)
     return np.where(n > 0, total / np.maximum(n, 1), empty)
 
 
@@ -447,6 +467,15 @@ class Tables:
         )
 
 
+def allocation_values(
+    sf_idx: np.ndarray, tp_idx: np.ndarray, bw_idx: np.ndarray, tables: Tables
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(transmit power in W, bandwidth in Hz, rho_thr(SF, BW) in dB) of allocations given as
+    indices into the tables (take: ~2x faster than fancy indexing)."""
+    thr_db = tables.threshold_db.reshape(-1).take(sf_idx * tables.threshold_db.shape[1] + bw_idx)
+    return tables.tp_w.take(tp_idx), tables.bw_hz.take(bw_idx), thr_db
+
+
 SLOT_METRICS = (
     "reward",
     "ee_sys",
@@ -472,20 +501,21 @@ def slot_metrics(
     cfg: ScenarioConfig,
     tables: Tables,
     g_serving: np.ndarray | None = None,
+    values: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> dict[str, np.ndarray]:
     """Everything the paper measures in one slot, given the association and per-ED allocations.
 
     gains [..., U, V]; the other inputs [..., V] (serving_uav is any valid index where the ED
     is unassociated). `g_serving` [..., V], the gain at each ED's serving UAV, may be given
     instead of being gathered from `gains`; `gains` may then be None with the default
-    `interference: paper`. Returns the keys of SLOT_METRICS, each shaped [...].
+    `interference: paper`. `values`: allocation_values(sf_idx, tp_idx, bw_idx, tables) when the
+    caller has them (tp_idx and bw_idx are then not used). Returns the keys of SLOT_METRICS,
+    each shaped [...].
     """
     if g_serving is None:
         g_serving = at_serving(gains, serving_uav)
     sf_idx = np.asarray(sf_idx)
-    p_w = tables.tp_w[tp_idx]
-    bw_hz = tables.bw_hz[bw_idx]
-    thr_db = tables.threshold_db.reshape(-1).take(sf_idx * tables.threshold_db.shape[1] + bw_idx)
+    p_w, bw_hz, thr_db = allocation_values(sf_idx, tp_idx, bw_idx, tables) if values is None else values
     g_serving, associated, serving_uav = np.asarray(g_serving), np.asarray(associated), np.asarray(serving_uav)
     shape = p_w.shape
     if not (shape == g_serving.shape == associated.shape == sf_idx.shape == serving_uav.shape):
@@ -493,9 +523,13 @@ def slot_metrics(
     # Quantities that are reduced the same way are computed into one [2, ...] buffer each, so
     # that each reduction is one NumPy call (a step at N = 1 is dominated by per-call costs).
     lin = np.empty((2,) + shape)  # SNR and SINR (linear) of every ED
-    tx = np.empty((2,) + shape)  # rate and transmit power of every ED (0 for silent EDs)
-    p_tx = tx[1]
-    np.multiply(p_w, associated, out=p_tx)  # silent EDs transmit nothing (P * False = 0)
+    # Every ED associated (the usual case in larger layouts): the masks below are identities,
+    # skipped (same values).
+    everyone = bool(associated.all())
+    if everyone and p_w.shape == shape:
+        p_tx = p_w
+    else:
+        p_tx = np.multiply(p_w, associated)  # silent EDs transmit nothing (P * False = 0)
     s_tx = np.multiply(p_tx, g_serving, out=lin[0])  # = rho_v for associated EDs, 0 for silent ones
     s_tx /= tables.noise_w  # snr(): P G / sigma^2
     if cfg.interference == "paper":
@@ -507,15 +541,16 @@ def slot_metrics(
     snr_db, sinr_db = db[0], db[1]
     # SINR = 0 for silent EDs, so their Shannon rate W log2(1) and their LoRa-PHY rate are 0.
     sf = None if cfg.rate_model == "shannon" else tables.sf[sf_idx]
-    rate_bps(sinr_lin, bw_hz, sf, thr_db, cfg.rate_model, cfg.lora_coding_rate, out=tx[0])
-    ee = _ee_of_tx(tx, serving_uav, tables.hover_w, cfg.n_uavs)  # Eq. (sys_ee)
-    rate_sum, p_total = np.add.reduce(tx, axis=-1)
+    rate = rate_bps(sinr_lin, bw_hz, sf, thr_db, cfg.rate_model, cfg.lora_coding_rate, out=np.empty(shape))
+    ee = _ee_of_tx(rate, p_tx, serving_uav, tables.hover_w, cfg.n_uavs)  # Eq. (sys_ee)
+    rate_sum, p_total = np.add.reduce(rate, axis=-1), np.add.reduce(p_tx, axis=-1)
     p_total = _p_total(p_total, tables.hover_w, cfg.n_uavs)
     xi = success_rate(sinr_db, thr_db, associated)
     # means over the associated EDs, in one reduction: beta's margin points and the SINR in dB
-    n_assoc = np.add.reduce(associated, axis=-1)
-    db[0] = _margin_points(snr_db, thr_db)
-    beta, mean_sinr_db = _mean_over(db, associated, n_assoc, _EMPTY_MEANS.reshape((2,) + (1,) * (db.ndim - 2)))
+    n_assoc = np.full(shape[:-1], shape[-1]) if everyone else np.add.reduce(associated, axis=-1)
+    _margin_points(snr_db, thr_db, out=db[0])
+    empty = _EMPTY_MEANS.reshape((2,) + (1,) * (db.ndim - 2))
+    beta, mean_sinr_db = _mean_over(db, None if everyone else associated, n_assoc, empty)
     return {
         "reward": reward(ee, xi, beta, p_total, cfg.reward),
         "ee_sys": ee,
