@@ -5,7 +5,8 @@
 Measures, for the paper scenario (V=10, U=2) and a large one (V=100, U=8):
 * the single env through the PettingZoo ParallelEnv API (dict actions, random per_uav
   actions drawn in advance so that sampling is not timed; resets included);
-* the batch core (`BatchCore.step`) at N = 1, 64, 1024 scenarios; env-steps/s = N * steps / time.
+* the batch core (`BatchCore.step`) at N = 1, 64, 1024 scenarios; env-steps/s = N * steps / time,
+  over whole 32-step periods of the mobility-noise refills (one refill per period, as in a long run).
 BLAS/OpenMP pools are limited to one thread before NumPy is imported. Each figure is the
 best of R timed runs after a warm-up, both in wall-clock time and in this process's CPU
 time (the machine may be shared; CPU time is the steadier figure then). With --write, the
@@ -28,7 +29,7 @@ from dataclasses import dataclass  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from uavlora_rllib.core import BatchCore  # noqa: E402
+from uavlora_rllib.core import NOISE_CHUNK, BatchCore  # noqa: E402
 from uavlora_rllib.scenario import ScenarioConfig  # noqa: E402
 
 SCENARIOS = ((10, 2), (100, 8))
@@ -70,16 +71,22 @@ def _best(run, repeats: int) -> tuple[float, float]:
 
 
 def bench_core(cfg: ScenarioConfig, n_envs: int, env_steps: int, repeats: int) -> Row:
-    steps = max(10, min(env_steps // n_envs, 3000))
+    # Whole noise-refill periods: the reset draws the first NOISE_CHUNK steps of noise and
+    # step NOISE_CHUNK k draws the next, so steps 1 .. NOISE_CHUNK m (after one untimed step)
+    # hold exactly m refills, the share of a long run. (A window of fewer steps than one
+    # period would time no refill at all.)
+    periods = max(2, min(env_steps // n_envs, 3000) // NOISE_CHUNK)
+    steps = periods * NOISE_CHUNK
     core = BatchCore(cfg, n_envs)
-    actions = np.random.default_rng(0).integers(0, cfg.n_joint_actions, (steps, n_envs, cfg.n_uavs))
+    actions = np.random.default_rng(0).integers(0, cfg.n_joint_actions, (steps + 1, n_envs, cfg.n_uavs))
 
     def body() -> None:
-        for k in range(steps):
+        for k in range(1, steps + 1):
             core.step(actions[k])
 
     def run() -> tuple[float, float]:
         core.reset(0)
+        core.step(actions[0])
         return _timed(body)
 
     return Row("core", cfg.n_eds, cfg.n_uavs, n_envs, steps, *_best(run, repeats))
@@ -133,7 +140,7 @@ def run_env_bench(quick: bool, repeats: int) -> list[Row]:
         rows.append(bench_api(cfg, api_steps if v <= 10 else api_steps // 2, repeats))
         print(_fmt(rows[-1]), flush=True)
         for n in BATCH_SIZES:
-            env_steps = (20_000 if quick else 150_000) if v <= 10 else (2_000 if quick else 25_000)
+            env_steps = (20_000 if quick else 150_000) if v <= 10 else (2_000 if quick else 65_536)
             rows.append(bench_core(cfg, n, env_steps, repeats))
             print(_fmt(rows[-1]), flush=True)
     return rows
