@@ -44,6 +44,9 @@ from uavlora_rllib.association import (
 from uavlora_rllib.scenario import ScenarioConfig
 
 NOISE_CHUNK = 32  # steps of mobility noise drawn per refill
+# per_uav mode: EDs in a batch above which per-UAV table look-ups followed by per-ED gathers
+# beat one per-ED look-up in the joint-action decoding table (fewer NumPy calls below it)
+PER_UAV_GATHER_MIN = 4096
 
 
 def scenario_rng(seed: Any = None) -> np.random.Generator:
@@ -531,7 +534,7 @@ class BatchCore:
         if cfg.action_mode == "per_uav":
             self._check_range(actions, (self.n, cfg.n_uavs), self._n_joint)
             idx = self._serving_idx + self._act_base  # flat index of each ED's serving UAV in [N, U]
-            if idx.size <= 4096:  # small: one lookup in the decoding table (fewest NumPy calls)
+            if idx.size <= PER_UAV_GATHER_MIN:  # small: one lookup in the decoding table
                 alloc = self._decode[actions.reshape(-1).take(idx)]  # [N, V, 3]
                 return alloc[..., 0], alloc[..., 1], alloc[..., 2]
             sf, tp, bw = decode_joint_action(actions, cfg)  # [N, U] each, then 3 contiguous gathers
@@ -582,7 +585,7 @@ class BatchCore:
         if not self._ready:
             raise RuntimeError("call reset() before step()")
         gains = None if self._nearest else self.gains
-        if self.cfg.action_mode == "per_uav" and self._serving_idx.size > 4096:
+        if self.cfg.action_mode == "per_uav" and self._serving_idx.size > PER_UAV_GATHER_MIN:
             sf, values, actions_idx = self._per_uav_values(actions)
             tp = bw = None
         else:
