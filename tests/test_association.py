@@ -193,6 +193,26 @@ def test_greedy_from_nearest_equals_greedy(n, n_uavs, n_eds, quota, seed, r_comm
     assert np.array_equal(got, want)
 
 
+@pytest.mark.parametrize("quota", [11, 13, 15])
+def test_greedy_with_long_rejection_chains_equals_the_reference(quota):
+    """The paper's large layout (V=100, U=8) with quotas close to the mean load V / U = 12.5:
+    most scenarios have a binding quota, and rejected EDs cascade over several UAVs (the
+    deferred-acceptance rounds, incl. the ones that end without a ranking round)."""
+    from uavlora_rllib import physics
+    from uavlora_rllib.scenario import ScenarioConfig
+
+    cfg = ScenarioConfig(n_uavs=8, n_eds=100)
+    xy = np.random.default_rng(quota).uniform(0, 1000, (48, 100, 2))
+    d2 = physics.horizontal_distance_sq(xy, physics.uav_positions(cfg))
+    gains, d_h = physics.channel_gain_sq(d2, cfg), np.sqrt(d2)
+    got = greedy_association(gains, d_h, 600.0, quota)
+    moved = 0
+    for i in range(len(xy)):
+        assert got[i].tolist() == reference_greedy(gains[i], d_h[i], 600.0, quota)
+        moved += int((got[i] != gains[i].argmax(axis=0)).sum())
+    assert moved > 3 * len(xy)  # many EDs were rejected by their first choice
+
+
 @pytest.mark.parametrize("descending", [False, True])
 @pytest.mark.parametrize("n_groups", [None, 3, 65])
 @pytest.mark.parametrize("kind", ["positive", "mixed", "ties"])

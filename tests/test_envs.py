@@ -522,19 +522,37 @@ def test_lookahead_equals_plain_stepping(fields):
         BatchCore(cfg, 2, lookahead=4)
 
 
-def test_step_scores_the_gains_the_core_exposes():
-    """slot_metrics on core.gains (every pair, computed on demand) gives the step's metrics bit for bit."""
-    cfg = make_cfg(n_eds=20)
+@pytest.mark.parametrize("action_mode", ["per_uav", "per_device"])
+def test_step_scores_the_gains_the_core_exposes(action_mode):
+    """slot_metrics on core.gains (every pair, computed on demand) gives the step's metrics:
+    bit for bit in per_device mode; in per_uav mode the step uses slot_metrics_shared (the
+    same equations with each UAV's factors taken out of its sums), equal up to rounding, and
+    bit for bit to slot_metrics_shared on the gains the core exposes."""
+    cfg = make_cfg(n_eds=20, comm_range_m=300.0, action_mode=action_mode)  # (some EDs out of range)
     core = BatchCore(cfg, 4)
     core.reset(2)
     rng = np.random.default_rng(0)
+    silent = 0
     for _ in range(10):
         a = random_actions(cfg, 4, rng)
         sf, tp, bw = core.allocations(a)
         want = physics.slot_metrics(core.gains, core._serving_idx, core.associated, sf, tp, bw, cfg, core.tables)
+        if action_mode == "per_uav":
+            g = physics.at_serving(core.gains, core._serving_idx)
+            g_db = physics.at_serving(core.gain_db, core._serving_idx)
+            flat = core._serving_idx + np.arange(4)[:, None] * cfg.n_uavs
+            counts = physics.group_count(np.where(core.associated, core._serving_idx, cfg.n_uavs), cfg.n_uavs + 1)
+            alloc = physics.shared_allocation(*decode_joint_action(a, cfg), core.tables)
+            shared = physics.slot_metrics_shared(g, g_db, flat, core.associated, counts[:, :-1], alloc, cfg, core.tables)
+        silent += int((~core.associated).sum())
         res = core.step(a)
         for key in physics.SLOT_METRICS:
-            assert np.array_equal(res.metrics[key], want[key]), key
+            if action_mode == "per_device":
+                assert np.array_equal(res.metrics[key], want[key]), key
+            else:
+                assert np.array_equal(res.metrics[key], shared[key]), key
+                np.testing.assert_allclose(res.metrics[key], want[key], rtol=1e-12, atol=1e-12, err_msg=key)
+    assert silent > 0  # the masks of unassociated EDs were exercised
 
 
 @pytest.mark.parametrize("n_eds,n_uavs", [(100, 8), (10, 2), (40, 64)])

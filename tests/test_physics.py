@@ -483,3 +483,45 @@ def test_sinr_and_energy_efficiency_by_bincount_equal_the_one_hot_sums():
         a_uv = (serving[:, None, :] == np.arange(u)[:, None]) & assoc[:, None, :]
         ee = (np.einsum("nuv,nv->nu", a_uv, rate) / (np.einsum("nuv,nv->nu", a_uv, p) + 0.2)).sum(-1)
         np.testing.assert_allclose(physics.energy_efficiency(rate, p, serving, assoc, 0.2, u), ee, rtol=1e-12)
+
+
+# ---------------------------------------------------------------- allocations shared per UAV
+def _shared_vs_generic(n, n_uavs, n_eds, seed, cfg):
+    """A random slot with per-UAV allocations, scored by slot_metrics (per-ED allocations
+    expanded from the UAVs') and by slot_metrics_shared."""
+    rng = np.random.default_rng(seed)
+    tables = physics.Tables.from_config(cfg)
+    gains = 10.0 ** (-rng.uniform(60.0, 140.0, (n, n_uavs, n_eds)) / 10.0)
+    serving = rng.integers(0, n_uavs, (n, n_eds))
+    associated = rng.random((n, n_eds)) < rng.choice([0.0, 0.7, 1.0])
+    sf_u, tp_u, bw_u = (rng.integers(0, k, (n, n_uavs)) for k in (cfg.n_sf, cfg.n_tp, cfg.n_bw))
+    per_ed = [np.take_along_axis(x, serving, axis=-1) for x in (sf_u, tp_u, bw_u)]
+    want = physics.slot_metrics(gains, serving, associated, *per_ed, cfg, tables)
+    g = physics.at_serving(gains, serving)
+    flat = serving + np.arange(n)[:, None] * n_uavs
+    counts = physics.group_count(np.where(associated, serving, n_uavs), n_uavs + 1)[:, :-1]
+    alloc = physics.shared_allocation(sf_u, tp_u, bw_u, tables)
+    got = physics.slot_metrics_shared(g, physics.lin_to_db(g), flat, associated, counts, alloc, cfg, tables)
+    return got, want, associated
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_slot_metrics_shared_equals_slot_metrics(seed):
+    """The per-UAV factoring changes the rounding only: random slots (gains over 80 dB, some or
+    all EDs silent, every SF/TP/BW), against slot_metrics on the expanded per-ED allocations."""
+    rng = np.random.default_rng(1000 + seed)
+    n, n_uavs, n_eds = int(rng.integers(1, 5)), int(rng.integers(1, 6)), int(rng.integers(1, 40))
+    got, want, associated = _shared_vs_generic(n, n_uavs, n_eds, seed, CFG.replace(n_eds=n_eds, n_uavs=n_uavs))
+    assert set(got) == set(physics.SLOT_METRICS)
+    for key in physics.SLOT_METRICS:
+        assert got[key].shape == (n,)
+        assert np.isfinite(got[key]).all(), key
+        np.testing.assert_allclose(got[key], want[key], rtol=1e-12, atol=1e-9, err_msg=key)
+        if not associated.any():  # nobody transmits: the neutral values of slot_metrics
+            assert np.array_equal(got[key], want[key]), key
+
+
+def test_slot_metrics_shared_refuses_other_models():
+    for change in ({"interference": "cross_gain"}, {"rate_model": "lora_phy"}):
+        with pytest.raises(ValueError, match="slot_metrics_shared"):
+            _shared_vs_generic(1, 2, 4, 0, CFG.replace(n_eds=4, **change))

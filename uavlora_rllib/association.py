@@ -13,8 +13,9 @@ preferred UAV, and each UAV keeps its Lambda_max highest-priority candidates. Sc
 where no quota binds (the default layout) skip it: there every ED simply takes its best
 in-range UAV (one argmax). At most V * U rounds, usually <= U. Cost per round O(N V) plus
 O(U) per rejected ED (its keys to every UAV are asked for only then), and one O(N V log V)
-sort; a scenario leaves the rounds once none of its EDs is rejected (most are matched after
-one or two).
+sort; a scenario leaves the rounds once none of its EDs is rejected, found without a ranking
+round where the EDs just rejected fit in the quotas left at their next UAVs (most scenarios
+need one ranking round).
 
 optimal (extension): the assignment that maximises the total linear gain under the quota,
 solved per scenario with scipy's linear_sum_assignment on min(Lambda_max, V) replicated
@@ -189,11 +190,12 @@ def _deferred_acceptance(
         held = np.where(kept, candidate, UNASSOCIATED)
         rejected = (candidate != UNASSOCIATED) & ~kept
         going = rejected.any(axis=-1)
+        n_held = np.minimum(counts[:, :n_uavs], quota)  # [m, U] candidates each UAV keeps
         if not going.all():  # scenarios without a rejection are matched; later rounds skip them
             held_all[active[~going]] = held[~going]
             if not going.any():
                 break
-            active, held, rejected, candidate = active[going], held[going], rejected[going], candidate[going]
+            active, held, rejected, candidate, n_held = (x[going] for x in (active, held, rejected, candidate, n_held))
         e, i = np.nonzero(rejected)  # proposers and displaced EDs move on to their next choice
         at = active[e] * n_eds + i  # their priority rows
         tried[at, candidate[e, i]] = True
@@ -202,7 +204,17 @@ def _deferred_acceptance(
         nxt = np.argmax(keys, axis=-1)
         has_next = keys[np.arange(len(e)), nxt] > -np.inf
         candidate = held
-        candidate[e[has_next], i[has_next]] = nxt[has_next]
+        e, i, nxt = e[has_next], i[has_next], nxt[has_next]
+        candidate[e, i] = nxt
+        # A scenario whose new proposals fit in the quotas left is matched: the next ranking
+        # round would keep every candidate (most scenarios end here, after one ranking round).
+        n_held += np.bincount(e * n_uavs + nxt, minlength=n_held.size).reshape(n_held.shape)
+        again = (n_held > quota).any(axis=-1)
+        if not again.all():
+            held_all[active[~again]] = candidate[~again]
+            if not again.any():
+                break
+            active, candidate = active[again], candidate[again]
     serving = np.empty_like(held_all)
     serving.reshape(-1)[order] = held_all
     return serving
