@@ -187,10 +187,13 @@ def test_greedy_from_nearest_equals_greedy(n, n_uavs, n_eds, quota, seed, r_comm
     def nearest_keys(b):  # the gains as keys
         return np.take_along_axis(gains[b], near[b][:, None, :], axis=1)[:, 0]
 
-    got = greedy_from_nearest(
-        near, d_near, r_comm, quota, n_uavs, nearest_keys, lambda e, v: (gains[e, :, v], d_h[e, :, v])
-    )
+    got, counts = greedy_from_nearest(
+        near, d_near, r_comm, quota, n_uavs, nearest_keys, lambda e, v: (gains[e, :, v], d_h[e, :, v]),
+        return_counts=True,
+    )  # fmt: skip
     assert np.array_equal(got, want)
+    for u in range(n_uavs + 1):  # EDs served by each UAV, then the unassociated ones
+        assert np.array_equal(counts[:, u], (got == (u if u < n_uavs else UNASSOCIATED)).sum(axis=-1))
 
 
 @pytest.mark.parametrize("quota", [11, 13, 15])

@@ -244,7 +244,8 @@ def greedy_from_nearest(
     n_uavs: int,
     nearest_keys: Callable[[np.ndarray], np.ndarray],
     pair_keys: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]],
-) -> np.ndarray:
+    return_counts: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """`greedy_association` where the max-gain UAV is the nearest one (gain strictly decreasing
     in d_h, `physics.gain_decreases_with_distance`), without the per-pair gains.
 
@@ -255,16 +256,15 @@ def greedy_from_nearest(
     of the scenarios b [M] at its nearest UAV, and pair_keys(e, v) -> (key, d_h) [K, U] each,
     of the EDs (e[k], v[k]) to every UAV (asked, each round, only for the few EDs rejected).
     `key` is the gain or any strictly increasing function of it (the matching depends only on
-    the order of the gains), e.g. -d_h^2."""
+    the order of the gains), e.g. -d_h^2. With `return_counts`: (serving, counts [N, U + 1]),
+    the EDs each UAV serves and, last column, the unassociated ones."""
     reachable = d_h_nearest <= comm_range_m
     everyone = bool(reachable.all())  # (the usual case: then no mask is needed)
     serving = nearest.copy() if everyone else np.where(reachable, nearest, UNASSOCIATED)
+    # EDs per first choice, column U: the EDs with no UAV in range
+    counts = physics.group_count(nearest if everyone else np.where(reachable, nearest, n_uavs), n_uavs + 1)
     if quota < nearest.shape[-1]:  # otherwise no quota can bind
-        if everyone:
-            counts = physics.group_count(nearest, n_uavs)
-        else:
-            counts = physics.group_count(serving + 1, n_uavs + 1)[..., 1:]  # group 0: unassociated
-        binding = (counts > quota).any(axis=-1)
+        binding = (counts[..., :n_uavs] > quota).any(axis=-1)
         if binding.any():
             b = np.flatnonzero(binding)
             best = nearest_keys(b)
@@ -275,8 +275,9 @@ def greedy_from_nearest(
                 key[~in_range_mask(d, comm_range_m)] = -np.inf
                 return key
 
-            serving[b] = _deferred_acceptance(best, nearest[b], quota, n_uavs, rows)
-    return serving
+            matched = serving[b] = _deferred_acceptance(best, nearest[b], quota, n_uavs, rows)
+            counts[b] = physics.group_count(np.where(matched == UNASSOCIATED, n_uavs, matched), n_uavs + 1)
+    return (serving, counts) if return_counts else serving
 
 
 def optimal_association(gains: np.ndarray, d_h: np.ndarray, comm_range_m: float, quota: int) -> np.ndarray:

@@ -136,6 +136,7 @@ class BatchCore:
         self._seed_source = np.random.SeedSequence()
         self._ready = False
         self.serving = np.full((n_envs, v), UNASSOCIATED, dtype=np.int64)
+        self._group_counts: np.ndarray | None = None  # [N, U + 1] EDs per UAV, last: unassociated
         self._env_idx = np.arange(n_envs)
         # Flat index of (scenario e, UAV 0, ED v) in a C-contiguous [N, U, V] array; adding
         # u * V picks UAV u. Used to gather "the value at the serving UAV" with one np.take.
@@ -161,8 +162,9 @@ class BatchCore:
         # quota's ED rows, then one row holding the 3 extra features and one pad; obs is the
         # [N, U, obs_dim] view of it. One more row at the end receives unassociated EDs.
         q1 = self.quota + 1
-        self._obs_rows_base = (self._env_idx * (u * q1 * OBS_ROW))[:, None]  # flat offsets
-        self._obs_garbage = n_envs * u * q1 * OBS_ROW
+        # (offsets in complex64 units, pairs of float32: a row is OBS_ROW // 2 of them)
+        self._obs_rows_base = (self._env_idx * (u * q1 * OBS_ROW // 2))[:, None]
+        self._obs_garbage = n_envs * u * q1 * OBS_ROW // 2
         self._obs_buf_shape = (n_envs * u * q1 + 1, OBS_ROW)
         self._obs_scratch: np.ndarray | None = None
         self._pairs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -414,9 +416,10 @@ class BatchCore:
         near = nearest_uav_on_line(self._xy[0], self._spacing, cfg.n_uavs)
         d2 = physics.horizontal_distance_sq_to(self.ed_xy, self.uav_xy, near)
         d_h = np.sqrt(d2)
-        self.serving = greedy_from_nearest(
-            near, d_h, cfg.comm_range_m, self.quota, cfg.n_uavs, lambda b: np.negative(d2[b]), self._pair_keys
-        )
+        self.serving, self._group_counts = greedy_from_nearest(
+            near, d_h, cfg.comm_range_m, self.quota, cfg.n_uavs, lambda b: np.negative(d2[b]), self._pair_keys,
+            return_counts=True,
+        )  # fmt: skip
         self.associated = self.serving != UNASSOCIATED
         # Where a quota bound, some EDs are served by another UAV than their nearest one.
         moved = np.flatnonzero(self.serving != near)
@@ -436,6 +439,7 @@ class BatchCore:
         cfg = self.cfg
         d_h, gains, gain_db = self._pair_channels()
         self.serving = associate(gains, d_h, cfg.comm_range_m, self.quota, cfg.association)
+        self._group_counts = None
         self.associated = self.serving != UNASSOCIATED
         self._serving_idx = np.where(self.associated, self.serving, 0)
         flat = (self._flat_base + self._serving_idx * cfg.n_eds).reshape(-1)  # into [N, U, V]
@@ -487,7 +491,9 @@ class BatchCore:
         order, grouped = group_sort(self.g_serving, grp, u + 1, descending=True)
         order += self._row_base  # flat indices into [N, V]
         grouped += self._grp_base
-        counts = np.bincount(grouped.reshape(-1), minlength=n * (u + 1)).reshape(n, u + 1)
+        counts = self._group_counts  # [N, U + 1], last: unassociated (from the association, or:)
+        if counts is None:
+            counts = np.bincount(grouped.reshape(-1), minlength=n * (u + 1)).reshape(n, u + 1)
         start = np.cumsum(counts, axis=-1)
         start -= counts
         slot = self._positions - start.reshape(-1).take(grouped)
@@ -506,15 +512,14 @@ class BatchCore:
         cfg, n, q, n_u = self.cfg, self.n, self.quota, self.cfg.n_uavs
         q1 = q + 1
         # Row of ED v: (e U + u) (quota + 1) + slot; unassociated EDs: the scratch row. A row is
-        # two complex128 (16-byte) pairs, (x, y) and (d, G), each written by one flat scatter
-        # from a contiguous array (half the scatters of one per feature; NumPy's loops over a
-        # trailing axis of 2 or 4 are slow).
-        start = self._serving_idx * (q1 * OBS_ROW)
+        # two complex64 (8-byte) pairs of float32, (x, y) and (d, G), each written by one flat
+        # scatter from a contiguous array (half the scatters of one per feature; NumPy's loops
+        # over a trailing axis of 2 or 4 are slow).
+        start = self.slot_of_ed * (OBS_ROW // 2)  # complex64 index of the row's (x, y) pair
+        start += self._serving_idx * (q1 * OBS_ROW // 2)
         start += self._obs_rows_base
-        start += OBS_ROW * self.slot_of_ed
         if not self._all_associated:
             start = np.where(self.associated, start, self._obs_garbage)
-        start >>= 1  # float32 index -> complex64 index (rows start at multiples of 4)
         # np.zeros, not a copy of a template: a buffer of this size comes zeroed from the OS
         # (calloc), so this skips reading and copying one (0.05-0.5 ms of ~10 per step at
         # V=100/U=8/N=1024 in A/B runs); the extras are written below.
