@@ -297,9 +297,10 @@ class BatchCore:
         speed = np.multiply(vel[0], vel[0])
         speed += vel[1] * vel[1]
         np.sqrt(speed, out=speed)
-        np.maximum(speed, 1e-12, out=speed)
+        # min(v_max / speed, 1) as v_max / max(speed, v_max): exactly 1 at or below the limit,
+        # one pass fewer, and no division by a zero speed
+        np.maximum(speed, vmax, out=speed)
         factor = np.divide(vmax, speed, out=speed)
-        np.minimum(factor, 1.0, out=factor)
         vel *= factor
         return vel
 
