@@ -11,11 +11,10 @@ serial-dictatorship matching. Deferred acceptance runs in rounds that are vector
 the batch, the EDs and the UAVs: each round every unmatched ED proposes to its next
 preferred UAV, and each UAV keeps its Lambda_max highest-priority candidates. Scenarios
 where no quota binds (the default layout) skip it: there every ED simply takes its best
-in-range UAV (one argmax). At most V * U rounds, usually <= U. Cost per round O(N V) plus
-O(U) per rejected ED (its keys to every UAV are asked for only then), and one O(N V log V)
-sort; a scenario leaves the rounds once none of its EDs is rejected, found without a ranking
-round where the EDs just rejected fit in the quotas left at their next UAVs (most scenarios
-need one ranking round).
+in-range UAV (one argmax). At most V * U rounds, usually <= U. One O(N V log V) sort gives
+the priority order; then a round only looks at the candidates of the UAVs over their quota
+(O(N V) to find them, a sort of theirs), and costs O(U) per rejected ED (its keys to every
+UAV are asked for only then); the rounds end when no UAV is over its quota.
 
 optimal (extension): the assignment that maximises the total linear gain under the quota,
 solved per scenario with scipy's linear_sum_assignment on min(Lambda_max, V) replicated
@@ -154,70 +153,48 @@ def _deferred_acceptance(
     order = group_sort(best, descending=True)[0]  # [N, V] ED ids, best first
     row_base = (np.arange(n) * n_eds)[:, None]
     order += row_base  # flat indices into [N, V] (flat takes: much faster than fancy indexing here)
-    candidate = first.reshape(-1).take(order)  # first choices, in priority order
+    order = order.reshape(-1)
+    # The state, per priority position p = row V + j (j-th ED of the row's priority order):
+    # the UAV it proposes to / is held by, and that (row, UAV) group, row U + UAV (n U: none).
+    candidate = first.reshape(-1).take(order)
     candidate[best.reshape(-1).take(order) == -np.inf] = UNASSOCIATED
-    tried = np.zeros((n * n_eds, n_uavs), dtype=bool)  # per priority position: UAVs that rejected it
-    pos = np.arange(n_eds)
-    # Each round's sort key: (candidate UAV, priority position) in one small integer, sorted by
-    # np.sort (SIMD; positions are distinct, so any sort is stable here).
-    id_bits = max(int(n_eds - 1).bit_length(), 1)
-    key_type = np.int16 if (n_uavs + 1) << id_bits <= 1 << 15 else np.int64
-    key_pos = pos.astype(key_type)
-    group_base = (np.arange(n) * (n_uavs + 1))[:, None]
-    held_all = np.empty((n, n_eds), dtype=np.int64)  # the final matching, in priority order
-    active = np.arange(n)  # scenarios still with rejected EDs (the others are done)
+    none = n * n_uavs
+    group = candidate + np.repeat(np.arange(n) * n_uavs, n_eds)
+    group[candidate == UNASSOCIATED] = none
+    counts = np.bincount(group, minlength=none + 1)  # candidates per group (last: none)
+    tried = np.zeros((n * n_eds, n_uavs), dtype=bool)  # per position: UAVs that rejected it
     while True:
-        # A UAV keeps a candidate iff fewer than `quota` of its candidates come earlier in the
-        # priority order (the columns): rank each candidate within its UAV by sorting
-        # (UAV id (U = none), position), as in BatchCore._slots.
-        m = len(active)
-        key = np.where(candidate == UNASSOCIATED, n_uavs, candidate).astype(key_type)
-        key <<= id_bits
-        key |= key_pos
-        key.sort(axis=-1)
-        by = (key & ((1 << id_bits) - 1)).astype(np.int64)
-        by += row_base[:m]
-        uav_sorted = key >> id_bits
-        grouped = uav_sorted.astype(np.int64)
-        grouped += group_base[:m]  # flat (row, UAV) group of each sorted entry
-        counts = np.bincount(grouped.reshape(-1), minlength=m * (n_uavs + 1)).reshape(m, n_uavs + 1)
-        start = np.cumsum(counts, axis=-1)
-        start -= counts  # first sorted position of each group within its row
-        kept_sorted = uav_sorted < n_uavs
-        kept_sorted &= pos - start.reshape(-1).take(grouped) < quota
-        kept = np.empty_like(kept_sorted)
-        kept.reshape(-1)[by.reshape(-1)] = kept_sorted.reshape(-1)
-        held = np.where(kept, candidate, UNASSOCIATED)
-        rejected = (candidate != UNASSOCIATED) & ~kept
-        going = rejected.any(axis=-1)
-        n_held = np.minimum(counts[:, :n_uavs], quota)  # [m, U] candidates each UAV keeps
-        if not going.all():  # scenarios without a rejection are matched; later rounds skip them
-            held_all[active[~going]] = held[~going]
-            if not going.any():
-                break
-            active, held, rejected, candidate, n_held = (x[going] for x in (active, held, rejected, candidate, n_held))
-        e, i = np.nonzero(rejected)  # proposers and displaced EDs move on to their next choice
-        at = active[e] * n_eds + i  # their priority rows
-        tried[at, candidate[e, i]] = True
-        keys = rows(active[e], order.reshape(-1).take(at) - row_base[active[e], 0])  # [K, U]
+        # Only UAVs with more candidates than their quota reject; their candidates (in priority
+        # order within each group: positions ascend within a row) keep the first `quota`.
+        counts[none] = 0
+        over = np.flatnonzero(counts > quota)
+        if not over.size:
+            break
+        is_over = np.zeros(none + 1, dtype=bool)
+        is_over[over] = True
+        members = np.flatnonzero(is_over.take(group))  # positions, ascending
+        key = group.take(members)
+        key *= n_eds
+        key += members % n_eds  # (group, j): distinct, so any sort is stable here
+        key.sort()
+        size = counts.take(over)
+        rank = np.arange(key.size) - np.repeat(np.cumsum(size) - size, size)  # rank within the group
+        out = key[rank >= quota]  # the rejected: (group, j)
+        g, j = np.divmod(out, n_eds)
+        r, u = np.divmod(g, n_uavs)
+        at = r * n_eds + j  # their positions
+        tried[at, u] = True
+        keys = rows(r, order.take(at) - r * n_eds)  # [K, U]: their keys to every UAV
         keys[tried[at]] = -np.inf
         nxt = np.argmax(keys, axis=-1)
-        has_next = keys[np.arange(len(e)), nxt] > -np.inf
-        candidate = held
-        e, i, nxt = e[has_next], i[has_next], nxt[has_next]
-        candidate[e, i] = nxt
-        # A scenario whose new proposals fit in the quotas left is matched: the next ranking
-        # round would keep every candidate (most scenarios end here, after one ranking round).
-        n_held += np.bincount(e * n_uavs + nxt, minlength=n_held.size).reshape(n_held.shape)
-        again = (n_held > quota).any(axis=-1)
-        if not again.all():
-            held_all[active[~again]] = candidate[~again]
-            if not again.any():
-                break
-            active, candidate = active[again], candidate[again]
-    serving = np.empty_like(held_all)
-    serving.reshape(-1)[order] = held_all
-    return serving
+        has_next = keys[np.arange(len(at)), nxt] > -np.inf
+        candidate[at] = np.where(has_next, nxt, UNASSOCIATED)
+        group[at] = np.where(has_next, r * n_uavs + nxt, none)
+        counts[over] = quota
+        counts += np.bincount(group.take(at), minlength=none + 1)
+    serving = np.empty(n * n_eds, dtype=np.int64)
+    serving[order] = candidate
+    return serving.reshape(n, n_eds)
 
 
 def nearest_uav(ed_xy: np.ndarray, uav_xy: np.ndarray) -> np.ndarray:
