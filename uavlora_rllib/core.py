@@ -11,7 +11,8 @@ scenario can precompute `lookahead` future slots at once (time as the batch axis
 
 Slot semantics: `reset` places the EDs and associates them (slot 0). `step(actions)`
 applies the actions to the CURRENT slot (its positions and association), scores it with
-`physics.slot_metrics`, then moves the EDs, re-associates them and returns the next
+`physics.slot_metrics` (per_uav actions with the default models: `physics.slot_metrics_shared`,
+the same equations with each UAV's shared allocation factored out), then moves the EDs, re-associates them and returns the next
 slot's observations. After `episode_len` steps the episode is truncated (never terminated).
 
 Observation o_u (SPEC.md; scaling documented in README "Observations and state"):
@@ -20,7 +21,8 @@ per-UAV features (served count / Lambda_max, UAV x, UAV y):
   x, y      -> 2 p / L - 1                         in [-1, 1]
   d_uv      -> d_h / R_comm                        in [0, 1] for served EDs
   G_uv      -> dB gain mapped linearly so that G(d_h = 0) -> 1 and G(d_h = R_comm) -> -1
-Padding rows are zeros. Global state s (critics and mixers only): ED positions (2V), gain
+Padding rows are zeros. `obs` is float32 (computed in float64, rounded once). Global state s
+(critics and mixers only, float64): ED positions (2V), gain
 features to every UAV (UV, clipped to [-3, 1]), association one-hot (V (U+1), last column =
 unassociated), each ED's previous (SF, TP, BW) one-hot (V (n_sf + n_tp + n_bw), zeros when it
 was silent), and t / T.
