@@ -557,20 +557,35 @@ def slot_metrics(
     rate_sum, p_total = np.add.reduce(rate, axis=-1), np.add.reduce(p_tx, axis=-1)
     p_total = _p_total(p_total, tables.hover_w, cfg.n_uavs)
     xi = success_rate(sinr_db, thr_db, associated)
-    # means over the associated EDs, in one reduction: beta's margin points and the SINR in dB
-    n_assoc = np.full(shape[:-1], shape[-1]) if everyone else np.add.reduce(associated, axis=-1)
     _margin_points(snr_db, thr_db, out=db[0])
+    return _slot_metrics_of(ee, xi, db, p_total, rate_sum, associated, everyone, cfg.reward)
+
+
+def _slot_metrics_of(
+    ee: np.ndarray,
+    xi: np.ndarray,
+    db: np.ndarray,
+    p_total: np.ndarray,
+    rate_sum: np.ndarray,
+    associated: np.ndarray,
+    everyone: bool,
+    weights: RewardWeights,
+) -> dict[str, np.ndarray]:
+    """The SLOT_METRICS dict from a slot's parts; db [2, ..., V]: beta's margin points and the
+    SINR in dB of each ED, averaged over the associated EDs in one reduction."""
+    n_eds = db.shape[-1]
+    n_assoc = np.full(db.shape[1:-1], n_eds) if everyone else np.add.reduce(associated, axis=-1)
     empty = _EMPTY_MEANS.reshape((2,) + (1,) * (db.ndim - 2))
     beta, mean_sinr_db = _mean_over(db, None if everyone else associated, n_assoc, empty)
     return {
-        "reward": reward(ee, xi, beta, p_total, cfg.reward),
+        "reward": reward(ee, xi, beta, p_total, weights),
         "ee_sys": ee,
         "success_rate": xi,
         "beta": beta,
         "p_total_w": p_total,
         "rate_sum_bps": rate_sum,
         "mean_sinr_db": mean_sinr_db,
-        "n_unassociated": np.subtract(associated.shape[-1], n_assoc, dtype=np.float64),
+        "n_unassociated": np.subtract(n_eds, n_assoc, dtype=np.float64),
     }
 
 
@@ -663,15 +678,4 @@ def slot_metrics_shared(
     xi = success_rate(sinr_db, alloc.threshold_db.reshape(-1).take(flat).reshape(n, v), associated)
     np.add(g_db_serving, alloc.margin_offset_db.reshape(-1).take(flat).reshape(n, v), out=db[0])
     _points_of_margin(db[0])
-    n_assoc = np.full(n, v) if everyone else np.add.reduce(associated, axis=-1)
-    beta, mean_sinr_db = _mean_over(db, None if everyone else associated, n_assoc, _EMPTY_MEANS.reshape(2, 1))
-    return {
-        "reward": reward(ee, xi, beta, p_total, cfg.reward),
-        "ee_sys": ee,
-        "success_rate": xi,
-        "beta": beta,
-        "p_total_w": p_total,
-        "rate_sum_bps": rate_sum,
-        "mean_sinr_db": mean_sinr_db,
-        "n_unassociated": np.subtract(v, n_assoc, dtype=np.float64),
-    }
+    return _slot_metrics_of(ee, xi, db, p_total, rate_sum, associated, everyone, cfg.reward)
