@@ -97,12 +97,13 @@ def lin_to_db(x: np.ndarray | float, out: np.ndarray | None = None) -> np.ndarra
     Evaluated as max(10 log10(max(x, 10^(DB_FLOOR/10))), DB_FLOOR): for x above the floor's
     linear value that is 10 log10(x); below it (x <= 0 included) both forms give DB_FLOOR, and
     no log of 0 is taken (no floating-point warning to suppress)."""
-    x = np.maximum(x, _FLOOR_LIN, out=out)
-    if not isinstance(x, np.ndarray):  # 0-d input
-        return np.maximum(10.0 * np.log10(x), DB_FLOOR)
+    if not isinstance(x, np.ndarray) or x.ndim == 0:  # 0-d input
+        return np.maximum(10.0 * np.log10(np.maximum(x, _FLOOR_LIN)), DB_FLOOR)
+    # (np.clip with an infinite bound: the same values as np.maximum here, ~2x faster per pass)
+    x = np.clip(x, _FLOOR_LIN, np.inf, out=out)
     np.log10(x, out=x)
     x *= 10.0
-    return np.maximum(x, DB_FLOOR, out=x)
+    return np.clip(x, DB_FLOOR, np.inf, out=x)
 
 
 # ---------------------------------------------------------------- channel, Eqs. (plos), (a2g_pl)
@@ -420,8 +421,7 @@ def _margin_points(snr_db: np.ndarray, threshold_db: np.ndarray, out: np.ndarray
 def _points_of_margin(m: np.ndarray) -> np.ndarray:
     """margin_score's points of the margins m = SNR_dB - rho_thr, in place."""
     below = m < 0.0
-    np.maximum(m, -20.0, out=m)
-    np.minimum(m, 20.0, out=m)
+    np.clip(m, -20.0, 20.0, out=m)
     divisor = np.multiply(below, 2.0 - 20.0)  # 2 where below, 20 elsewhere (exact; np.where with
     divisor += 20.0  # two scalars is ~3x slower here)
     m /= divisor
