@@ -343,19 +343,20 @@ def test_checkpoint_round_trip(ray_session, tmp_path):
 
 # ---------------------------------------------------------------- learning
 LEARN_OVERRIDES = {"lr": 2e-3, "num_epochs": 8, "num_minibatches": 2}  # 16 episodes of 20 slots per batch
-LEARN_ITERATIONS = 40  # 40 x 320 = 12,800 env steps; ~35-65 s on a busy 2-core machine
-EE_MARGIN = 1.4  # measured at 40 iterations, seeds 0/1/2: 2.03x / 1.66x / 1.79x random
-RETURN_GAIN = 1.2  # sampled return, last vs first iteration; measured 1.40 / 1.58 / 1.89
+# 60 x 320 = 19,200 env steps; ~30 s here. (At 40 iterations, on the Box-Muller noise stream,
+# seed 0 reached 1.48x random and a return gain of only 1.10 (1.16 over 5 iterations): too close
+# to the bounds; 60 iterations give the margins below.)
+LEARN_ITERATIONS = 60
+EE_MARGIN = 1.4  # measured at 60 iterations, seeds 0/1/2: 1.83x / 1.75x / 1.63x random
+RETURN_GAIN = 1.2  # sampled return, mean of the last 5 iterations over the first 5: 1.56 / 1.73 / 1.41
 
 
 @pytest.mark.slow
 def test_mappo_learns_to_beat_random(ray_session):
     algo = _build("mappo", SMALL, LEARN_OVERRIDES, seed=0)
     try:
-        first = algo.train()["env_runners"]["episode_return_mean"]
-        for _ in range(LEARN_ITERATIONS - 1):
-            res = algo.train()
-        last = res["env_runners"]["episode_return_mean"]
+        returns = [algo.train()["env_runners"]["episode_return_mean"] for _ in range(LEARN_ITERATIONS)]
+        first, last = np.mean(returns[:5]), np.mean(returns[-5:])  # (one iteration's: too noisy)
         learned = run_episodes(registry.get("mappo").greedy_policy(algo, SMALL), SMALL, episodes=16, seed=7)
     finally:
         algo.stop()

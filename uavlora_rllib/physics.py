@@ -91,6 +91,26 @@ def db_to_lin(x_db: np.ndarray | float) -> np.ndarray:
     return np.power(10.0, y, out=y) if isinstance(y, np.ndarray) else np.power(10.0, y)
 
 
+CLIP_MIN = 16384  # elements from which `at_least` / `clip` use np.clip (see at_least)
+
+
+def at_least(x: np.ndarray, low: float, out: np.ndarray | None = None) -> np.ndarray:
+    """max(x, low) elementwise (NaN stays NaN). np.clip with an infinite upper bound gives
+    the same values ~2x faster per element than np.maximum on this CPU, but its Python-level
+    wrapper costs ~3 us a call: it is used from CLIP_MIN elements on."""
+    if x.size >= CLIP_MIN:
+        return np.clip(x, low, np.inf, out=out)
+    return np.maximum(x, low, out=out)
+
+
+def clip(x: np.ndarray, low: float, high: float, out: np.ndarray | None = None) -> np.ndarray:
+    """min(max(x, low), high) elementwise: np.clip from CLIP_MIN elements on (as at_least)."""
+    if x.size >= CLIP_MIN:
+        return np.clip(x, low, high, out=out)
+    y = np.maximum(x, low, out=out)
+    return np.minimum(y, high, out=y)
+
+
 def lin_to_db(x: np.ndarray | float, out: np.ndarray | None = None) -> np.ndarray:
     """10 log10(x), floored at DB_FLOOR for x <= 0 (`out`: an array to write it into).
 
@@ -99,11 +119,10 @@ def lin_to_db(x: np.ndarray | float, out: np.ndarray | None = None) -> np.ndarra
     no log of 0 is taken (no floating-point warning to suppress)."""
     if not isinstance(x, np.ndarray) or x.ndim == 0:  # 0-d input
         return np.maximum(10.0 * np.log10(np.maximum(x, _FLOOR_LIN)), DB_FLOOR)
-    # (np.clip with an infinite bound: the same values as np.maximum here, ~2x faster per pass)
-    x = np.clip(x, _FLOOR_LIN, np.inf, out=out)
+    x = at_least(x, _FLOOR_LIN, out=out)
     np.log10(x, out=x)
     x *= 10.0
-    return np.clip(x, DB_FLOOR, np.inf, out=x)
+    return at_least(x, DB_FLOOR, out=x)
 
 
 # ---------------------------------------------------------------- channel, Eqs. (plos), (a2g_pl)
@@ -421,7 +440,7 @@ def _margin_points(snr_db: np.ndarray, threshold_db: np.ndarray, out: np.ndarray
 def _points_of_margin(m: np.ndarray) -> np.ndarray:
     """margin_score's points of the margins m = SNR_dB - rho_thr, in place."""
     below = m < 0.0
-    np.clip(m, -20.0, 20.0, out=m)
+    clip(m, -20.0, 20.0, out=m)
     divisor = np.multiply(below, 2.0 - 20.0)  # 2 where below, 20 elsewhere (exact; np.where with
     divisor += 20.0  # two scalars is ~3x slower here)
     m /= divisor
