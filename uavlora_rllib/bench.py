@@ -9,7 +9,8 @@ Measures, for the paper scenario (V=10, U=2) and a large one (V=100, U=8):
   over whole 32-step periods of the mobility-noise refills (one refill per period, as in a long run).
 BLAS/OpenMP pools are limited to one thread before NumPy is imported. Each figure is the
 best of R timed runs after a warm-up, both in wall-clock time and in this process's CPU
-time (the machine may be shared; CPU time is the steadier figure then). With --write, the
+time (the machine may be shared; CPU time is the steadier figure then); the R runs are R
+sweeps over all the rows (see `measure`). With --write, the
 results replace the "## Simulator" section of FILE (other sections are kept).
 """
 
@@ -26,6 +27,7 @@ import re  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
+from typing import Callable  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -63,14 +65,19 @@ def _timed(body) -> tuple[float, float]:
     return time.perf_counter() - w0, time.process_time() - c0
 
 
-def _best(run, repeats: int) -> tuple[float, float]:
-    """(best wall seconds, best CPU seconds) over `repeats` runs after a warm-up run."""
-    run()  # warm-up (allocations, caches, first reset)
-    times = [run() for _ in range(repeats)]
-    return min(t[0] for t in times), min(t[1] for t in times)
+@dataclass
+class Case:
+    """One row of the benchmark: `run()` times one run of `steps` steps (after its set-up)."""
+
+    kind: str
+    n_eds: int
+    n_uavs: int
+    n_envs: int
+    steps: int
+    run: Callable[[], tuple[float, float]]
 
 
-def bench_core(cfg: ScenarioConfig, n_envs: int, env_steps: int, repeats: int) -> Row:
+def core_case(cfg: ScenarioConfig, n_envs: int, env_steps: int) -> Case:
     # Whole noise-refill periods: the reset draws the first NOISE_CHUNK steps of noise and
     # step NOISE_CHUNK k draws the next, so steps 1 .. NOISE_CHUNK m (after one untimed step)
     # hold exactly m refills, the share of a long run. (A window of fewer steps than one
@@ -89,10 +96,10 @@ def bench_core(cfg: ScenarioConfig, n_envs: int, env_steps: int, repeats: int) -
         core.step(actions[0])
         return _timed(body)
 
-    return Row("core", cfg.n_eds, cfg.n_uavs, n_envs, steps, *_best(run, repeats))
+    return Case("core", cfg.n_eds, cfg.n_uavs, n_envs, steps, run)
 
 
-def bench_api(cfg: ScenarioConfig, steps: int, repeats: int) -> Row:
+def api_case(cfg: ScenarioConfig, steps: int) -> Case:
     from uavlora_rllib.env import UavLoraParallelEnv
 
     env = UavLoraParallelEnv(cfg)
@@ -110,7 +117,25 @@ def bench_api(cfg: ScenarioConfig, steps: int, repeats: int) -> Row:
         env.reset(seed=0)
         return _timed(body)
 
-    return Row("api", cfg.n_eds, cfg.n_uavs, 1, steps, *_best(run, repeats))
+    return Case("api", cfg.n_eds, cfg.n_uavs, 1, steps, run)
+
+
+def measure(cases: list[Case], repeats: int, report: Callable[[Row], None] | None = None) -> list[Row]:
+    """Each case's best wall and CPU time over `repeats` timed runs, after a warm-up run each.
+    The repeats are sweeps over all the cases, not back-to-back runs of one: on a shared
+    machine a slow spell of a few seconds then costs one sweep's runs, not every run of one
+    row (it did: the best of 3 back-to-back runs of a row came out 10-20% low in some full runs)."""
+    for case in cases:
+        case.run()  # warm-up (allocations, caches, first reset)
+    best = [(np.inf, np.inf)] * len(cases)
+    for _ in range(repeats):
+        for i, case in enumerate(cases):
+            wall, cpu = case.run()
+            best[i] = (min(best[i][0], wall), min(best[i][1], cpu))
+    rows = [Row(c.kind, c.n_eds, c.n_uavs, c.n_envs, c.steps, *b) for c, b in zip(cases, best)]
+    for row in rows if report else ():
+        report(row)
+    return rows
 
 
 def machine() -> dict[str, str]:
@@ -133,17 +158,15 @@ def machine() -> dict[str, str]:
 
 
 def run_env_bench(quick: bool, repeats: int) -> list[Row]:
-    rows: list[Row] = []
+    cases: list[Case] = []
     for v, u in SCENARIOS:
         cfg = ScenarioConfig(n_eds=v, n_uavs=u)
         api_steps = 300 if quick else 2000
-        rows.append(bench_api(cfg, api_steps if v <= 10 else api_steps // 2, repeats))
-        print(_fmt(rows[-1]), flush=True)
+        cases.append(api_case(cfg, api_steps if v <= 10 else api_steps // 2))
         for n in BATCH_SIZES:
             env_steps = (20_000 if quick else 150_000) if v <= 10 else (2_000 if quick else 65_536)
-            rows.append(bench_core(cfg, n, env_steps, repeats))
-            print(_fmt(rows[-1]), flush=True)
-    return rows
+            cases.append(core_case(cfg, n, env_steps))
+    return measure(cases, repeats, report=lambda row: print(_fmt(row), flush=True))
 
 
 def _target_text(row: Row) -> str:
@@ -162,7 +185,7 @@ def _fmt(row: Row) -> str:
     )
 
 
-def markdown(rows: list[Row], command: str, repeats: int = 3) -> str:
+def markdown(rows: list[Row], command: str, repeats: int = 5) -> str:
     m = machine()
     lines = [
         "## Simulator",
@@ -204,12 +227,14 @@ def main(argv: list[str] | None = None) -> int:
     sub = p.add_subparsers(dest="what", required=True)
     env = sub.add_parser("env", help="env steps per second (single env API and batch core)")
     env.add_argument("--quick", action="store_true", help="fewer steps (a smoke run, noisier)")
-    env.add_argument("--repeats", type=int, default=None, help="timed runs per figure (default 3, 2 with --quick)")
+    env.add_argument("--repeats", type=int, default=None, help="timed runs per figure (default 5, 2 with --quick)")
     env.add_argument("--write", metavar="FILE", default=None, help="write the results into FILE's Simulator section")
     args = p.parse_args(argv)
     m = machine()
     print(f"machine: {m['nproc']} CPUs ({m['cpu']}), Python {m['python']}, NumPy {m['numpy']}, {m['threads']}")
-    repeats = args.repeats or (2 if args.quick else 3)
+    # 5: this shared machine has slow spells of several seconds, and the best of 3 runs of
+    # ~0.6 s each (the V=100 N=1024 row) fell into one in some full runs
+    repeats = args.repeats or (2 if args.quick else 5)
     if repeats < 1:
         p.error(f"--repeats: must be >= 1, got {repeats}")
     rows = run_env_bench(args.quick, repeats)

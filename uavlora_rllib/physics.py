@@ -593,9 +593,14 @@ def _slot_metrics_of(
     """The SLOT_METRICS dict from a slot's parts; db [2, ..., V]: beta's margin points and the
     SINR in dB of each ED, averaged over the associated EDs in one reduction."""
     n_eds = db.shape[-1]
-    n_assoc = np.full(db.shape[1:-1], n_eds) if everyone else np.add.reduce(associated, axis=-1)
-    empty = _EMPTY_MEANS.reshape((2,) + (1,) * (db.ndim - 2))
-    beta, mean_sinr_db = _mean_over(db, None if everyone else associated, n_assoc, empty)
+    if everyone:  # (the means' divisor is V: the same values as _mean_over's, fewer calls)
+        beta, mean_sinr_db = np.add.reduce(db, axis=-1) / n_eds
+        n_unassociated = np.zeros(db.shape[1:-1])
+    else:
+        n_assoc = np.add.reduce(associated, axis=-1)
+        empty = _EMPTY_MEANS.reshape((2,) + (1,) * (db.ndim - 2))
+        beta, mean_sinr_db = _mean_over(db, associated, n_assoc, empty)
+        n_unassociated = np.subtract(n_eds, n_assoc, dtype=np.float64)
     return {
         "reward": reward(ee, xi, beta, p_total, weights),
         "ee_sys": ee,
@@ -604,7 +609,7 @@ def _slot_metrics_of(
         "p_total_w": p_total,
         "rate_sum_bps": rate_sum,
         "mean_sinr_db": mean_sinr_db,
-        "n_unassociated": np.subtract(n_eds, n_assoc, dtype=np.float64),
+        "n_unassociated": n_unassociated,
     }
 
 
@@ -673,8 +678,9 @@ def slot_metrics_shared(
     n_u = counts.shape[-1]
     everyone = bool(associated.all())
     flat = serving_flat.reshape(-1)
+    # (ndarray.take without an axis indexes the flattened array: [N, U] tables by serving_flat)
     # SNR of every transmitting ED, 0 for silent ones (which neither transmit nor interfere)
-    s_tx = alloc.snr_per_gain.reshape(-1).take(flat)
+    s_tx = alloc.snr_per_gain.take(flat)
     s_tx *= g_serving.reshape(-1)
     if not everyone:
         s_tx *= associated.reshape(-1)
@@ -694,7 +700,7 @@ def slot_metrics_shared(
     # success rate, beta's margin points and the mean SINR (dB), as in slot_metrics
     db = np.empty((2, n, v))  # margin points and SINR (dB), averaged by one reduction
     sinr_db = lin_to_db(sinr, out=db[1])
-    xi = success_rate(sinr_db, alloc.threshold_db.reshape(-1).take(flat).reshape(n, v), associated)
-    np.add(g_db_serving, alloc.margin_offset_db.reshape(-1).take(flat).reshape(n, v), out=db[0])
+    xi = success_rate(sinr_db, alloc.threshold_db.take(serving_flat), associated)
+    np.add(g_db_serving, alloc.margin_offset_db.take(serving_flat), out=db[0])
     _points_of_margin(db[0])
     return _slot_metrics_of(ee, xi, db, p_total, rate_sum, associated, everyone, cfg.reward)
