@@ -543,7 +543,9 @@ def test_step_scores_the_gains_the_core_exposes(action_mode):
             flat = core._serving_idx + np.arange(4)[:, None] * cfg.n_uavs
             counts = physics.group_count(np.where(core.associated, core._serving_idx, cfg.n_uavs), cfg.n_uavs + 1)
             alloc = physics.shared_allocation(*decode_joint_action(a, cfg), core.tables)
-            shared = physics.slot_metrics_shared(g, g_db, flat, core.associated, counts[:, :-1], alloc, cfg, core.tables)
+            shared = physics.slot_metrics_shared(
+                g, g_db, flat, core.associated, counts[:, :-1], alloc, cfg, core.tables
+            )
         silent += int((~core.associated).sum())
         res = core.step(a)
         for key in physics.SLOT_METRICS:

@@ -190,7 +190,8 @@ def markdown(rows: list[Row], command: str, repeats: int = 5) -> str:
     lines = [
         "## Simulator",
         "",
-        f"Command: `{command}` (best of {repeats} timed runs per row, in {repeats} sweeps over the rows, after a warm-up; "
+        f"Command: `{command}` (best of {repeats} timed runs per row, in {repeats} sweeps over the rows, "
+        "after a warm-up; "
         f"{m['threads']}; per_uav mode, random actions drawn in advance; the PettingZoo loop "
         "includes its reset every 150 steps).",
         "",

@@ -12,8 +12,9 @@ scenario can precompute `lookahead` future slots at once (time as the batch axis
 Slot semantics: `reset` places the EDs and associates them (slot 0). `step(actions)`
 applies the actions to the CURRENT slot (its positions and association), scores it with
 `physics.slot_metrics` (per_uav actions with the default models: `physics.slot_metrics_shared`,
-the same equations with each UAV's shared allocation factored out), then moves the EDs, re-associates them and returns the next
-slot's observations. After `episode_len` steps the episode is truncated (never terminated).
+the same equations with each UAV's shared allocation factored out), then moves the EDs,
+re-associates them and returns the next slot's observations. After `episode_len` steps the
+episode is truncated (never terminated).
 
 Observation o_u (SPEC.md; scaling documented in README "Observations and state"):
 Lambda_max rows of (x_v, y_v, d_uv, G_uv) over the EDs u serves, sorted by gain, then 3
@@ -53,9 +54,12 @@ PER_UAV_GATHER_MIN = 4096
 
 def scenario_rng(seed: Any = None) -> np.random.Generator:
     """The random-number generator of one scenario: NumPy's SFC64 bit generator (seeded
-    through a SeedSequence, like default_rng). It draws the mobility noise, ~1.5x faster for
-    normals and ~1.8x for uniforms than default_rng's PCG64 on this machine (BENCHMARKS.md)."""
+    through a SeedSequence, like default_rng). It draws the mobility noise's uniforms (see
+    gaussian_pairs) and the v-bar re-draws, ~1.8x faster than default_rng's PCG64 for uniforms
+    on this machine (BENCHMARKS.md)."""
     return np.random.Generator(np.random.SFC64(seed))
+
+
 def gaussian_pairs(uniform: np.ndarray, out: np.ndarray, scale: float, scratch: tuple | None = None) -> np.ndarray:
     """Standard normal pairs by the Box-Muller transform, times `scale`: uniform [..., 2, K]
     float32 draws in [0, 1) (u0, u1) -> out [..., 2, K] (float32, or wider),
@@ -197,7 +201,7 @@ class BatchCore:
         self._obs_rows_base = (self._env_idx * (u * q1 * OBS_ROW // 2))[:, None]
         self._obs_garbage = n_envs * u * q1 * OBS_ROW // 2
         self._obs_buf_shape = (n_envs * u * q1 + 1, OBS_ROW)
-        self._obs_scratch: np.ndarray | None = None
+        self._obs_scratch: tuple[np.ndarray, np.ndarray] | None = None  # complex128, complex64 [N, V]
         self._pairs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         # per_uav action index -> (sf_idx, tp_idx, bw_idx), one row per joint action
         self._decode = np.stack(decode_joint_action(np.arange(cfg.n_joint_actions), cfg), axis=-1).astype(np.int64)
@@ -258,10 +262,10 @@ class BatchCore:
     def _refill(self, rows: np.ndarray | None = None) -> None:
         """The next NOISE_CHUNK steps of noise for the scenarios `rows` (indices; None: all).
 
-        Per scenario the stream is: random(2, chunk v) in float32 (the Gauss-Markov noise of
-        each (step, ED), (x, y), by `gaussian_pairs` of (u0, u1)), random(chunk, v) (the v-bar re-draw tests), then, for the K
-        re-draws those tests imply, random(K, 2) (their new v-bar, (x, y) in (step, ED) order,
-        mapped to [-v_max, v_max) as Generator.uniform does). Drawing the new v-bar values only
+        Per scenario the stream is: random(2, chunk v) in float32 (u0, u1 of `gaussian_pairs`:
+        the Gauss-Markov noise of each (step, ED), x and y), random(chunk, v) (the v-bar re-draw
+        tests), then, for the K re-draws those tests imply, random(K, 2) (their new v-bar, (x, y)
+        in (step, ED) order, mapped to [-v_max, v_max) as Generator.uniform does). Drawing the new v-bar values only
         where a re-draw happens (~1% of the EDs per step) skips 2/3 of the uniform draws; the
         draws are per scenario, the transforms batched."""
         idx = range(self.n) if rows is None else rows
