@@ -67,13 +67,10 @@ def _timed(body) -> tuple[float, float]:
 
 @dataclass
 class Case:
-    """One row of the benchmark: `run()` times one run of `steps` steps (after its set-up)."""
+    """One row of the benchmark: `run()` times one run (after its set-up) of the row `what`
+    describes, Row's (kind, n_eds, n_uavs, n_envs, steps)."""
 
-    kind: str
-    n_eds: int
-    n_uavs: int
-    n_envs: int
-    steps: int
+    what: tuple[str, int, int, int, int]
     run: Callable[[], tuple[float, float]]
 
 
@@ -96,7 +93,7 @@ def core_case(cfg: ScenarioConfig, n_envs: int, env_steps: int) -> Case:
         core.step(actions[0])
         return _timed(body)
 
-    return Case("core", cfg.n_eds, cfg.n_uavs, n_envs, steps, run)
+    return Case(("core", cfg.n_eds, cfg.n_uavs, n_envs, steps), run)
 
 
 def api_case(cfg: ScenarioConfig, steps: int) -> Case:
@@ -117,7 +114,7 @@ def api_case(cfg: ScenarioConfig, steps: int) -> Case:
         env.reset(seed=0)
         return _timed(body)
 
-    return Case("api", cfg.n_eds, cfg.n_uavs, 1, steps, run)
+    return Case(("api", cfg.n_eds, cfg.n_uavs, 1, steps), run)
 
 
 def measure(cases: list[Case], repeats: int, report: Callable[[Row], None] | None = None) -> list[Row]:
@@ -132,7 +129,7 @@ def measure(cases: list[Case], repeats: int, report: Callable[[Row], None] | Non
         for i, case in enumerate(cases):
             wall, cpu = case.run()
             best[i] = (min(best[i][0], wall), min(best[i][1], cpu))
-    rows = [Row(c.kind, c.n_eds, c.n_uavs, c.n_envs, c.steps, *b) for c, b in zip(cases, best)]
+    rows = [Row(*c.what, *b) for c, b in zip(cases, best)]
     for row in rows if report else ():
         report(row)
     return rows

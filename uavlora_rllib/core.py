@@ -642,8 +642,14 @@ class BatchCore:
     def step(self, actions: np.ndarray) -> StepResult:
         if not self._ready:
             raise RuntimeError("call reset() before step()")
-        if self._shared:
-            return self._step_shared(actions)
+        metrics, self._prev_parts = self._score_shared(actions) if self._shared else self._score(actions)
+        self.t += 1
+        self._next_slot()
+        return StepResult(self.obs, metrics["reward"], self.t >= self.cfg.episode_len, metrics)
+
+    def _score(self, actions: np.ndarray) -> tuple[dict[str, np.ndarray], tuple]:
+        """The current slot's metrics under `actions` (physics.slot_metrics), and the parts
+        prev_alloc is built from."""
         gains = None if self._nearest else self.gains
         if self.cfg.action_mode == "per_uav" and self._serving_idx.size > PER_UAV_GATHER_MIN:
             sf, values, actions_idx = self._per_uav_values(actions)
@@ -655,13 +661,11 @@ class BatchCore:
             gains, self._serving_idx, self.associated, sf, tp, bw, self.cfg, self.tables, g_serving=self.g_serving,
             values=values,
         )  # fmt: skip
-        self._prev_parts = (sf, tp, bw, actions_idx, None if self._all_associated else self.associated)
-        self.t += 1
-        self._next_slot()
-        return StepResult(self.obs, metrics["reward"], self.t >= self.cfg.episode_len, metrics)
+        return metrics, (sf, tp, bw, actions_idx, None if self._all_associated else self.associated)
 
-    def _step_shared(self, actions: np.ndarray) -> StepResult:
-        """step in the per_uav mode with the paper's interference and the Shannon rate."""
+    def _score_shared(self, actions: np.ndarray) -> tuple[dict[str, np.ndarray], tuple]:
+        """_score in the per_uav mode with the paper's interference and the Shannon rate
+        (physics.slot_metrics_shared); prev_alloc decodes the actions only when read."""
         cfg = self.cfg
         actions = np.asarray(actions)
         self._check_range(actions, (self.n, cfg.n_uavs), self._n_joint)
@@ -670,11 +674,8 @@ class BatchCore:
             self.g_serving, self.g_db_serving, idx, self.associated, self._counts, self._action_alloc.take(actions),
             cfg, self.tables,
         )  # fmt: skip
-        # (a copy: the caller may reuse its array)
-        self._prev_parts = (None, None, None, (actions.copy(), idx), None if self._all_associated else self.associated)
-        self.t += 1
-        self._next_slot()
-        return StepResult(self.obs, metrics["reward"], self.t >= cfg.episode_len, metrics)
+        # (a copy of the actions: the caller may reuse its array)
+        return metrics, (None, None, None, (actions.copy(), idx), None if self._all_associated else self.associated)
 
     @property
     def prev_alloc(self) -> np.ndarray:

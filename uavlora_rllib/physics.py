@@ -632,9 +632,10 @@ def shared_allocation(sf_idx: np.ndarray, tp_idx: np.ndarray, bw_idx: np.ndarray
     """SharedAllocation of per-UAV (SF, TP, BW) indices (any shape)."""
     sf_idx = np.asarray(sf_idx)
     p_w, bw_hz, thr_db = allocation_values(sf_idx, np.asarray(tp_idx), np.asarray(bw_idx), tables)
-    margin = lin_to_db(p_w / tables.noise_w)  # P / sigma^2 in dB (p_w >= 1 mW: no floor)
+    snr_per_gain = p_w / tables.noise_w
+    margin = lin_to_db(snr_per_gain)  # P / sigma^2 in dB (p_w >= 1 mW: no floor)
     margin -= thr_db
-    return SharedAllocation(sf_idx, p_w, p_w / tables.noise_w, bw_hz, thr_db, margin)
+    return SharedAllocation(sf_idx, p_w, snr_per_gain, bw_hz, thr_db, margin)
 
 
 class SharedAllocationTable:
@@ -644,11 +645,12 @@ class SharedAllocationTable:
     def __init__(self, sf_idx: np.ndarray, tp_idx: np.ndarray, bw_idx: np.ndarray, tables: Tables):
         alloc = shared_allocation(sf_idx, tp_idx, bw_idx, tables)
         self._sf_idx = alloc.sf_idx
-        names = [f.name for f in fields(SharedAllocation)][1:]
-        self._values = np.stack([getattr(alloc, name) for name in names])  # [5, A] float64
+        self._names = [f.name for f in fields(SharedAllocation) if f.name != "sf_idx"]  # the float fields
+        self._values = np.stack([getattr(alloc, name) for name in self._names])  # [5, A]
 
     def take(self, actions: np.ndarray) -> SharedAllocation:
-        return SharedAllocation(self._sf_idx.take(actions), *self._values.take(actions, axis=1))
+        rows = self._values.take(actions, axis=1)
+        return SharedAllocation(sf_idx=self._sf_idx.take(actions), **dict(zip(self._names, rows)))
 
 
 def slot_metrics_shared(
