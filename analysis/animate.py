@@ -24,7 +24,7 @@ from uavlora_rllib.cli_args import Parser, UsageError, integer, positive_int
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from uavlora_rllib.baselines import BASELINES
+    from uavlora_rllib.baselines.policies import BASELINES
 
     p = Parser(prog="python -m analysis.animate", description=__doc__.split("\n\n")[0])
     p.add_argument("--policy", required=True, help=f"one of {', '.join(BASELINES)}, or a checkpoint directory")
@@ -39,8 +39,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def resolve_policy(policy: str, n_eds: int | None, n_uavs: int | None, seed: int = 0):
     """(policy, scenario) for a baseline name or a checkpoint directory."""
-    from uavlora_rllib.baselines import BASELINES, make_baseline
-    from uavlora_rllib.scenario import ScenarioConfig
+    from uavlora_rllib.baselines.policies import BASELINES, make_baseline
+    from uavlora_rllib.sim.scenario import ScenarioConfig
 
     overrides = {k: v for k, v in (("n_eds", n_eds), ("n_uavs", n_uavs)) if v is not None}
     if policy in BASELINES:
@@ -57,7 +57,7 @@ def resolve_policy(policy: str, n_eds: int | None, n_uavs: int | None, seed: int
 
 def record_frames(policy, cfg, seed: int, steps: int) -> list[np.ndarray]:
     """Render after reset and after each of `steps` steps: steps + 1 uint8 frames [H, W, 3]."""
-    from uavlora_rllib.env import UavLoraParallelEnv
+    from uavlora_rllib.envs.multi_agent import UavLoraParallelEnv
 
     env = UavLoraParallelEnv(cfg, render_mode="rgb_array")
     env.reset(seed=seed)

@@ -544,7 +544,7 @@ def org_kind(org: Organised, alg: str) -> str:
 
 def _scenario_for(record: RunRecord | None):
     from uavlora_rllib.config_errors import ConfigError
-    from uavlora_rllib.scenario import ScenarioConfig
+    from uavlora_rllib.sim.scenario import ScenarioConfig
 
     if record is None:
         return ScenarioConfig(), "no runs: default scenario"
@@ -560,10 +560,10 @@ def fig2(org: Organised, reference: str | None, out_dir: str, seed: int):
     """The association map at the last slot of one evaluation episode (see the module docstring)."""
     import matplotlib.pyplot as plt
 
-    from uavlora_rllib.baselines import make_baseline
-    from uavlora_rllib.core import BatchCore
-    from uavlora_rllib.evaluation import EVAL_SEED_BASE
-    from uavlora_rllib.render import draw_association
+    from uavlora_rllib.baselines.policies import make_baseline
+    from uavlora_rllib.sim.core import BatchCore
+    from uavlora_rllib.experiment.evaluation import EVAL_SEED_BASE
+    from uavlora_rllib.sim.render import draw_association
 
     notes: list[str] = []
     train = [c for c in org.cells.values() if c.kind == "train" and c.runs]

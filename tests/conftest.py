@@ -11,9 +11,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from uavlora_rllib.association import UNASSOCIATED
-from uavlora_rllib.core import BatchCore, per_device_action_len
-from uavlora_rllib.scenario import ScenarioConfig
+from uavlora_rllib.sim.association import UNASSOCIATED
+from uavlora_rllib.sim.core import BatchCore, per_device_action_len
+from uavlora_rllib.sim.scenario import ScenarioConfig
 
 
 def make_cfg(**fields: Any) -> ScenarioConfig:

@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from conftest import reference_greedy
-from uavlora_rllib.association import UNASSOCIATED, associate, greedy_association, optimal_association
+from uavlora_rllib.sim.association import UNASSOCIATED, associate, greedy_association, optimal_association
 
 SETTINGS = settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -147,9 +147,9 @@ def test_batch_rows_are_independent():
 
 # ------------------------------------------------------------------ the nearest-UAV path (gain decreasing in d_h)
 def test_nearest_uav_on_the_mid_line_equals_the_argmin():
-    from uavlora_rllib import physics
-    from uavlora_rllib.association import nearest_uav, nearest_uav_on_line
-    from uavlora_rllib.scenario import ScenarioConfig
+    from uavlora_rllib.sim import physics
+    from uavlora_rllib.sim.association import nearest_uav, nearest_uav_on_line
+    from uavlora_rllib.sim.scenario import ScenarioConfig
 
     rng = np.random.default_rng(0)
     for n_uavs in (1, 2, 3, 8):
@@ -169,9 +169,9 @@ def test_nearest_uav_on_the_mid_line_equals_the_argmin():
 def test_greedy_from_nearest_equals_greedy(n, n_uavs, n_eds, quota, seed, r_comm):
     """Positions -> channel of every pair -> greedy_association, against the nearest-UAV path
     (small quotas: the deferred-acceptance fallback runs for the scenarios where one binds)."""
-    from uavlora_rllib import physics
-    from uavlora_rllib.association import greedy_from_nearest, nearest_uav
-    from uavlora_rllib.scenario import ScenarioConfig
+    from uavlora_rllib.sim import physics
+    from uavlora_rllib.sim.association import greedy_from_nearest, nearest_uav
+    from uavlora_rllib.sim.scenario import ScenarioConfig
 
     cfg = ScenarioConfig(n_uavs=n_uavs, n_eds=n_eds)
     uav = physics.uav_positions(cfg)
@@ -201,8 +201,8 @@ def test_greedy_with_long_rejection_chains_equals_the_reference(quota):
     """The paper's large layout (V=100, U=8) with quotas close to the mean load V / U = 12.5:
     most scenarios have a binding quota, and rejected EDs cascade over several UAVs (the
     deferred-acceptance rounds, incl. the ones that end without a ranking round)."""
-    from uavlora_rllib import physics
-    from uavlora_rllib.scenario import ScenarioConfig
+    from uavlora_rllib.sim import physics
+    from uavlora_rllib.sim.scenario import ScenarioConfig
 
     cfg = ScenarioConfig(n_uavs=8, n_eds=100)
     xy = np.random.default_rng(quota).uniform(0, 1000, (48, 100, 2))
@@ -222,7 +222,7 @@ def test_greedy_with_long_rejection_chains_equals_the_reference(quota):
 def test_group_sort_is_a_stable_sort_by_group_then_value(descending, n_groups, kind):
     """group_sort against np.lexsort (stable), on batches large enough for its key sort, with
     signs, zeros of both signs, infinities, wide ranges and ties (its fallback)."""
-    from uavlora_rllib.association import KEY_SORT_MIN, group_sort
+    from uavlora_rllib.sim.association import KEY_SORT_MIN, group_sort
 
     rng = np.random.default_rng(7)
     n, v = KEY_SORT_MIN // 50 + 1, 100

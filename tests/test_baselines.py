@@ -5,17 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from uavlora_rllib import physics
-from uavlora_rllib.baselines import (
+from uavlora_rllib.sim import physics
+from uavlora_rllib.baselines.policies import (
     BASELINES,
     AdrPolicy,
     adr_update,
     make_baseline,
 )
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.core import BatchCore, decode_joint_action, encode_joint_action
-from uavlora_rllib.evaluation import run_episodes
-from uavlora_rllib.scenario import ScenarioConfig
+from uavlora_rllib.sim.core import BatchCore, decode_joint_action, encode_joint_action
+from uavlora_rllib.experiment.evaluation import run_episodes
+from uavlora_rllib.sim.scenario import ScenarioConfig
 
 PAPER = ScenarioConfig()
 

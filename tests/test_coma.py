@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 import torch
 
-from uavlora_rllib.algorithms import registry
-from uavlora_rllib.algorithms.coma import COMAHParams
-from uavlora_rllib.algorithms.coma_module import (
+from uavlora_rllib.algorithms.common import registry
+from uavlora_rllib.algorithms.coma.coma import COMAHParams
+from uavlora_rllib.algorithms.coma.coma_module import (
     COMATorchRLModule,
     counterfactual_advantage,
     critic_inputs,
@@ -22,7 +22,7 @@ from uavlora_rllib.algorithms.coma_module import (
     td_lambda_targets,
 )
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.scenario import ScenarioConfig
+from uavlora_rllib.sim.scenario import ScenarioConfig
 
 torch.set_num_threads(1)
 
@@ -84,7 +84,7 @@ def _module(inference_only: bool, n_agents=3, obs_dim=7, n_actions=4, state_dim=
 
 
 def test_factor_onehot_matches_the_simulators_decoding():
-    from uavlora_rllib.core import decode_joint_action
+    from uavlora_rllib.sim.core import decode_joint_action
 
     cfg = ScenarioConfig()
     a = np.arange(cfg.n_joint_actions)
@@ -204,9 +204,9 @@ def test_result_dict_and_runner_module(trained):
 def test_learns_to_beat_random(trained):
     """The registry's greedy policy (argmax, decentralised, GRU state carried), run by
     evaluation.run_episodes on evaluation seeds, beats uniform random on EE by MARGIN."""
-    from uavlora_rllib.algorithms.coma import COMAGreedyPolicy, actor_from_algo
-    from uavlora_rllib.baselines import make_baseline
-    from uavlora_rllib.evaluation import run_episodes
+    from uavlora_rllib.algorithms.coma.coma import COMAGreedyPolicy, actor_from_algo
+    from uavlora_rllib.baselines.policies import make_baseline
+    from uavlora_rllib.experiment.evaluation import run_episodes
 
     scenario = trained["scenario"]
     coma = run_episodes(trained["entry"].greedy_policy(trained["algo"], scenario), scenario, EVAL_EPISODES, seed=0)
@@ -224,7 +224,7 @@ def test_learns_to_beat_random(trained):
 def test_checkpoint_round_trip(trained):
     from ray.rllib.algorithms.algorithm import Algorithm
 
-    from uavlora_rllib.core import BatchCore
+    from uavlora_rllib.sim.core import BatchCore
 
     algo, entry, scenario = trained["algo"], trained["entry"], trained["scenario"]
     path = algo.save_to_path(str(trained["tmp"] / "ckpt"))

@@ -14,11 +14,11 @@ from pettingzoo.test import parallel_api_test, parallel_seed_test
 from ray.rllib.utils.pre_checks.env import check_multiagent_environments
 
 from conftest import make_cfg, random_actions, reference_greedy, run_core
-from uavlora_rllib import physics
-from uavlora_rllib.association import UNASSOCIATED
-from uavlora_rllib.core import ActionError, BatchCore, decode_joint_action, encode_joint_action, obs_dim, state_dim
-from uavlora_rllib.env import UavLoraMultiAgentEnv, UavLoraParallelEnv, state_space
-from uavlora_rllib.scenario import ScenarioConfig
+from uavlora_rllib.sim import physics
+from uavlora_rllib.sim.association import UNASSOCIATED
+from uavlora_rllib.sim.core import ActionError, BatchCore, decode_joint_action, encode_joint_action, obs_dim, state_dim
+from uavlora_rllib.envs.multi_agent import UavLoraMultiAgentEnv, UavLoraParallelEnv, state_space
+from uavlora_rllib.sim.scenario import ScenarioConfig
 
 MODES = ["per_uav", "per_device"]
 AGENTS = ["uav_0", "uav_1"]

@@ -14,7 +14,7 @@ import yaml
 import tune_stock_ppo  # noqa: F401  (registers stock_ppo, stock_ppo_b)
 from uavlora_rllib import tune as tune_cli
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.grid import baseline_runs, load_grid, parse_grid, trials
+from uavlora_rllib.experiment.grid import baseline_runs, load_grid, parse_grid, trials
 
 TESTS_DIR = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(TESTS_DIR)

@@ -10,16 +10,16 @@ import numpy as np
 import pytest
 import torch
 
-from uavlora_rllib.algorithms import registry
-from uavlora_rllib.algorithms.mappo import MAPPOHParams, RecurrentGreedyPolicy
-from uavlora_rllib.algorithms.mappo_learner import per_agent_gae
-from uavlora_rllib.algorithms.mappo_module import MAPPOTorchRLModule
-from uavlora_rllib.baselines import make_baseline
+from uavlora_rllib.algorithms.common import registry
+from uavlora_rllib.algorithms.mappo.mappo import MAPPOHParams, RecurrentGreedyPolicy
+from uavlora_rllib.algorithms.mappo.mappo_learner import per_agent_gae
+from uavlora_rllib.algorithms.mappo.mappo_module import MAPPOTorchRLModule
+from uavlora_rllib.baselines.policies import make_baseline
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.core import BatchCore, obs_dim, state_dim
-from uavlora_rllib.evaluation import run_episodes
-from uavlora_rllib.scenario import ScenarioConfig
-from uavlora_rllib.team_env import UavLoraTeamEnv, team_action_space, team_observation_space
+from uavlora_rllib.sim.core import BatchCore, obs_dim, state_dim
+from uavlora_rllib.experiment.evaluation import run_episodes
+from uavlora_rllib.sim.scenario import ScenarioConfig
+from uavlora_rllib.envs.team import UavLoraTeamEnv, team_action_space, team_observation_space
 
 torch.set_num_threads(1)
 
@@ -159,7 +159,7 @@ def test_first_layers_equal_the_concatenated_one_hot_form(critic):
 
 @pytest.mark.parametrize("nvec", [[90], [6, 5, 6, 5, 3]])
 def test_action_head_logp_and_entropy_match_torch_categoricals(nvec):
-    from uavlora_rllib.algorithms.gru_actor import ActionHead
+    from uavlora_rllib.algorithms.common.gru_actor import ActionHead
 
     head = ActionHead(nvec)
     torch.manual_seed(4)

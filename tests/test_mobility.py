@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from conftest import make_cfg
-from uavlora_rllib.core import BatchCore
+from uavlora_rllib.sim.core import BatchCore
 
 # A config where the speed clip essentially never binds (sigma = 0.5 per axis, v_max = 5:
 # P(speed > 5) = exp(-5^2 / (2 * 0.5^2)) = exp(-50)), v-bar never re-drawn, and an area so large
@@ -242,7 +242,7 @@ def test_noise_is_standard_normal_pairs():
     uniforms. Measured: KS p = 0.38 (seed 1), |corr| < 2e-4."""
     from scipy import stats
 
-    from uavlora_rllib.core import gaussian_pairs
+    from uavlora_rllib.sim.core import gaussian_pairs
 
     rng = np.random.Generator(np.random.SFC64(1))
     u = rng.random((200_000, 2, 10), dtype=np.float32)

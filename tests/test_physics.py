@@ -13,9 +13,9 @@ import math
 import numpy as np
 import pytest
 
-from uavlora_rllib import physics
+from uavlora_rllib.sim import physics
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.scenario import RewardWeights, ScenarioConfig
+from uavlora_rllib.sim.scenario import RewardWeights, ScenarioConfig
 
 CFG = ScenarioConfig()
 TABLES = physics.Tables.from_config(CFG)

@@ -14,10 +14,10 @@ from ray.rllib.core import DEFAULT_MODULE_ID
 from ray.rllib.core.columns import Columns
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 
-from uavlora_rllib.algorithms import registry
-from uavlora_rllib.algorithms.qmix import QMIXConfig, QMIXHParams, VDNConfig
-from uavlora_rllib.algorithms.qmix_learner import nstep_targets
-from uavlora_rllib.algorithms.qmix_module import (
+from uavlora_rllib.algorithms.common import registry
+from uavlora_rllib.algorithms.qmix.qmix import QMIXConfig, QMIXHParams, VDNConfig
+from uavlora_rllib.algorithms.qmix.qmix_learner import nstep_targets
+from uavlora_rllib.algorithms.qmix.qmix_module import (
     HIDDEN,
     Q_ALL,
     Q_TOT,
@@ -28,9 +28,9 @@ from uavlora_rllib.algorithms.qmix_module import (
     VDNMixer,
     linear_epsilon,
 )
-from uavlora_rllib.algorithms.qmix_replay import TERMINATED, EpisodeReplay
+from uavlora_rllib.algorithms.qmix.qmix_replay import TERMINATED, EpisodeReplay
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.scenario import ScenarioConfig
+from uavlora_rllib.sim.scenario import ScenarioConfig
 
 torch.set_num_threads(1)
 
@@ -315,8 +315,8 @@ def test_learns_beyond_random(trained, name):
     about 10-20 s each on 2 cores. Greedy EE / random EE measured at this budget, 20 episodes,
     seeds 0, 1, 2: QMIX 1.81, 1.90, 1.93; VDN 1.94, 1.82, 1.95 (at 2,000 env steps already
     >= 1.59). The margin 1.3 sits well below all of them; the optimum is 2.2x random."""
-    from uavlora_rllib.baselines import make_baseline
-    from uavlora_rllib.evaluation import run_episodes
+    from uavlora_rllib.baselines.policies import make_baseline
+    from uavlora_rllib.experiment.evaluation import run_episodes
 
     algo, result, seconds = trained[name]
     assert result["num_env_steps_sampled_lifetime"] == CI_ITERS * CI_ENVS * SMALL.episode_len
@@ -386,7 +386,7 @@ def test_env_runners_hold_only_the_agent_network(trained):
 def test_checkpoint_round_trip(trained, tmp_path):
     from ray.rllib.algorithms.algorithm import Algorithm
 
-    from uavlora_rllib.core import BatchCore
+    from uavlora_rllib.sim.core import BatchCore
 
     algo, _, _ = trained["vdn"]
     algo.save_to_path(str(tmp_path))

@@ -19,8 +19,8 @@ import pytest
 import yaml
 
 from uavlora_rllib import tune as tune_cli
-from uavlora_rllib.evaluation import EPISODE_METRICS
-from uavlora_rllib.tracking import git_commit
+from uavlora_rllib.experiment.evaluation import EPISODE_METRICS
+from uavlora_rllib.experiment.tracking import git_commit
 
 pytestmark = pytest.mark.slow
 
@@ -44,7 +44,7 @@ EPISODE_LEN = 10  # 2 episodes of 10 slots = 20 env steps per training iteration
 def ray_address():
     import ray
 
-    from uavlora_rllib.algorithms import registry
+    from uavlora_rllib.algorithms.common import registry
 
     if ALGO not in registry.available():
         pytest.skip(f"{ALGO} is not implemented yet")

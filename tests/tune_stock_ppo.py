@@ -13,8 +13,8 @@ import numpy as np
 from pydantic import Field
 from pydantic.dataclasses import dataclass as typed_dataclass
 
-from uavlora_rllib.algorithms import registry
-from uavlora_rllib.env import UavLoraMultiAgentEnv
+from uavlora_rllib.algorithms.common import registry
+from uavlora_rllib.envs.multi_agent import UavLoraMultiAgentEnv
 
 NAMES = ("stock_ppo", "stock_ppo_b")
 SHARED = "shared"

@@ -31,8 +31,8 @@ from typing import Callable  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from uavlora_rllib.core import NOISE_CHUNK, BatchCore  # noqa: E402
-from uavlora_rllib.scenario import ScenarioConfig  # noqa: E402
+from uavlora_rllib.sim.core import NOISE_CHUNK, BatchCore  # noqa: E402
+from uavlora_rllib.sim.scenario import ScenarioConfig  # noqa: E402
 
 SCENARIOS = ((10, 2), (100, 8))
 BATCH_SIZES = (1, 64, 1024)
@@ -97,7 +97,7 @@ def core_case(cfg: ScenarioConfig, n_envs: int, env_steps: int) -> Case:
 
 
 def api_case(cfg: ScenarioConfig, steps: int) -> Case:
-    from uavlora_rllib.env import UavLoraParallelEnv
+    from uavlora_rllib.envs.multi_agent import UavLoraParallelEnv
 
     env = UavLoraParallelEnv(cfg)
     agents = env.possible_agents

@@ -72,9 +72,9 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.torch_threads)
     import ray
 
-    from uavlora_rllib.algorithms import registry
+    from uavlora_rllib.algorithms.common import registry
     from uavlora_rllib.config_errors import ConfigError
-    from uavlora_rllib.scenario import ScenarioConfig
+    from uavlora_rllib.sim.scenario import ScenarioConfig
 
     try:
         entry = registry.get(args.algo)

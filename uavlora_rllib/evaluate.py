@@ -20,9 +20,9 @@ from typing import Any, Mapping, Sequence
 
 import yaml
 
-from uavlora_rllib.baselines import BASELINES, OBJECTIVES, make_baseline
+from uavlora_rllib.baselines.policies import BASELINES, OBJECTIVES, make_baseline
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.scenario import ScenarioConfig
+from uavlora_rllib.sim.scenario import ScenarioConfig
 from uavlora_rllib.cli_args import Parser, UsageError, integer, positive_int
 
 # (key in the JSON output, label, unit)
@@ -76,7 +76,7 @@ def load_checkpoint_policy(path: str, scenario_overrides: Mapping[str, Any] | No
     """
     from ray.rllib.algorithms.algorithm import Algorithm
 
-    from uavlora_rllib.algorithms.registry import entry_for_algorithm
+    from uavlora_rllib.algorithms.common.registry import entry_for_algorithm
 
     try:
         algo = Algorithm.from_checkpoint(os.path.abspath(path))
@@ -128,7 +128,7 @@ def json_summary(summary: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from uavlora_rllib.evaluation import run_episodes
+    from uavlora_rllib.experiment.evaluation import run_episodes
 
     try:
         args = build_parser().parse_args(argv)

@@ -40,10 +40,10 @@ from typing import Any, Sequence
 
 from ray import tune
 
-from uavlora_rllib.algorithms import registry
+from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.cli_args import Parser, UsageError, positive_int
-from uavlora_rllib.grid import (
+from uavlora_rllib.experiment.grid import (
     GridConfig,
     algorithm_overrides,
     TrialSpec,
@@ -132,9 +132,9 @@ class UavLoraTrainable(tune.Trainable):
     def setup(self, config: dict) -> None:
         import torch
 
-        from uavlora_rllib.scenario import ScenarioConfig
+        from uavlora_rllib.sim.scenario import ScenarioConfig
 
-        import uavlora_rllib.env  # noqa: F401  (registers the "uavlora" env)
+        import uavlora_rllib.envs.multi_agent  # noqa: F401  (registers the "uavlora" env)
 
         cfg = config.get("trial", config)
         self.cfg = cfg
@@ -149,7 +149,7 @@ class UavLoraTrainable(tune.Trainable):
         self._last_steps: int | None = 0
 
     def step(self) -> dict:
-        from uavlora_rllib.tracking import ENV_STEPS, _lookup, _number, training_summary
+        from uavlora_rllib.experiment.tracking import ENV_STEPS, _lookup, _number, training_summary
 
         t0 = time.perf_counter()
         result = self.algo.train()
@@ -168,8 +168,8 @@ class UavLoraTrainable(tune.Trainable):
         return out
 
     def evaluate(self) -> dict:
-        from uavlora_rllib.evaluation import run_episodes
-        from uavlora_rllib.tracking import eval_metrics
+        from uavlora_rllib.experiment.evaluation import run_episodes
+        from uavlora_rllib.experiment.tracking import eval_metrics
 
         policy = self.entry.greedy_policy(self.algo, self.scenario)
         res = run_episodes(policy, self.scenario, int(self.cfg["eval_episodes"]), int(self.cfg["seed"]))
@@ -215,9 +215,9 @@ def _trial_dirname(trial) -> str:
 
 # --------------------------------------------------------------------------- phases
 def run_baselines(grid: GridConfig, tracker, out=None) -> None:
-    from uavlora_rllib.baselines import make_baseline
-    from uavlora_rllib.evaluation import run_episodes
-    from uavlora_rllib.tracking import run_params
+    from uavlora_rllib.baselines.policies import make_baseline
+    from uavlora_rllib.experiment.evaluation import run_episodes
+    from uavlora_rllib.experiment.tracking import run_params
 
     out = out or sys.stdout
     episodes = grid.evaluation.episodes
@@ -239,7 +239,7 @@ def run_baselines(grid: GridConfig, tracker, out=None) -> None:
 def run_grid(grid: GridConfig, grid_file: str, args: argparse.Namespace) -> int:
     import ray
 
-    from uavlora_rllib.tracking import MlflowTrialCallback, Tracker
+    from uavlora_rllib.experiment.tracking import MlflowTrialCallback, Tracker
 
     specs = trials(grid)
     storage = storage_path(grid, args.storage)

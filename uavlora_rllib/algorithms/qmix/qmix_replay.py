@@ -23,7 +23,7 @@ import numpy as np
 
 from ray.rllib.core.columns import Columns
 
-from uavlora_rllib.algorithms.qmix_module import STATE
+from uavlora_rllib.algorithms.qmix.qmix_module import STATE
 
 TERMINATED = "terminated"  # [B] bool
 

@@ -16,7 +16,7 @@ from typing import Literal
 import numpy as np
 
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.scenario import SNR_THRESHOLD_TABLE_DB, RewardWeights, ScenarioConfig
+from uavlora_rllib.sim.scenario import SNR_THRESHOLD_TABLE_DB, RewardWeights, ScenarioConfig
 
 # Floor used wherever a ratio is shown in dB, so that "no signal" is a finite, very low value.
 DB_FLOOR = -200.0

@@ -36,15 +36,15 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from uavlora_rllib import physics
-from uavlora_rllib.association import (
+from uavlora_rllib.sim import physics
+from uavlora_rllib.sim.association import (
     UNASSOCIATED,
     associate,
     greedy_from_nearest,
     group_sort,
     nearest_uav_on_line,
 )
-from uavlora_rllib.scenario import ScenarioConfig
+from uavlora_rllib.sim.scenario import ScenarioConfig
 
 NOISE_CHUNK = 32  # steps of mobility noise drawn per refill
 # per_uav mode: EDs in a batch above which per-UAV table look-ups followed by per-ED gathers

@@ -23,9 +23,9 @@ import gymnasium as gym
 import numpy as np
 from ray.tune.registry import register_env
 
-from uavlora_rllib.core import BatchCore, per_device_action_len
-from uavlora_rllib.env import STATE_KEY, observation_space, scenario_from, state_space
-from uavlora_rllib.scenario import ScenarioConfig
+from uavlora_rllib.sim.core import BatchCore, per_device_action_len
+from uavlora_rllib.envs.multi_agent import STATE_KEY, observation_space, scenario_from, state_space
+from uavlora_rllib.sim.scenario import ScenarioConfig
 
 TEAM_ENV_NAME = "uavlora_team"
 

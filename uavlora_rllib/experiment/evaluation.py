@@ -14,8 +14,8 @@ from typing import Protocol
 import numpy as np
 from scipy import stats
 
-from uavlora_rllib.core import BatchCore
-from uavlora_rllib.scenario import ScenarioConfig
+from uavlora_rllib.sim.core import BatchCore
+from uavlora_rllib.sim.scenario import ScenarioConfig
 
 EVAL_SEED_BASE = 1_000_000
 

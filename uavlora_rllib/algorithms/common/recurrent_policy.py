@@ -14,7 +14,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from uavlora_rllib.core import BatchCore
+from uavlora_rllib.sim.core import BatchCore
 
 
 def argmax_actions(out: torch.Tensor) -> torch.Tensor:

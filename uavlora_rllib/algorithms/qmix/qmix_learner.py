@@ -18,8 +18,8 @@ from ray.rllib.core.columns import Columns
 from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 from ray.rllib.core.rl_module.apis import QNetAPI, TargetNetworkAPI
 
-from uavlora_rllib.algorithms.qmix_module import Q_TAKEN, Q_TOT, TARGET_Q_TOT_NEXT
-from uavlora_rllib.algorithms.qmix_replay import TERMINATED
+from uavlora_rllib.algorithms.qmix.qmix_module import Q_TAKEN, Q_TOT, TARGET_Q_TOT_NEXT
+from uavlora_rllib.algorithms.qmix.qmix_replay import TERMINATED
 
 TD_LOSS = "td_loss"
 NUM_TARGET_UPDATES = "num_soft_target_updates"

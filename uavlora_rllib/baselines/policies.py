@@ -31,10 +31,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from uavlora_rllib import physics
+from uavlora_rllib.sim import physics
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.core import BatchCore, decode_joint_action, encode_joint_action, per_device_action_len
-from uavlora_rllib.scenario import ScenarioConfig
+from uavlora_rllib.sim.core import BatchCore, decode_joint_action, encode_joint_action, per_device_action_len
+from uavlora_rllib.sim.scenario import ScenarioConfig
 
 BASELINES = ("random", "fixed", "adr", "greedy", "optimal")
 OBJECTIVES = ("ee", "reward")

@@ -47,9 +47,9 @@ import yaml
 from pydantic import Field, field_validator
 from pydantic.dataclasses import dataclass as typed_dataclass
 
-from uavlora_rllib.algorithms import registry
+from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.config_errors import ConfigError, build
-from uavlora_rllib.scenario import ScenarioConfig
+from uavlora_rllib.sim.scenario import ScenarioConfig
 
 _STRICT = {"extra": "forbid", "frozen": True}
 PosInt = Annotated[int, Field(ge=1)]
@@ -208,7 +208,7 @@ def _validate(grid: GridConfig) -> None:
         hparams = entry.hparams(algorithm_overrides(grid, name, entry), prefix=f"algorithms.{name}")
         entries[name] = (entry, hparams)
 
-    from uavlora_rllib.baselines import BASELINES, make_baseline
+    from uavlora_rllib.baselines.policies import BASELINES, make_baseline
 
     for i, name in enumerate(grid.baselines):
         if name not in BASELINES:

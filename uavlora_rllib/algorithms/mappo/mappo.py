@@ -31,15 +31,15 @@ from ray.rllib.algorithms.ppo import PPO, PPOConfig
 from ray.rllib.core import DEFAULT_MODULE_ID
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 
-from uavlora_rllib.algorithms.gru_actor import ActionHead, GRUActor
-from uavlora_rllib.algorithms.mappo_learner import MAPPOTorchLearner
-from uavlora_rllib.algorithms.mappo_module import MAPPOTorchRLModule
-from uavlora_rllib.algorithms.recurrent_policy import RecurrentPolicy
-from uavlora_rllib.algorithms.registry import AlgorithmEntry, Resources, register
+from uavlora_rllib.algorithms.common.gru_actor import ActionHead, GRUActor
+from uavlora_rllib.algorithms.mappo.mappo_learner import MAPPOTorchLearner
+from uavlora_rllib.algorithms.mappo.mappo_module import MAPPOTorchRLModule
+from uavlora_rllib.algorithms.common.recurrent_policy import RecurrentPolicy
+from uavlora_rllib.algorithms.common.registry import AlgorithmEntry, Resources, register
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.core import state_dim
-from uavlora_rllib.scenario import ScenarioConfig
-from uavlora_rllib.team_env import sample_through_team_env, team_action_space, team_observation_space
+from uavlora_rllib.sim.core import state_dim
+from uavlora_rllib.sim.scenario import ScenarioConfig
+from uavlora_rllib.envs.team import sample_through_team_env, team_action_space, team_observation_space
 
 
 @typed_dataclass(config=ConfigDict(extra="forbid", frozen=True))

@@ -29,7 +29,7 @@ from typing import Callable
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from uavlora_rllib import physics
+from uavlora_rllib.sim import physics
 
 UNASSOCIATED = -1
 

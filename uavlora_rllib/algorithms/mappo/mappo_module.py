@@ -1,6 +1,6 @@
 """MAPPO / IPPO RLModule over the team view: GRU actors on local rows, critic for training only.
 
-Spaces (team view, `uavlora_rllib.team_env`): observation Box [U, obs_dim]; action
+Spaces (team view, `uavlora_rllib.envs.team`): observation Box [U, obs_dim]; action
 MultiDiscrete [U] (per_uav) or [U, 2 quota + 1] (per_device).
 
 * `actor` (`GRUActor`): decentralised; reads row u of the observation only (plus the agent
@@ -32,7 +32,7 @@ from ray.rllib.core.rl_module.apis import InferenceOnlyAPI, ValueFunctionAPI
 from ray.rllib.core.rl_module.torch import TorchRLModule
 from torch import nn
 
-from uavlora_rllib.algorithms.gru_actor import ActionHead, GRUActor
+from uavlora_rllib.algorithms.common.gru_actor import ActionHead, GRUActor
 
 STATE_COL = "state"  # global state column in the train batch (env.STATE_KEY)
 VF_PREDS_COL = "mappo_vf_preds"  # old (normalised) value predictions, for value clipping

@@ -20,16 +20,16 @@ from uavlora_rllib.config_errors import ConfigError, build
 if TYPE_CHECKING:
     from ray.rllib.algorithms import Algorithm, AlgorithmConfig
 
-    from uavlora_rllib.evaluation import Policy
-    from uavlora_rllib.scenario import ScenarioConfig
+    from uavlora_rllib.experiment.evaluation import Policy
+    from uavlora_rllib.sim.scenario import ScenarioConfig
 
 # name -> module that registers it. Only names whose module exists are offered.
 MODULES: dict[str, str] = {
-    "mappo": "uavlora_rllib.algorithms.mappo",
-    "ippo": "uavlora_rllib.algorithms.mappo",
-    "qmix": "uavlora_rllib.algorithms.qmix",
-    "vdn": "uavlora_rllib.algorithms.qmix",
-    "coma": "uavlora_rllib.algorithms.coma",
+    "mappo": "uavlora_rllib.algorithms.mappo.mappo",
+    "ippo": "uavlora_rllib.algorithms.mappo.mappo",
+    "qmix": "uavlora_rllib.algorithms.qmix.qmix",
+    "vdn": "uavlora_rllib.algorithms.qmix.qmix",
+    "coma": "uavlora_rllib.algorithms.coma.coma",
 }
 
 

@@ -16,9 +16,9 @@ from pettingzoo import ParallelEnv
 from ray.rllib.env.multi_agent_env import MultiAgentEnv
 from ray.tune.registry import register_env
 
-from uavlora_rllib.core import ActionError, BatchCore, obs_dim, per_device_action_len, state_dim
-from uavlora_rllib.render import association_rgb
-from uavlora_rllib.scenario import ScenarioConfig
+from uavlora_rllib.sim.core import ActionError, BatchCore, obs_dim, per_device_action_len, state_dim
+from uavlora_rllib.sim.render import association_rgb
+from uavlora_rllib.sim.scenario import ScenarioConfig
 
 ENV_NAME = "uavlora"
 _NP_INTS = frozenset(np.sctypeDict[k] for k in ("int8", "int16", "int32", "int64", "uint8", "uint16", "uint32", "uint64"))

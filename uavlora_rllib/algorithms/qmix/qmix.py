@@ -53,14 +53,14 @@ from ray.rllib.utils.metrics import (
     TIMERS,
 )
 
-from uavlora_rllib.algorithms import registry
-from uavlora_rllib.algorithms.qmix_learner import QMIXTorchLearner
-from uavlora_rllib.algorithms.qmix_module import AgentQNet, QMixModule, linear_epsilon
-from uavlora_rllib.algorithms.qmix_replay import EpisodeReplay
-from uavlora_rllib.algorithms.recurrent_policy import RecurrentPolicy, argmax_actions
-from uavlora_rllib.core import obs_dim, state_dim
-from uavlora_rllib.env import STATE_KEY, scenario_from
-from uavlora_rllib.scenario import ScenarioConfig
+from uavlora_rllib.algorithms.common import registry
+from uavlora_rllib.algorithms.qmix.qmix_learner import QMIXTorchLearner
+from uavlora_rllib.algorithms.qmix.qmix_module import AgentQNet, QMixModule, linear_epsilon
+from uavlora_rllib.algorithms.qmix.qmix_replay import EpisodeReplay
+from uavlora_rllib.algorithms.common.recurrent_policy import RecurrentPolicy, argmax_actions
+from uavlora_rllib.sim.core import obs_dim, state_dim
+from uavlora_rllib.envs.multi_agent import STATE_KEY, scenario_from
+from uavlora_rllib.sim.scenario import ScenarioConfig
 
 MIXERS = ("qmix", "vdn")
 
@@ -322,7 +322,7 @@ def _build(name: str, config_cls: type):
         entry.check_scenario(scenario)
         if not isinstance(hparams, QMIXHParams):
             hparams = entry.hparams(hparams)
-        from uavlora_rllib.team_env import sample_through_team_env
+        from uavlora_rllib.envs.team import sample_through_team_env
 
         config = (
             sample_through_team_env(

@@ -37,7 +37,7 @@ from typing import Any, Iterable, Mapping
 
 from ray.tune import Callback
 
-from uavlora_rllib.evaluation import EPISODE_METRICS
+from uavlora_rllib.experiment.evaluation import EPISODE_METRICS
 
 try:  # the limits of the installed mlflow; the values below are mlflow 3's
     from mlflow.utils.validation import MAX_ENTITY_KEY_LENGTH, MAX_PARAM_VAL_LENGTH
@@ -114,7 +114,7 @@ def run_params(
     resources: Mapping[str, Any] | None = None,
 ) -> dict[str, str]:
     """The params of a run (see the module docstring)."""
-    from uavlora_rllib.scenario import ScenarioConfig, flatten
+    from uavlora_rllib.sim.scenario import ScenarioConfig, flatten
 
     if not isinstance(scenario, ScenarioConfig):
         scenario = ScenarioConfig.from_dict(scenario)
@@ -414,7 +414,7 @@ class MlflowTrialCallback(Callback):
             if existing.info.status != "RUNNING":
                 self.tracker.reopen(run_id)
         else:
-            from uavlora_rllib.grid import run_name
+            from uavlora_rllib.experiment.grid import run_name
 
             tags = self.tracker.base_tags(
                 KIND_TRAIN, cfg["algorithm"], cfg["seed"], cfg["n_eds"], cfg["n_uavs"], cfg["budget_env_steps"]

@@ -41,14 +41,14 @@ from ray.rllib.utils.metrics import (
     TIMERS,
 )
 
-from uavlora_rllib.algorithms.coma_learner import COMAEpisodeBatch, COMATorchLearner
-from uavlora_rllib.algorithms.coma_module import COMAActor, COMATorchRLModule
-from uavlora_rllib.algorithms.recurrent_policy import RecurrentPolicy, argmax_actions
-from uavlora_rllib.algorithms.registry import AlgorithmEntry, Resources, register
+from uavlora_rllib.algorithms.coma.coma_learner import COMAEpisodeBatch, COMATorchLearner
+from uavlora_rllib.algorithms.coma.coma_module import COMAActor, COMATorchRLModule
+from uavlora_rllib.algorithms.common.recurrent_policy import RecurrentPolicy, argmax_actions
+from uavlora_rllib.algorithms.common.registry import AlgorithmEntry, Resources, register
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.core import obs_dim, state_dim
-from uavlora_rllib.scenario import ScenarioConfig
-from uavlora_rllib.team_env import sample_through_team_env
+from uavlora_rllib.sim.core import obs_dim, state_dim
+from uavlora_rllib.sim.scenario import ScenarioConfig
+from uavlora_rllib.envs.team import sample_through_team_env
 
 NAME = "coma"
 

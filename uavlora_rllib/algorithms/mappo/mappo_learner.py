@@ -42,8 +42,8 @@ from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 from ray.rllib.core.rl_module.apis import ValueFunctionAPI
 from ray.rllib.evaluation.postprocessing import Postprocessing
 
-from uavlora_rllib.algorithms.mappo_module import STATE_COL, VF_PREDS_COL
-from uavlora_rllib.env import STATE_KEY
+from uavlora_rllib.algorithms.mappo.mappo_module import STATE_COL, VF_PREDS_COL
+from uavlora_rllib.envs.multi_agent import STATE_KEY
 
 
 class AddGlobalStateToBatch(ConnectorV2):

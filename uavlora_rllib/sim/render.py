@@ -8,7 +8,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from uavlora_rllib.association import UNASSOCIATED  # noqa: E402
+from uavlora_rllib.sim.association import UNASSOCIATED  # noqa: E402
 
 
 def draw_association(

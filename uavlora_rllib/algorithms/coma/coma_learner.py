@@ -31,7 +31,7 @@ from ray.rllib.core import DEFAULT_MODULE_ID
 from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 from ray.rllib.utils.torch_utils import update_target_network
 
-from uavlora_rllib.algorithms.coma_module import (
+from uavlora_rllib.algorithms.coma.coma_module import (
     ACTIONS,
     BOOTSTRAP,
     GLOBAL_STATE,
@@ -43,7 +43,7 @@ from uavlora_rllib.algorithms.coma_module import (
     counterfactual_advantage,
     td_lambda_targets,
 )
-from uavlora_rllib.env import STATE_KEY
+from uavlora_rllib.envs.multi_agent import STATE_KEY
 
 ACTOR_OPT, CRITIC_OPT = "actor", "critic"
 

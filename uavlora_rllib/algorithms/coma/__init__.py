@@ -1,0 +1,1 @@
+"""COMA: GRU actors with a counterfactual centralised critic."""

@@ -1,0 +1,1 @@
+"""QMIX (monotonic mixer on the global state) and VDN (sum mixer) with recurrent agent Q-networks."""

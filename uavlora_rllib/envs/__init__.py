@@ -1,0 +1,1 @@
+"""Environment views of the simulator: per-UAV agents (PettingZoo, RLlib) and the team view."""
