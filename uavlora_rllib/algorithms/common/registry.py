@@ -37,25 +37,55 @@ MODULES: dict[str, str] = {
 class Resources:
     """How one trial samples and learns (grid YAML `resources:`)."""
 
-    num_env_runners: int = Field(0, ge=0)  # 0: sample in the trial's own process
-    num_envs_per_env_runner: int = Field(16, ge=1)  # scenarios per runner, all in one BatchCore
-    num_cpus_per_env_runner: float = Field(1.0, gt=0)
-    num_cpus_per_learner: float = Field(1.0, gt=0)
-    torch_threads: int = Field(1, ge=1)
+    num_env_runners: int = Field(0, ge=0, description="remote env runners; 0: sample in the trial's own process")
+    num_envs_per_env_runner: int = Field(16, ge=1, description="scenarios per env runner, all in one BatchCore")
+    num_cpus_per_env_runner: float = Field(1.0, gt=0, description="CPUs reserved per remote env runner")
+    num_learners: int = Field(
+        0, ge=0, description="remote learner actors (data-parallel updates); 0: learn in the trial's own process"
+    )
+    num_gpus_per_learner: float = Field(
+        0.0, ge=0, description="GPUs per learner (per the trial's own process when num_learners is 0)"
+    )
+    num_cpus_per_learner: float = Field(1.0, gt=0, description="CPUs per learner (the trial's process when num_learners is 0)")
+    torch_threads: int = Field(1, ge=1, description="torch intra-op threads per process")
+
+    def bundles(self) -> list[dict[str, float]]:
+        """Placement-group bundles of one trial: its own process (the local learner when
+        num_learners is 0), then the remote learners, then the remote env runners (RLlib's
+        `Algorithm.default_resource_request` layout)."""
+        learner = {"CPU": self.num_cpus_per_learner, "GPU": self.num_gpus_per_learner}
+        learner = {k: v for k, v in learner.items() if v}
+        head = learner if self.num_learners == 0 else {"CPU": 1.0}
+        return [head] + [learner] * self.num_learners + [{"CPU": self.num_cpus_per_env_runner}] * self.num_env_runners
+
+
+def _team_policy(algo: "Algorithm", scenario: "ScenarioConfig", explore: bool = False, seed: int = 0) -> "Policy":
+    from uavlora_rllib.algorithms.common.policy import team_policy
+
+    return team_policy(algo, scenario, explore=explore, seed=seed)
 
 
 @dataclass(frozen=True)
 class AlgorithmEntry:
     name: str
-    hparams_cls: type  # pydantic dataclass of hyperparameters; defaults = SPEC.md's training table
+    hparams_cls: type  # the algorithm's typed config (pydantic dataclass, see common/config.py)
     action_modes: tuple[str, ...]  # scenario.action_mode values it supports
     # (scenario, hparams, resources, seed) -> an RLlib AlgorithmConfig ready for .build_algo()
     build: Callable[["ScenarioConfig", Any, Resources, int], "AlgorithmConfig"]
-    # (built or restored algorithm, scenario) -> the decentralised greedy policy for evaluation
-    greedy_policy: Callable[["Algorithm", "ScenarioConfig"], "Policy"]
+    # (built or restored algorithm, scenario, explore, seed) -> the decentralised policy for
+    # evaluation: greedy (explore=False, the paper's execution) or sampled (explore=True). The
+    # default runs the algorithm's own team-view RLModule (common/policy.py).
+    make_policy: Callable[..., "Policy"] = _team_policy
 
     def hparams(self, overrides: dict | None, prefix: str | None = None) -> Any:
         return build(self.hparams_cls, overrides or {}, prefix or f"algorithms.{self.name}")
+
+    def policy(self, algo: "Algorithm", scenario: "ScenarioConfig", explore: bool = False, seed: int = 0) -> "Policy":
+        """Greedy (argmax per UAV) or, with explore=True, sampled execution of a trained algorithm."""
+        return self.make_policy(algo, scenario, explore=explore, seed=seed)
+
+    def greedy_policy(self, algo: "Algorithm", scenario: "ScenarioConfig") -> "Policy":
+        return self.policy(algo, scenario, explore=False)
 
     def check_scenario(self, scenario: "ScenarioConfig", prefix: str = "scenario.action_mode") -> None:
         if scenario.action_mode not in self.action_modes:
