@@ -141,7 +141,6 @@ class MAPPOConfig(HParamsConfig, PPOConfig):
 
     @override(PPOConfig)
     def validate(self) -> None:
-        super().validate()
         # PPO features MAPPOTorchLearner does not implement: refuse them instead of ignoring them.
         unsupported = {
             "use_kl_loss": self.use_kl_loss,
@@ -157,6 +156,7 @@ class MAPPOConfig(HParamsConfig, PPOConfig):
                 f"MAPPOConfig: {', '.join(bad)}: not supported by MAPPO's learner (per-agent clipped PPO with "
                 "GAE, a constant entropy_coeff and MAPPOHParams.value_clip); leave them at MAPPOConfig's defaults"
             )
+        super().validate()
 
 
 class IPPOConfig(MAPPOConfig):
