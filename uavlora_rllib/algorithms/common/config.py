@@ -89,7 +89,8 @@ def describe_hparams(cls: type) -> str:
     """One block per field: name, type and default, then its description (--list-hparams)."""
     lines = []
     for name, info in cls.__pydantic_fields__.items():  # pydantic's FieldInfo of each field, in order
-        typ = getattr(info.annotation, "__name__", None) or str(info.annotation).replace("typing.", "")
+        ann = info.annotation
+        typ = ann.__name__ if isinstance(ann, type) else str(ann).replace("typing.", "")
         lines.append(f"{name} ({typ}, default {info.default!r})")
         lines.append(f"    {info.description or '(no description)'}")
     return "\n".join(lines)

@@ -21,6 +21,7 @@ import torch
 from ray.rllib.core import DEFAULT_MODULE_ID
 from ray.rllib.core.columns import Columns
 
+from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
@@ -71,12 +72,12 @@ def check_module_fits(module, scenario: ScenarioConfig) -> None:
 
     want_obs, want_act = team_observation_space(scenario), team_action_space(scenario)
     if tuple(module.observation_space.shape) != tuple(want_obs.shape):
-        raise ValueError(
+        raise ConfigError(
             f"scenario: the trained module expects observations {tuple(module.observation_space.shape)}, "
             f"this scenario gives {tuple(want_obs.shape)} (n_uavs / observation layout differ)"
         )
     if not np.array_equal(np.asarray(module.action_space.nvec), np.asarray(want_act.nvec)):
-        raise ValueError(
+        raise ConfigError(
             f"scenario.action_mode: the trained module acts in {np.asarray(module.action_space.nvec).tolist()}, "
             f"this scenario needs {np.asarray(want_act.nvec).tolist()} ({scenario.action_mode!r})"
         )

@@ -50,13 +50,21 @@ class Resources:
     torch_threads: int = Field(1, ge=1, description="torch intra-op threads per process")
 
     def bundles(self) -> list[dict[str, float]]:
-        """Placement-group bundles of one trial: its own process (the local learner when
-        num_learners is 0), then the remote learners, then the remote env runners (RLlib's
-        `Algorithm.default_resource_request` layout)."""
-        learner = {"CPU": self.num_cpus_per_learner, "GPU": self.num_gpus_per_learner}
-        learner = {k: v for k, v in learner.items() if v}
-        head = learner if self.num_learners == 0 else {"CPU": 1.0}
-        return [head] + [learner] * self.num_learners + [{"CPU": self.num_cpus_per_env_runner}] * self.num_env_runners
+        """Placement-group bundles of one trial, in RLlib's layout
+        (`Algorithm.default_resource_request`, which tests/test_algorithm_matrix.py checks this
+        against): the trial's own process (which also learns when num_learners is 0), the
+        remote env runners, the remote learners. Zero amounts are left out."""
+
+        def bundle(cpu: float, gpu: float) -> dict[str, float]:
+            return {k: float(v) for k, v in (("CPU", cpu), ("GPU", gpu)) if v}
+
+        if self.num_learners == 0:
+            main = bundle(max(self.num_cpus_per_learner, 1.0), self.num_gpus_per_learner)
+        else:
+            main = bundle(1.0, 0.0)
+        runners = [bundle(self.num_cpus_per_env_runner, 0.0)] * self.num_env_runners
+        learners = [bundle(self.num_cpus_per_learner, self.num_gpus_per_learner)] * self.num_learners
+        return [main] + runners + learners
 
 
 def _team_policy(algo: "Algorithm", scenario: "ScenarioConfig", explore: bool = False, seed: int = 0) -> "Policy":
