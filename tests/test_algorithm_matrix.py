@@ -4,7 +4,9 @@ For each (algorithm, action mode) pair of `registry.available()` (BenchMARL-styl
 trial's config, run one training iteration on a tiny scenario (V=10, U=2, 10-slot episodes,
 the algorithm's default hyperparameters), check the paper's training metrics, run the greedy
 and the sampled policy, save a checkpoint, restore it and get the same greedy actions, and
-evaluate the checkpoint with the evaluate CLI in a subprocess. A new algorithm registered in
+evaluate the checkpoint with the evaluate CLI (its `main`, in this process: a subprocess would
+start its own Ray, ~40 s per case on 2 cores; tests/test_evaluate_cli.py covers the
+subprocess path). A new algorithm registered in
 `registry.MODULES` is covered without new test code.
 
 The resource tests build configs only (no Ray): `resources.num_learners` and
@@ -16,9 +18,6 @@ with a REMOTE learner actor (CPU) and checks that its policy reads the learner's
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -34,7 +33,6 @@ TINY = ScenarioConfig(n_eds=10, n_uavs=2, episode_len=10)
 RES = registry.Resources(num_envs_per_env_runner=4)
 CASES = [(name, mode) for name in registry.available() for mode in registry.get(name).action_modes]
 IDS = [f"{name}-{mode}" for name, mode in CASES]
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +50,7 @@ def _build(name: str, scenario: ScenarioConfig, resources: registry.Resources = 
     return entry, entry.build(scenario, entry.hparams({}), resources, 0)
 
 
-def _greedy_run(policy, scenario: ScenarioConfig, seed: int = 123, steps: int = 6) -> np.ndarray:
+def _actions(policy, scenario: ScenarioConfig, seed: int = 123, steps: int = 6) -> np.ndarray:
     """The policy's actions over `steps` slots of 3 scenarios from one reset (GRU state carried)."""
     core = BatchCore(scenario, 3)
     core.reset(seed)
@@ -75,8 +73,10 @@ def _check_actions(actions: np.ndarray, scenario: ScenarioConfig) -> None:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name, mode", CASES, ids=IDS)
-def test_train_checkpoint_restore_evaluate(ray_session, tmp_path, name, mode):
+def test_train_checkpoint_restore_evaluate(ray_session, tmp_path, capsys, name, mode):
     from ray.rllib.algorithms.algorithm import Algorithm
+
+    from uavlora_rllib import evaluate
 
     scenario = TINY.replace(action_mode=mode)
     entry, config = _build(name, scenario)
@@ -87,12 +87,12 @@ def test_train_checkpoint_restore_evaluate(ray_session, tmp_path, name, mode):
         assert runners["num_env_steps_sampled_lifetime"] > 0
         # every algorithm logs the paper's metrics of its sampled episodes the same way
         assert runners["ee_sys_mean"] > 0 and 0.0 <= runners["success_rate"] <= 1.0
-        greedy = _greedy_run(entry.policy(algo, scenario), scenario)
+        greedy = _actions(entry.policy(algo, scenario), scenario)
         _check_actions(greedy, scenario)
-        sampled = _greedy_run(entry.policy(algo, scenario, explore=True, seed=5), scenario)
+        sampled = _actions(entry.policy(algo, scenario, explore=True, seed=5), scenario)
         _check_actions(sampled, scenario)
-        # sampled execution: reproducible from its seed, and really sampled (not the argmax)
-        again = _greedy_run(entry.policy(algo, scenario, explore=True, seed=5), scenario)
+        # sampled execution is reproducible from its seed
+        again = _actions(entry.policy(algo, scenario, explore=True, seed=5), scenario)
         np.testing.assert_array_equal(sampled, again)
         path = algo.save_to_path(str(tmp_path / "ckpt"))
     finally:
@@ -101,22 +101,14 @@ def test_train_checkpoint_restore_evaluate(ray_session, tmp_path, name, mode):
     restored = Algorithm.from_checkpoint(path)
     try:
         assert registry.entry_for_algorithm(restored) is entry
-        np.testing.assert_array_equal(_greedy_run(entry.greedy_policy(restored, scenario), scenario), greedy)
+        np.testing.assert_array_equal(_actions(entry.greedy_policy(restored, scenario), scenario), greedy)
     finally:
         restored.stop()
 
-    env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"}
-    env["PYTHONPATH"] = REPO + os.pathsep + env.get("PYTHONPATH", "")
-    proc = subprocess.run(
-        [sys.executable, "-m", "uavlora_rllib.evaluate", "--policy", path, "--episodes", "2", "--json"],
-        capture_output=True,
-        text=True,
-        env=env,
-        cwd=str(tmp_path),
-        timeout=300,
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    capsys.readouterr()
+    assert evaluate.main(["--policy", path, "--episodes", "2", "--json"]) == 0
+    captured = capsys.readouterr()
+    out = json.loads(captured.out.strip().splitlines()[-1])
     assert out["episodes"] == 2 and out["ee_sys_mean"] > 0
 
 
@@ -138,9 +130,9 @@ def test_sampled_execution_differs_from_greedy():
         inference_only=True,
         model_config={"state_dim": state_dim(TINY)},
     ).build()
-    greedy = _greedy_run(ModulePolicy(module, "g"), TINY)
-    s1 = _greedy_run(ModulePolicy(module, "s", explore=True, seed=1), TINY)
-    s2 = _greedy_run(ModulePolicy(module, "s", explore=True, seed=2), TINY)
+    greedy = _actions(ModulePolicy(module, "g"), TINY)
+    s1 = _actions(ModulePolicy(module, "s", explore=True, seed=1), TINY)
+    s2 = _actions(ModulePolicy(module, "s", explore=True, seed=2), TINY)
     assert (s1 != greedy).mean() > 0.8 and (s1 != s2).mean() > 0.8
 
 
@@ -186,6 +178,6 @@ def test_policy_reads_weights_from_a_remote_learner(ray_session, name):
         weights = algo.learner_group.get_weights([DEFAULT_MODULE_ID])[DEFAULT_MODULE_ID]
         for k, v in module.state_dict().items():
             torch.testing.assert_close(v, torch.as_tensor(weights[k]))
-        _check_actions(_greedy_run(entry.policy(algo, scenario), scenario), scenario)
+        _check_actions(_actions(entry.policy(algo, scenario), scenario), scenario)
     finally:
         algo.stop()
