@@ -4,6 +4,12 @@ An algorithm module registers one `AlgorithmEntry` per name at import time. The 
 entry point, the evaluate CLI and the tests only go through this registry, so a new
 algorithm needs no change anywhere else. Modules are imported lazily (importing RLlib and
 torch costs seconds), from `MODULES`.
+
+Adding an algorithm: a typed hyperparameter class and an AlgorithmConfig that follow
+common/config.py, a team-view RLModule whose forward_inference / forward_exploration return
+Columns.ACTIONS (then the default `make_policy` runs it, greedy or sampled), a `build` that
+calls `config.team_config`, and a line in `MODULES`. tests/test_algorithm_matrix.py then
+trains, checkpoints, restores and evaluates it with no new test code.
 """
 
 from __future__ import annotations
