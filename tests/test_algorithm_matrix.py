@@ -181,3 +181,21 @@ def test_policy_reads_weights_from_a_remote_learner(ray_session, name):
         _check_actions(_actions(entry.policy(algo, scenario), scenario), scenario)
     finally:
         algo.stop()
+
+
+@pytest.mark.parametrize("name", registry.available())
+def test_list_hparams_documents_every_field(name, capsys):
+    """`tune --list-hparams ALGO` prints each hyperparameter with its default and a description
+    (every field of every algorithm's typed config must have one)."""
+    import dataclasses
+
+    from uavlora_rllib import tune
+
+    assert tune.main(["--list-hparams", name]) == 0
+    text = capsys.readouterr().out
+    fields = dataclasses.fields(registry.get(name).hparams_cls)
+    for f in fields:
+        assert f"\n{f.name} (" in text, f.name
+    assert "(no description)" not in text and text.count("default ") == len(fields)
+    assert tune.main(["--list-hparams", "no_such_algo"]) == 2
+    assert "--list-hparams: unknown algorithm 'no_such_algo'" in capsys.readouterr().err
