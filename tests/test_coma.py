@@ -121,7 +121,7 @@ def test_critic_sees_state_and_others_actions_never_its_own():
 
 def test_actor_input_and_inference_only_module():
     learner_side, runner_side = _module(False), _module(True)
-    assert learner_side.actor.fc_in[0].in_features == 7 + 3  # obs_dim + U (one-hot id)
+    assert learner_side.actor.nets[0].inp.in_features == 7 + 3  # obs_dim + U (one-hot id)
     assert not hasattr(runner_side, "critic") and not hasattr(runner_side, "target_critic")
     assert all(k.startswith("actor.") for k in runner_side.state_dict())
     assert any(k.startswith("critic.") for k in learner_side.state_dict())
@@ -131,8 +131,11 @@ def test_actor_input_and_inference_only_module():
     h = {"h": torch.zeros(5, 3, 8)}
     out_l = learner_side.forward_inference({"obs": obs, "state_in": h})
     out_r = runner_side.forward_inference({"obs": obs, "state_in": h})
-    torch.testing.assert_close(out_l["action_dist_inputs"], out_r["action_dist_inputs"])
-    assert out_r["action_dist_inputs"].shape == (5, 1, 3 * 4)
+    torch.testing.assert_close(out_l["actions"], out_r["actions"])
+    torch.testing.assert_close(out_l["state_out"]["h"], out_r["state_out"]["h"])
+    assert out_r["actions"].shape == (5, 1, 3)
+    logits, _ = runner_side.actor(obs, h["h"])  # greedy = argmax of each UAV's logits
+    torch.testing.assert_close(out_r["actions"], logits.argmax(-1))
 
 
 # ------------------------------------------------------------------ config errors (no Ray)
@@ -170,7 +173,7 @@ SAMPLED_MARGIN = 1.35
 def trained(tmp_path_factory):
     import ray
 
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     algo = None
     try:
         entry = registry.get("coma")
@@ -194,7 +197,8 @@ def test_result_dict_and_runner_module(trained):
     stats = last["learners"]["default_policy"]
     for key in ("critic_loss", "actor_loss", "entropy"):
         assert np.isfinite(float(stats[key])), key
-    assert last["ee_sys_mean"] > 0 and 0 <= last["success_rate"] <= 1
+    runners = last["env_runners"]  # the paper's metrics of the sampled episodes (common/metrics.py)
+    assert runners["ee_sys_mean"] > 0 and 0 <= runners["success_rate"] <= 1
     # The env runner holds the actor only.
     runner_module = trained["algo"].env_runner.module
     assert runner_module.inference_only
@@ -204,7 +208,6 @@ def test_result_dict_and_runner_module(trained):
 def test_learns_to_beat_random(trained):
     """The registry's greedy policy (argmax, decentralised, GRU state carried), run by
     evaluation.run_episodes on evaluation seeds, beats uniform random on EE by MARGIN."""
-    from uavlora_rllib.algorithms.coma.coma import COMAGreedyPolicy, actor_from_algo
     from uavlora_rllib.baselines.policies import make_baseline
     from uavlora_rllib.experiment.evaluation import run_episodes
 
@@ -214,10 +217,10 @@ def test_learns_to_beat_random(trained):
     ratio = coma.mean("ee_sys_mean") / rnd.mean("ee_sys_mean")
     assert ratio > MARGIN, f"greedy COMA EE {coma.mean('ee_sys_mean'):.0f} vs random {rnd.mean('ee_sys_mean'):.0f}"
     # The stochastic policy it trains (sampled actions) and its training episodes beat random too.
-    actor = actor_from_algo(trained["algo"], scenario)
-    sampled = run_episodes(COMAGreedyPolicy(actor, scenario, sample_seed=0), scenario, EVAL_EPISODES, seed=0)
+    sampled_policy = trained["entry"].policy(trained["algo"], scenario, explore=True, seed=0)
+    sampled = run_episodes(sampled_policy, scenario, EVAL_EPISODES, seed=0)
     assert sampled.mean("ee_sys_mean") > SAMPLED_MARGIN * rnd.mean("ee_sys_mean")
-    train_ee = np.mean([r["ee_sys_mean"] for r in trained["results"][-5:]])
+    train_ee = np.mean([r["env_runners"]["ee_sys_mean"] for r in trained["results"][-5:]])
     assert train_ee > SAMPLED_MARGIN * rnd.mean("ee_sys_mean")
 
 

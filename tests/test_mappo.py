@@ -11,7 +11,9 @@ import pytest
 import torch
 
 from uavlora_rllib.algorithms.common import registry
-from uavlora_rllib.algorithms.mappo.mappo import MAPPOHParams, RecurrentGreedyPolicy
+from uavlora_rllib.algorithms.common.agent_net import ActionHead
+from uavlora_rllib.algorithms.common.policy import ModulePolicy
+from uavlora_rllib.algorithms.mappo.mappo import MAPPOConfig, MAPPOHParams
 from uavlora_rllib.algorithms.mappo.mappo_learner import per_agent_gae
 from uavlora_rllib.algorithms.mappo.mappo_module import MAPPOTorchRLModule
 from uavlora_rllib.baselines.policies import make_baseline
@@ -32,7 +34,7 @@ RES = registry.Resources(num_envs_per_env_runner=4)
 def ray_session():
     import ray
 
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     yield
     ray.shutdown()
 
@@ -91,6 +93,29 @@ def test_build_sets_env_batch_and_seed():
     assert cfg.minibatch_size == 3 * SMALL.episode_len // 2
     assert cfg.seed == 42
     assert cfg.gym_env_vectorize_mode == "vector_entry_point" and cfg.num_envs_per_env_runner == 4
+    assert cfg.hparams.batch_episodes == 3 and cfg.model_config["critic"] == "central"
+    assert registry.get("ippo").build(SMALL, entry.hparams({}), RES, 0).model_config["critic"] == "local"
+
+
+@pytest.mark.parametrize(
+    "setting, name",
+    [
+        ({"use_kl_loss": True}, "use_kl_loss"),
+        ({"entropy_coeff": [[0, 0.01], [1000, 0.0]]}, "entropy_coeff"),
+        ({"vf_clip_param": 5.0}, "vf_clip_param"),
+        ({"use_gae": False}, "use_gae"),
+    ],
+)
+def test_ppo_features_the_learner_ignores_are_rejected(setting, name):
+    """MAPPOConfig is a PPOConfig, but its learner is not PPO's: PPO-only settings must fail
+    loudly instead of being accepted and silently ignored."""
+    entry = registry.get("mappo")
+    cfg = entry.build(SMALL, entry.hparams({}), RES, 0)
+    cfg.validate()  # MAPPO's own settings are valid
+    cfg.training(**setting)
+    with pytest.raises(ConfigError, match=name):
+        cfg.validate()
+    assert isinstance(cfg, MAPPOConfig)
 
 
 # ---------------------------------------------------------------- module: CTDE contract
@@ -99,7 +124,7 @@ def test_critic_reads_global_state_and_actor_only_local_rows():
     u, d, s_dim = cfg.n_uavs, obs_dim(cfg), state_dim(cfg)
     m = _module(cfg, "central")
     assert m.actor.in_dim == d + u
-    assert m.actor.net.pre[0].in_features == d + u
+    assert m.actor.nets[0].inp.in_features == d + u
     assert m.critic.in_dim == s_dim + u and m.critic.net[0].in_features == s_dim + u
     local = _module(cfg, "local")
     assert local.critic.net[0].in_features == d + u
@@ -142,8 +167,10 @@ def test_first_layers_equal_the_concatenated_one_hot_form(critic):
 
     logits, h_out = m.actor(obs, h)
     x = torch.cat([obs, ids.expand(b, t, u, u)], dim=-1)  # [B, T, U, d + U]
-    ref_logits, ref_h = m.actor.net(x.permute(0, 2, 1, 3).reshape(b * u, t, d + u), h.reshape(b * u, -1))
-    ref_logits = ref_logits.reshape(b, u, t, -1).permute(0, 2, 1, 3)
+    net = m.actor.nets[0]
+    z = torch.relu(net.inp(x.permute(0, 2, 1, 3).reshape(b * u, t, d + u)))  # the plain concatenated input
+    y, ref_h = net.recurrent(z, h.reshape(b * u, -1))
+    ref_logits = net.out(y).reshape(b, u, t, -1).permute(0, 2, 1, 3)
     assert torch.allclose(logits, ref_logits, atol=1e-5) and torch.allclose(h_out, ref_h.reshape(b, u, -1), atol=1e-5)
 
     batch = {"obs": obs, "state": state}
@@ -159,8 +186,6 @@ def test_first_layers_equal_the_concatenated_one_hot_form(critic):
 
 @pytest.mark.parametrize("nvec", [[90], [6, 5, 6, 5, 3]])
 def test_action_head_logp_and_entropy_match_torch_categoricals(nvec):
-    from uavlora_rllib.algorithms.common.gru_actor import ActionHead
-
     head = ActionHead(nvec)
     torch.manual_seed(4)
     logits = torch.randn(3, 4, 2, sum(nvec)) * 2  # [B, T, U, logits]
@@ -218,16 +243,16 @@ def test_policy_resets_gru_state_per_episode():
     torch.manual_seed(2)
     for p in m.actor.parameters():
         p.data.normal_(0, 0.5)
-    policy = RecurrentGreedyPolicy(m.actor, m.head, SMALL, "mappo")
+    policy = ModulePolicy(m, "mappo")
     core = BatchCore(SMALL, 3)
     core.reset(5)
     policy.reset(core)
     fresh = policy.act(core)
-    h_fresh = policy.h.clone()
+    h_fresh = policy.state["h"].clone()
     for _ in range(4):
         policy.act(core)
-    assert not torch.allclose(policy.h, h_fresh)  # state carried across slots
-    logits_carried, _ = m.actor(torch.as_tensor(core.obs, dtype=torch.float32)[:, None], policy.h)
+    assert not torch.allclose(policy.state["h"], h_fresh)  # state carried across slots
+    logits_carried, _ = m.actor(torch.as_tensor(core.obs, dtype=torch.float32)[:, None], policy.state["h"])
     logits_fresh, _ = m.actor(torch.as_tensor(core.obs, dtype=torch.float32)[:, None], m.actor.initial_state(3))
     assert not torch.allclose(logits_carried, logits_fresh)
     policy.reset(core)  # after reset: the same as a fresh policy on the same observations
@@ -284,10 +309,10 @@ def test_trains_a_few_iterations(ray_session, name):
         assert np.isfinite(lr["policy_loss"]) and np.isfinite(lr["vf_loss"])
         module = algo.env_runner.module
         assert module.inference_only and not hasattr(module, "critic")  # env runners: actor only
-        learner_module = algo.learner_group._learner.module["default_policy"]
+        weights = algo.learner_group.get_weights(["default_policy"])["default_policy"]  # public API
         expected = state_dim(SMALL) if name == "mappo" else obs_dim(SMALL)
-        assert learner_module.critic.net[0].in_features == expected + SMALL.n_uavs
-        assert learner_module.critic.value_norm.debias > 0  # value normalisation updated
+        assert weights["critic.net.0.weight"].shape[1] == expected + SMALL.n_uavs
+        assert weights["critic.value_norm.debias"] > 0  # value normalisation updated
         res = run_episodes(registry.get(name).greedy_policy(algo, SMALL), SMALL, episodes=2)
         assert res.mean("ee_sys_mean") > 0
     finally:

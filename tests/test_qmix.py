@@ -15,20 +15,13 @@ from ray.rllib.core.columns import Columns
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 
 from uavlora_rllib.algorithms.common import registry
+from uavlora_rllib.algorithms.common.agent_net import RecurrentAgentNet
+from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE, HIDDEN, TERMINATED
+from uavlora_rllib.algorithms.common.policy import trained_module
 from uavlora_rllib.algorithms.qmix.qmix import QMIXConfig, QMIXHParams, VDNConfig
 from uavlora_rllib.algorithms.qmix.qmix_learner import nstep_targets
-from uavlora_rllib.algorithms.qmix.qmix_module import (
-    HIDDEN,
-    Q_ALL,
-    Q_TOT,
-    STATE,
-    AgentQNet,
-    QMixer,
-    QMixModule,
-    VDNMixer,
-    linear_epsilon,
-)
-from uavlora_rllib.algorithms.qmix.qmix_replay import TERMINATED, EpisodeReplay
+from uavlora_rllib.algorithms.qmix.qmix_module import Q_ALL, Q_TOT, QMixer, QMixModule, VDNMixer, linear_epsilon
+from uavlora_rllib.algorithms.qmix.qmix_replay import EpisodeReplay
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
@@ -131,6 +124,12 @@ def test_epsilon_schedule_and_exploration():
     late = mod.forward_exploration(batch, t=1000)[Columns.ACTIONS]
     assert torch.equal(late, greedy)  # epsilon_end = 0: greedy
     assert (early != greedy).float().mean() > 0.9  # epsilon = 1: uniform over 90 actions
+    # Without a training clock (sampled execution after training): epsilon_end.
+    assert torch.equal(mod.forward_exploration(batch)[Columns.ACTIONS], greedy)
+    half = _module(n_actions=90, epsilon_anneal_env_steps=1000, epsilon_end=0.5)
+    b = half.forward_inference(batch)[Columns.ACTIONS]
+    off = (half.forward_exploration(batch)[Columns.ACTIONS] != b).float().mean()
+    assert 0.4 < off < 0.6  # epsilon 0.5, a random action equals the greedy one 1/90 of the time
 
 
 # ---------------------------------------------------------------------- GRU unroll boundaries
@@ -177,16 +176,21 @@ def test_replay_stores_and_samples_whole_episodes():
 
 
 # ---------------------------------------------------------------------- learner on matrix games
+MATRIX_DIMS = {"n_agents": 2, "obs_dim": 1, "state_dim": 1, "n_actions": 3}  # a 2-agent, 3-action game
+
+
+def _matrix_config(cls, **hparams):
+    """The algorithm's config through its one entry point (`uavlora`), with the game's sizes."""
+    obs_space, act_space = gym.spaces.Box(-1, 1, (2, 1), np.float32), gym.spaces.MultiDiscrete([3, 3])
+    cfg = cls().environment(observation_space=obs_space, action_space=act_space).uavlora(QMIXHParams(**hparams), SMALL)
+    cfg.rl_module(model_config={**cfg.model_config, **MATRIX_DIMS})
+    return cfg, {DEFAULT_MODULE_ID: (obs_space, act_space)}
+
+
 def _matrix_learner(cls, lr=2e-2, seed=0):
     torch.manual_seed(seed)
-    obs_space, act_space = gym.spaces.Box(-1, 1, (2, 1), np.float32), gym.spaces.MultiDiscrete([3, 3])
-    cfg = (
-        cls()
-        .environment(observation_space=obs_space, action_space=act_space)
-        .training(lr=lr, gamma=0.0, tau=1.0)
-        .rl_module(model_config={"n_agents": 2, "obs_dim": 1, "state_dim": 1, "n_actions": 3, "gru_hidden": 16, "fc_hidden": 16})
-    )
-    return cfg.build_learner(spaces={DEFAULT_MODULE_ID: (obs_space, act_space)})
+    cfg, spaces = _matrix_config(cls, lr=lr, gamma=0.0, tau=1.0, gru_hidden=16, fc_hidden=16)
+    return cfg.build_learner(spaces=spaces)
 
 
 def _matrix_batch(payoff, reps=2):
@@ -197,7 +201,7 @@ def _matrix_batch(payoff, reps=2):
         Columns.OBS: np.zeros((b, 2, 2, 1), np.float32),
         Columns.ACTIONS: joint[:, None, :].astype(np.int64),
         Columns.REWARDS: payoff[joint[:, 0], joint[:, 1]][:, None].astype(np.float32),
-        STATE: np.zeros((b, 2, 1), np.float32),
+        GLOBAL_STATE: np.zeros((b, 2, 1), np.float32),
         TERMINATED: np.ones(b, bool),
     }
     return MultiAgentBatch({DEFAULT_MODULE_ID: SampleBatch(data)}, env_steps=b)
@@ -250,14 +254,8 @@ def test_matrix_games_qmix_vs_vdn():
 @pytest.mark.slow
 def test_target_networks_move_by_tau_per_update():
     torch.manual_seed(0)
-    obs_space, act_space = gym.spaces.Box(-1, 1, (2, 1), np.float32), gym.spaces.MultiDiscrete([3, 3])
-    learner = (
-        QMIXConfig()
-        .environment(observation_space=obs_space, action_space=act_space)
-        .training(lr=1e-2, tau=0.01)
-        .rl_module(model_config={"n_agents": 2, "obs_dim": 1, "state_dim": 1, "n_actions": 3, "gru_hidden": 8, "fc_hidden": 8})
-        .build_learner(spaces={DEFAULT_MODULE_ID: (obs_space, act_space)})
-    )
+    cfg, spaces = _matrix_config(QMIXConfig, lr=1e-2, tau=0.01, gru_hidden=8, fc_hidden=8)
+    learner = cfg.build_learner(spaces=spaces)
     mod = learner.module[DEFAULT_MODULE_ID]
     pairs = mod.get_target_network_pairs()
     batch = _matrix_batch(np.arange(9.0).reshape(3, 3))
@@ -281,7 +279,7 @@ def test_target_networks_move_by_tau_per_update():
 def ray_session():
     import ray
 
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     yield
     ray.shutdown()
 
@@ -342,7 +340,8 @@ def test_result_metrics(trained):
     assert algo.get_module().epsilon(steps) == pytest.approx(result["epsilon"])
     assert algo.get_module().epsilon(0) == 1.0
     assert np.isfinite(result["env_runners"]["episode_return_mean"])
-    assert result["sampled_ee_sys_mean"] > 0 and 0 <= result["sampled_success_rate"] <= 1
+    runners = result["env_runners"]  # the paper's metrics of the sampled episodes (common/metrics.py)
+    assert runners["ee_sys_mean"] > 0 and 0 <= runners["success_rate"] <= 1
     assert result["replay_episodes"] == 32 and result["episodes_dropped_lifetime"] == 0
 
 
@@ -350,7 +349,7 @@ def test_result_metrics(trained):
 def test_replay_sequences_start_at_episode_starts(trained):
     algo, _, _ = trained["qmix"]
     s = algo._replay.sample(16)
-    t_feature = s[STATE][..., -1]  # the global state's last feature is t / T
+    t_feature = s[GLOBAL_STATE][..., -1]  # the global state's last feature is t / T
     np.testing.assert_allclose(t_feature, np.broadcast_to(np.arange(21) / 20, t_feature.shape), atol=1e-6)
     assert s[Columns.OBS].shape == (16, 21, 2, algo.config.model_config["obs_dim"])
 
@@ -361,7 +360,7 @@ def test_env_runner_gru_state_is_zero_at_episode_start(trained):
     two sample() calls, i.e. across an autoreset) equal the argmax of a from-zero unroll."""
     algo, _, _ = trained["qmix"]
     runner = algo.env_runner
-    mod = algo.learner_group._learner.module[DEFAULT_MODULE_ID]
+    mod = trained_module(algo)  # the learner's weights (public APIs)
     episodes = runner.sample(explore=False) + runner.sample(explore=False)
     assert len(episodes) == 2 * CI_ENVS
     for ep in episodes:
@@ -377,9 +376,10 @@ def test_env_runners_hold_only_the_agent_network(trained):
     runner_mod = algo.get_module()
     assert runner_mod.inference_only
     assert not hasattr(runner_mod, "mixer") and not hasattr(runner_mod, "_target_agent")
-    learner_agent = algo.learner_group._learner.module[DEFAULT_MODULE_ID].agent.state_dict()
+    learner_weights = algo.learner_group.get_weights([DEFAULT_MODULE_ID])[DEFAULT_MODULE_ID]
+    assert any(k.startswith("mixer.") for k in learner_weights)  # the learner does hold the mixer
     for k, v in runner_mod.agent.state_dict().items():  # weights were synced after the last update
-        torch.testing.assert_close(v, learner_agent[k])
+        torch.testing.assert_close(v, torch.as_tensor(learner_weights["agent." + k]))
 
 
 @pytest.mark.slow
@@ -414,7 +414,7 @@ def test_checkpoint_round_trip(trained, tmp_path):
 
 
 def test_agent_net_shapes_without_sharing():
-    net = AgentQNet(3, 5, 7, 6, 4, share=False)
+    net = RecurrentAgentNet(5, 3, 7, fc_hidden=6, gru_hidden=4, share=False)
     q, h = net(torch.randn(2, 9, 3, 5), torch.zeros(2, 3, 4))
     assert q.shape == (2, 9, 3, 7) and h.shape == (2, 3, 4)
-    assert len(net.gru) == 3
+    assert len(net.nets) == 3

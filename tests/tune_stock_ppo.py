@@ -56,7 +56,11 @@ def _build(name: str, scenario, hp: StockPPOHparams, resources: registry.Resourc
             num_envs_per_env_runner=resources.num_envs_per_env_runner,
             num_cpus_per_env_runner=resources.num_cpus_per_env_runner,
         )
-        .learners(num_learners=0, num_cpus_per_learner=resources.num_cpus_per_learner)
+        .learners(
+            num_learners=resources.num_learners,
+            num_gpus_per_learner=resources.num_gpus_per_learner,
+            num_cpus_per_learner=resources.num_cpus_per_learner,
+        )
         .rl_module(model_config=DefaultModelConfig(fcnet_hiddens=[hp.hidden]))
         .training(
             lr=hp.lr,
@@ -69,13 +73,18 @@ def _build(name: str, scenario, hp: StockPPOHparams, resources: registry.Resourc
     )
 
 
-class GreedyModulePolicy:
-    """Decentralised greedy execution: each UAV's own observation -> argmax of the shared module."""
+class SharedModulePolicy:
+    """Decentralised execution: each UAV's own observation -> the shared module's logits ->
+    argmax (greedy) or a draw from the softmax (explore=True, from the policy's own generator)."""
 
-    def __init__(self, module, scenario):
-        self.name = "stock_ppo_greedy"
+    def __init__(self, module, scenario, explore: bool = False, seed: int = 0):
+        import torch
+
+        self.name = "stock_ppo_sampled" if explore else "stock_ppo_greedy"
         self.module = module
         self.scenario = scenario
+        self.explore = explore
+        self.gen = torch.Generator().manual_seed(int(seed))
 
     def reset(self, core) -> None:
         pass
@@ -87,12 +96,17 @@ class GreedyModulePolicy:
         n, u, d = obs.shape
         with torch.no_grad():
             out = self.module.forward_inference({"obs": torch.from_numpy(obs.reshape(n * u, d))})
-        logits = out["action_dist_inputs"].numpy()
-        return logits.argmax(axis=-1).reshape(n, u).astype(np.int64)
+        logits = out["action_dist_inputs"]
+        if self.explore:
+            actions = torch.multinomial(torch.softmax(logits, -1), 1, generator=self.gen)[:, 0]
+        else:
+            actions = logits.argmax(-1)
+        return actions.numpy().reshape(n, u).astype(np.int64)
 
 
-def greedy_policy(algo, scenario):
-    return GreedyModulePolicy(algo.get_module(SHARED), scenario)
+def make_policy(algo, scenario, explore: bool = False, seed: int = 0):
+    # the env runner's module, synced after every update (stock PPO, one local env runner)
+    return SharedModulePolicy(algo.get_module(SHARED), scenario, explore=explore, seed=seed)
 
 
 def _entry(name: str) -> registry.AlgorithmEntry:
@@ -100,7 +114,7 @@ def _entry(name: str) -> registry.AlgorithmEntry:
         return _build(name, scenario, hp, resources, seed)
 
     return registry.AlgorithmEntry(
-        name=name, hparams_cls=StockPPOHparams, action_modes=("per_uav",), build=build, greedy_policy=greedy_policy
+        name=name, hparams_cls=StockPPOHparams, action_modes=("per_uav",), build=build, make_policy=make_policy
     )
 
 

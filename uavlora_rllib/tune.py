@@ -60,7 +60,14 @@ EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="python -m uavlora_rllib.tune", description=__doc__.split("\n\n")[0])
-    p.add_argument("grid", help="grid YAML (see tune_configs/)")
+    p.add_argument("grid", nargs="?", help="grid YAML (see tune_configs/)")
+    p.add_argument(
+        "--list-hparams",
+        metavar="ALGO",
+        default=None,
+        help="print ALGO's hyperparameters (grid YAML algorithms.ALGO: ...) with types, defaults, units and "
+        f"descriptions, and exit; ALGO one of {sorted(registry.MODULES)}",
+    )
     p.add_argument("--resume", action="store_true", help="continue the grid's Tune experiment")
     p.add_argument("--dry-run", action="store_true", help="print the trials and baseline runs, start nothing")
     p.add_argument("--address", default=None, help="Ray cluster address (default: start a local Ray)")
@@ -325,6 +332,15 @@ def run_grid(grid: GridConfig, grid_file: str, args: argparse.Namespace) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
+        if args.list_hparams is not None:
+            from uavlora_rllib.algorithms.common.config import describe_hparams
+
+            entry = registry.get(args.list_hparams, path="--list-hparams")
+            print(f"{entry.name}: hyperparameters (grid YAML `algorithms.{entry.name}:`)\n")
+            print(describe_hparams(entry.hparams_cls))
+            return EXIT_OK
+        if args.grid is None:
+            raise UsageError("grid: a grid YAML is required (or --list-hparams ALGO)")
         grid = load_grid(args.grid)
         specs = trials(grid)
         if args.dry_run:

@@ -9,7 +9,9 @@ N scenarios through one vectorised BatchCore. One training iteration:
   2. one learner update: critic TD(lambda) loss + counterfactual actor loss (coma_learner.py),
   3. target critic update (soft tau per update, or hard every K updates),
   4. sync the actor's weights to the env runners (inference-only: they never hold the critic).
-Networks: coma_module.py. Hyperparameters: `COMAHParams` (grid YAML `algorithms.coma`).
+Networks: coma_module.py. Hyperparameters: `COMAHParams` (grid YAML `algorithms.coma`,
+`--list-hparams coma`). Execution (common/policy.py): greedy = argmax of each UAV's actor
+logits; sampled = a draw from the actor's softmax, the stochastic policy COMA trains.
 Only the per_uav action mode is supported (the critic outputs one Q per action of a UAV,
 which needs a single Discrete action per agent).
 
@@ -21,16 +23,14 @@ SF/TP/BW-factored Q head; per-UAV actor output layers. Evidence in tests/test_co
 
 from __future__ import annotations
 
-from typing import Any
-
-import numpy as np
 import torch
 import tree
 from pydantic import Field
 from pydantic.dataclasses import dataclass as typed_dataclass
 from ray.rllib.algorithms.algorithm import Algorithm
-from ray.rllib.algorithms.algorithm_config import AlgorithmConfig, NotProvided
+from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
+from ray.rllib.utils.annotations import override
 from ray.rllib.utils.metrics import (
     ENV_RUNNER_RESULTS,
     ENV_RUNNER_SAMPLING_TIMER,
@@ -42,117 +42,127 @@ from ray.rllib.utils.metrics import (
 )
 
 from uavlora_rllib.algorithms.coma.coma_learner import COMAEpisodeBatch, COMATorchLearner
-from uavlora_rllib.algorithms.coma.coma_module import COMAActor, COMATorchRLModule
-from uavlora_rllib.algorithms.common.recurrent_policy import RecurrentPolicy, argmax_actions
+from uavlora_rllib.algorithms.coma.coma_module import COMATorchRLModule
+from uavlora_rllib.algorithms.common.config import HParamsConfig, team_config
 from uavlora_rllib.algorithms.common.registry import AlgorithmEntry, Resources, register
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.sim.core import obs_dim, state_dim
 from uavlora_rllib.sim.scenario import ScenarioConfig
-from uavlora_rllib.envs.team import sample_through_team_env
 
 NAME = "coma"
 
 
 @typed_dataclass(config={"extra": "forbid", "frozen": True})
 class COMAHParams:
-    """COMA's hyperparameters; defaults from SPEC.md's training table where it has them."""
+    """COMA's hyperparameters; defaults from the paper's training table where it has them."""
 
-    lr_actor: float = Field(1e-4, gt=0)  # Adam step size of the actor (SPEC: lr 1e-4)
-    # Adam step size of the critic. SPEC's lr 1e-4 is the actor's; the critic must track the
-    # changing policy within the paper's ~830 updates (2M steps / 2,400 per batch), so it
-    # gets pymarl's COMA critic lr, 5e-4 (a decision, see the report / docs).
-    lr_critic: float = Field(5e-4, gt=0)
-    gamma: float = Field(0.99, gt=0, le=1)  # discount per slot
-    td_lambda: float = Field(0.8, ge=0, le=1)  # lambda of the critic's TD(lambda) targets (Foerster et al.: 0.8)
-    entropy_coeff: float = Field(0.01, ge=0)  # weight of the mean per-agent policy entropy (nats) in the actor loss
-    grad_clip: float = Field(10.0, gt=0)  # max global L2 norm of the gradient, per optimizer (actor, critic)
-    batch_episodes: int = Field(16, ge=1)  # whole episodes per update (SPEC: batch 16)
-    tau: float = Field(0.01, gt=0, le=1)  # Polyak weight of the target critic per update (SPEC: 0.01)
-    target_hard_update_every: int = Field(0, ge=0)  # > 0: hard copy every K updates instead of Polyak
-    actor_hidden: int = Field(128, ge=1)  # width of the actor's ReLU layer before the GRU
-    gru_hidden: int = Field(128, ge=1)  # GRU state size (SPEC: 128)
-    # each UAV also gets its own linear output layer (added to the shared head's logits)
-    actor_agent_heads: bool = True
-    critic_hidden: tuple[int, ...] = (128, 128)  # ReLU layers of the critic MLP
-    critic_use_obs: bool = True  # also give the critic UAV u's own observation row
-    # use the (SF, TP, BW) structure of an action in the critic: the other UAVs' actions also
-    # enter as one-hot SF/TP/BW, and u's 90 outputs share per-SF/TP/BW terms (coma_module.QHead)
-    critic_factored_actions: bool = True
-    # Q = V + (D - mean D) head (see coma_module.QHead): untried actions start at the state's value
-    critic_dueling: bool = True
-    # critic-only gradient steps on each batch before the joint critic + actor step (0: joint only)
-    # 4: the critic sees each batch 5 times per update and goes first, as in the paper.
-    critic_steps: int = Field(4, ge=0)
-    # updates (batches) at the start that train the critic only (actor loss zeroed); 0 = off
-    critic_warmup_updates: int = Field(0, ge=0)
-    normalize_advantages: bool = False  # standardise A over the batch (not in COMA; off by default)
-    reward_scale: float = Field(1.0, gt=0)  # rewards are multiplied by this in the critic targets
+    lr_actor: float = Field(1e-4, gt=0, description="Adam step size of the actor [1/update] (paper: lr 1e-4)")
+    lr_critic: float = Field(
+        5e-4,
+        gt=0,
+        description="Adam step size of the critic [1/update] (decision: pymarl's COMA critic lr; the paper's "
+        "1e-4 is the actor's, and the critic must track the policy within ~830 updates)",
+    )
+    gamma: float = Field(0.99, gt=0, le=1, description="discount per slot [-]")
+    td_lambda: float = Field(0.8, ge=0, le=1, description="lambda of the critic's TD(lambda) targets [-] (Foerster et al.)")
+    entropy_coeff: float = Field(0.01, ge=0, description="weight of the mean per-agent policy entropy in the actor loss [1/nat]")
+    grad_clip: float = Field(10.0, gt=0, description="max global L2 gradient norm, per optimizer (actor, critic) [-]")
+    batch_episodes: int = Field(
+        16, ge=1, description="whole episodes per update [episodes] (paper: batch 16); a multiple of all envs"
+    )
+    tau: float = Field(0.01, gt=0, le=1, description="Polyak weight of the target critic per update [-] (paper)")
+    target_hard_update_every: int = Field(
+        0, ge=0, description="> 0: hard target copy every K updates instead of Polyak [updates]"
+    )
+    actor_hidden: int = Field(128, ge=1, description="width of the actor's ReLU layer before the GRU [units]")
+    gru_hidden: int = Field(128, ge=1, description="GRU width of the actor [units] (paper)")
+    actor_agent_heads: bool = Field(
+        True, description="each UAV also gets its own linear output layer, added to the shared one [bool]"
+    )
+    critic_hidden: tuple[int, ...] = Field((128, 128), description="ReLU layer widths of the critic MLP [units]")
+    critic_use_obs: bool = Field(True, description="also give the critic UAV u's own observation row [bool]")
+    critic_factored_actions: bool = Field(
+        True,
+        description="use the (SF, TP, BW) structure of an action in the critic: other UAVs' actions also as "
+        "one-hot SF/TP/BW, and u's outputs share per-SF/TP/BW terms [bool]",
+    )
+    critic_dueling: bool = Field(
+        True, description="Q = V + (D - mean D) head: untried actions start at the state's value [bool]"
+    )
+    critic_steps: int = Field(
+        4, ge=0, description="critic-only gradient steps on each batch before the joint step [steps] (critic first, as in the paper)"
+    )
+    critic_warmup_updates: int = Field(0, ge=0, description="first updates that train the critic only [updates]; 0: off")
+    normalize_advantages: bool = Field(False, description="standardise the advantages over the batch [bool] (not in COMA)")
+    reward_scale: float = Field(1.0, gt=0, description="factor on the rewards in the critic targets [-]")
+
+    def check(self, scenario: ScenarioConfig, resources: Resources, path: str) -> None:
+        """COMA learns from whole episodes, sampled in whole rounds of all envs of all runners."""
+        runners = max(1, resources.num_env_runners)
+        if self.batch_episodes % (runners * resources.num_envs_per_env_runner):
+            raise ConfigError(
+                f"{path}.batch_episodes: {self.batch_episodes} is not a multiple of num_env_runners "
+                f"({runners}) x num_envs_per_env_runner ({resources.num_envs_per_env_runner}); COMA learns from "
+                "whole episodes, sampled in whole rounds of all envs"
+            )
 
 
 def _coma_learner_connector(obs_space, act_space) -> list:
     return [COMAEpisodeBatch()]
 
 
-class COMAConfig(AlgorithmConfig):
-    """AlgorithmConfig of COMA; `.coma(hparams)` sets its hyperparameters."""
+class COMAConfig(HParamsConfig, AlgorithmConfig):
+    """AlgorithmConfig of COMA; hyperparameters: COMAHParams through `uavlora(...)`."""
+
+    hparams_cls = COMAHParams
 
     def __init__(self, algo_class=None):
         super().__init__(algo_class=algo_class or COMA)
-        self.coma_hparams: dict[str, Any] = dict(COMAHParams().__dict__)
+        self.hparams = COMAHParams()
         self.torch_threads = 1
         self.uavlora_algorithm = NAME
         self.batch_mode = "complete_episodes"
+        # COMA's batch is whole episodes stacked by COMAEpisodeBatch, not RLlib's chunking.
         self.add_default_connectors_to_learner_pipeline = False
-        self._learner_connector = _coma_learner_connector
-        self.coma(COMAHParams())
+        self.learners(learner_connector=_coma_learner_connector)
 
-    def coma(self, hparams: COMAHParams | None = NotProvided, torch_threads: int = NotProvided) -> "COMAConfig":
-        if hparams is not NotProvided:
-            if not isinstance(hparams, COMAHParams):
-                raise TypeError(f"hparams: expected COMAHParams, got {type(hparams).__name__}")
-            hp = dict(hparams.__dict__)
-            self.coma_hparams = hp
-            self.gamma = hp["gamma"]
-            self.lr = hp["lr_actor"]
-            self.grad_clip = hp["grad_clip"]
-            self.grad_clip_by = "global_norm"
-            self.learner_config_dict = {**self.learner_config_dict, **hp}
-        if torch_threads is not NotProvided:
-            self.torch_threads = int(torch_threads)
-        return self
+    @override(HParamsConfig)
+    def apply_hparams(self, h: COMAHParams, scenario: ScenarioConfig) -> dict:
+        self.training(
+            lr=h.lr_actor,
+            gamma=h.gamma,
+            grad_clip=h.grad_clip,
+            grad_clip_by="global_norm",
+            train_batch_size_per_learner=h.batch_episodes * scenario.episode_len,
+        )
+        factors = [scenario.n_sf, scenario.n_tp, scenario.n_bw] if h.critic_factored_actions else []
+        return {"action_factors": factors, "critic_hidden": list(h.critic_hidden)}
 
+    @override(AlgorithmConfig)
     def get_default_rl_module_spec(self) -> RLModuleSpec:
         return RLModuleSpec(module_class=COMATorchRLModule)
 
+    @override(AlgorithmConfig)
     def get_default_learner_class(self):
         return COMATorchLearner
-
-    def validate(self) -> None:
-        super().validate()
-        runners = max(1, self.num_env_runners)
-        per_runner, rest = divmod(self.coma_hparams["batch_episodes"], runners)
-        if rest or per_runner % self.num_envs_per_env_runner:
-            raise ConfigError(
-                f"algorithms.coma.batch_episodes: {self.coma_hparams['batch_episodes']} must split into whole rounds "
-                f"of all envs: a multiple of num_env_runners ({runners}) x num_envs_per_env_runner "
-                f"({self.num_envs_per_env_runner}); COMA learns from whole episodes only"
-            )
 
 
 class COMA(Algorithm):
     @classmethod
+    @override(Algorithm)
     def get_default_config(cls) -> COMAConfig:
         return COMAConfig()
 
+    @override(Algorithm)
     def setup(self, config) -> None:
         torch.set_num_threads(int(getattr(config, "torch_threads", 1) or 1))
         super().setup(config)
 
+    @override(Algorithm)
     def training_step(self) -> None:
         with self.metrics.log_time((TIMERS, ENV_RUNNER_SAMPLING_TIMER)):
             episodes, runner_metrics = self._sample_episodes()
         self.metrics.aggregate(runner_metrics, key=ENV_RUNNER_RESULTS)
-        self._log_episode_physics(episodes)
+        self.metrics.log_value("num_episodes_trained", len(episodes), reduce="sum")
 
         with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
             learner_results = self.learner_group.update(
@@ -179,7 +189,7 @@ class COMA(Algorithm):
         returns whole episodes only and continues with fresh seeds on the next call."""
         cfg = self.config
         runners = max(1, cfg.num_env_runners)
-        steps = cfg.coma_hparams["batch_episodes"] // runners * self._episode_len
+        steps = cfg.hparams.batch_episodes // runners * self._episode_len
         out = self.env_runner_group.foreach_env_runner(
             lambda runner: (runner.sample(num_timesteps=steps, explore=True), runner.get_metrics()),
             local_env_runner=self.env_runner_group.num_remote_workers() <= 0,
@@ -191,100 +201,14 @@ class COMA(Algorithm):
     def _episode_len(self) -> int:
         return ScenarioConfig.from_dict(self.config.env_config["scenario"]).episode_len
 
-    def _log_episode_physics(self, episodes) -> None:
-        """Per-slot means over the sampled episodes of the paper's metrics (from the infos)."""
-        ee, xi = [], []
-        for ep in episodes:
-            infos = ep.get_infos()[1:]  # infos[0] comes from reset (no slot played yet)
-            ee.append(np.mean([i["ee_sys"] for i in infos if "ee_sys" in i]))
-            xi.append(np.mean([i["success_rate"] for i in infos if "success_rate" in i]))
-        if ee:
-            self.metrics.log_value("ee_sys_mean", float(np.mean(ee)), window=1)
-            self.metrics.log_value("success_rate", float(np.mean(xi)), window=1)
-        self.metrics.log_value("num_episodes_trained", len(episodes), reduce="sum")
-
 
 # ------------------------------------------------------------------ registry
 def build(scenario: ScenarioConfig, hparams: COMAHParams | dict | None, resources: Resources, seed: int) -> COMAConfig:
-    entry = ENTRY
     if not isinstance(hparams, COMAHParams):
-        hparams = entry.hparams(hparams)
-    entry.check_scenario(scenario)
-    runners = max(1, resources.num_env_runners)
-    if hparams.batch_episodes % (runners * resources.num_envs_per_env_runner):
-        raise ConfigError(
-            f"algorithms.coma.batch_episodes: {hparams.batch_episodes} is not a multiple of num_env_runners "
-            f"({runners}) x num_envs_per_env_runner ({resources.num_envs_per_env_runner}); COMA learns from "
-            "whole episodes, sampled in whole rounds of all envs"
-        )
-    return (
-        sample_through_team_env(COMAConfig(), scenario, resources, NAME)
-        .framework("torch")
-        .learners(num_learners=0, num_cpus_per_learner=resources.num_cpus_per_learner)
-        .training(train_batch_size_per_learner=hparams.batch_episodes * scenario.episode_len)
-        .coma(hparams, torch_threads=resources.torch_threads)
-        .rl_module(
-            model_config={
-                "state_dim": state_dim(scenario),
-                "actor_hidden": hparams.actor_hidden,
-                "gru_hidden": hparams.gru_hidden,
-                "actor_agent_heads": hparams.actor_agent_heads,
-                "critic_hidden": list(hparams.critic_hidden),
-                "critic_use_obs": hparams.critic_use_obs,
-                "critic_dueling": hparams.critic_dueling,
-                "action_factors": (
-                    [scenario.n_sf, scenario.n_tp, scenario.n_bw] if hparams.critic_factored_actions else []
-                ),
-                "torch_threads": resources.torch_threads,
-            }
-        )
-        .debugging(seed=seed)
-    )
+        hparams = ENTRY.hparams(hparams)
+    ENTRY.check_scenario(scenario)
+    return team_config(COMAConfig(), NAME, scenario, hparams, resources, seed)
 
 
-class COMAGreedyPolicy(RecurrentPolicy):
-    """evaluation.Policy: a CPU copy of the trained actor, argmax actions, GRU state per episode.
-
-    `sample_seed` given: sample from the policy instead (the stochastic policy COMA trains),
-    from a torch Generator seeded with it; used for diagnostics, not by the registry."""
-
-    def __init__(self, actor: COMAActor, cfg: ScenarioConfig, name: str = NAME, sample_seed: int | None = None):
-        pick = argmax_actions if sample_seed is None else _sampler(torch.Generator().manual_seed(sample_seed))
-        super().__init__(actor, pick, actor.initial_state, name)
-        self.actor, self.cfg = actor, cfg
-
-
-def _sampler(gen: torch.Generator):
-    def pick(logits: torch.Tensor) -> torch.Tensor:
-        probs = torch.softmax(logits, dim=-1).reshape(-1, logits.shape[-1])
-        return torch.multinomial(probs, 1, generator=gen).reshape(logits.shape[:-1])
-
-    return pick
-
-
-def actor_from_algo(algo: Algorithm, scenario: ScenarioConfig) -> COMAActor:
-    """A CPU copy of the actor with the learner's weights (current after training and restore)."""
-    state = algo.learner_group.get_state(components="learner/rl_module")["learner"]["rl_module"]
-    weights = next(iter(state.values()))
-    mc = algo.config.model_config
-    actor = COMAActor(
-        obs_dim(scenario),
-        scenario.n_uavs,
-        scenario.n_joint_actions,
-        int(mc["actor_hidden"]),
-        int(mc["gru_hidden"]),
-        bool(mc.get("actor_agent_heads", False)),
-    )
-    prefix = "actor."
-    actor.load_state_dict({k[len(prefix) :]: torch.as_tensor(v) for k, v in weights.items() if k.startswith(prefix)})
-    return actor
-
-
-def greedy_policy(algo: Algorithm, scenario: ScenarioConfig) -> COMAGreedyPolicy:
-    return COMAGreedyPolicy(actor_from_algo(algo, scenario), scenario)
-
-
-ENTRY = AlgorithmEntry(
-    name=NAME, hparams_cls=COMAHParams, action_modes=("per_uav",), build=build, greedy_policy=greedy_policy
-)
+ENTRY = AlgorithmEntry(name=NAME, hparams_cls=COMAHParams, action_modes=("per_uav",), build=build)
 register(ENTRY)

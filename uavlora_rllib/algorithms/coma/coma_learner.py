@@ -29,12 +29,14 @@ import torch
 from ray.rllib.connectors.connector_v2 import ConnectorV2
 from ray.rllib.core import DEFAULT_MODULE_ID
 from ray.rllib.core.learner.torch.torch_learner import TorchLearner
+from ray.rllib.utils.annotations import override
 from ray.rllib.utils.torch_utils import update_target_network
+
+from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE
 
 from uavlora_rllib.algorithms.coma.coma_module import (
     ACTIONS,
     BOOTSTRAP,
-    GLOBAL_STATE,
     LOGITS,
     OBS,
     Q_TARGET,
@@ -43,7 +45,6 @@ from uavlora_rllib.algorithms.coma.coma_module import (
     counterfactual_advantage,
     td_lambda_targets,
 )
-from uavlora_rllib.envs.multi_agent import STATE_KEY
 
 ACTOR_OPT, CRITIC_OPT = "actor", "critic"
 
@@ -51,6 +52,7 @@ ACTOR_OPT, CRITIC_OPT = "actor", "critic"
 class COMAEpisodeBatch(ConnectorV2):
     """Learner connector: B complete episodes -> {module: {obs, actions, rewards, global_state}}."""
 
+    @override(ConnectorV2)
     def __call__(self, *, rl_module, batch, episodes, explore=None, shared_data=None, metrics=None, **kwargs):
         if not episodes:
             raise ValueError("COMA: the learner got no episodes")
@@ -65,7 +67,7 @@ class COMAEpisodeBatch(ConnectorV2):
         actions = np.stack([np.asarray(ep.get_actions(), dtype=np.int64) for ep in episodes])
         rewards = np.stack([np.asarray(ep.get_rewards(), dtype=np.float32) for ep in episodes])
         state = np.stack(
-            [np.stack([np.asarray(i[STATE_KEY], dtype=np.float32) for i in ep.get_infos()]) for ep in episodes]
+            [np.stack([np.asarray(i[GLOBAL_STATE], dtype=np.float32) for i in ep.get_infos()]) for ep in episodes]
         )
         # CPU tensors; COMATorchLearner._update moves them to the learner's device.
         cols = {OBS: obs, ACTIONS: actions, REWARDS: rewards, GLOBAL_STATE: state}
@@ -73,16 +75,20 @@ class COMAEpisodeBatch(ConnectorV2):
 
 
 class COMATorchLearner(TorchLearner):
-    """Losses of COMA; hyperparameters arrive in config.learner_config_dict (see coma.py)."""
+    """Losses of COMA; hyperparameters from the typed config.hparams (COMAHParams, coma.py)."""
 
+    @override(TorchLearner)
     def build(self) -> None:
         super().build()
         self._updates = 0
 
+    # The one private hook overridden: COMA's critic-only steps must run on the batch between
+    # the learner connector and the joint forward pass, and no public hook sits there.
+    @override(TorchLearner)
     def _update(self, batch: dict[str, Any]):
-        if self._device is not None and str(self._device) != "cpu":
-            batch = {mid: {k: v.to(self._device) for k, v in cols.items()} for mid, cols in batch.items()}
-        steps = self.config.learner_config_dict["critic_steps"]
+        if self.device is not None and str(self.device) != "cpu":
+            batch = {mid: {k: v.to(self.device) for k, v in cols.items()} for mid, cols in batch.items()}
+        steps = self.config.hparams.critic_steps
         if steps:
             for module_id, cols in batch.items():
                 self._critic_only_steps(module_id, cols, steps)
@@ -93,7 +99,7 @@ class COMATorchLearner(TorchLearner):
         actor's advantage comes from a critic that has already seen the batch (the paper
         trains the critic first). TD(lambda) targets are fixed: the target critic does not
         move within a batch."""
-        hp = self.config.learner_config_dict
+        hp = self.config.hparams
         module = self.module[module_id].unwrapped()
         optim = self.get_optimizer(module_id, CRITIC_OPT)
         params = [p for group in optim.param_groups for p in group["params"]]
@@ -102,7 +108,7 @@ class COMATorchLearner(TorchLearner):
             actions = cols[ACTIONS].long()
             q_target_taken = torch.gather(fwd[Q_TARGET], -1, actions.unsqueeze(-1)).squeeze(-1)
             targets = td_lambda_targets(
-                cols[REWARDS] * hp["reward_scale"], q_target_taken, fwd[BOOTSTRAP], hp["gamma"], hp["td_lambda"]
+                cols[REWARDS] * hp.reward_scale, q_target_taken, fwd[BOOTSTRAP], hp.gamma, hp.td_lambda
             )
         obs, state = cols[OBS][:, : actions.shape[1]], cols[GLOBAL_STATE][:, : actions.shape[1]]
         for _ in range(steps):
@@ -110,13 +116,14 @@ class COMATorchLearner(TorchLearner):
             loss = ((torch.gather(q, -1, actions.unsqueeze(-1)).squeeze(-1) - targets) ** 2).mean()
             optim.zero_grad(set_to_none=True)
             loss.backward()
-            torch.nn.utils.clip_grad_norm_(params, hp["grad_clip"])
+            torch.nn.utils.clip_grad_norm_(params, hp.grad_clip)
             optim.step()
         self.metrics.log_value((module_id, "critic_loss_before_joint_step"), loss.detach(), window=1)
 
+    @override(TorchLearner)
     def configure_optimizers_for_module(self, module_id, config=None) -> None:
         module = self.module[module_id]
-        hp = self.config.learner_config_dict
+        hp = self.config.hparams
         actor_params = list(module.actor.parameters())
         critic_params = list(module.critic.parameters())
         self.register_optimizer(
@@ -124,25 +131,26 @@ class COMATorchLearner(TorchLearner):
             optimizer_name=ACTOR_OPT,
             optimizer=torch.optim.Adam(actor_params),
             params=actor_params,
-            lr_or_lr_schedule=hp["lr_actor"],
+            lr_or_lr_schedule=hp.lr_actor,
         )
         self.register_optimizer(
             module_id=module_id,
             optimizer_name=CRITIC_OPT,
             optimizer=torch.optim.Adam(critic_params),
             params=critic_params,
-            lr_or_lr_schedule=hp["lr_critic"],
+            lr_or_lr_schedule=hp.lr_critic,
         )
 
+    @override(TorchLearner)
     def compute_loss_for_module(self, *, module_id, config, batch: dict[str, Any], fwd_out: dict[str, Any]):
-        hp = self.config.learner_config_dict
-        actions, rewards = batch[ACTIONS].long(), batch[REWARDS] * hp["reward_scale"]
+        hp = self.config.hparams
+        actions, rewards = batch[ACTIONS].long(), batch[REWARDS] * hp.reward_scale
         steps = actions.shape[1]
         q, q_target = fwd_out[Q_VALUES], fwd_out[Q_TARGET]  # [B, T, U, A]
         # Critic: TD(lambda) targets from the target critic.
         q_target_taken = torch.gather(q_target, -1, actions.unsqueeze(-1)).squeeze(-1)  # [B, T, U]
         targets = td_lambda_targets(
-            rewards, q_target_taken, fwd_out[BOOTSTRAP], hp["gamma"], hp["td_lambda"]
+            rewards, q_target_taken, fwd_out[BOOTSTRAP], hp.gamma, hp.td_lambda
         ).detach()
         q_taken = torch.gather(q, -1, actions.unsqueeze(-1)).squeeze(-1)
         critic_loss = ((q_taken - targets) ** 2).mean()
@@ -151,12 +159,12 @@ class COMATorchLearner(TorchLearner):
         logp_all = torch.log_softmax(logits, dim=-1)
         pi = logp_all.exp()
         adv, baseline, _ = counterfactual_advantage(q, pi, actions)
-        if hp["normalize_advantages"]:
+        if hp.normalize_advantages:
             adv = (adv - adv.mean()) / (adv.std() + 1e-8)
         logp = torch.gather(logp_all, -1, actions.unsqueeze(-1)).squeeze(-1)
         entropy = -(pi * logp_all).sum(-1).mean()
-        actor_loss = -(adv * logp).mean() - hp["entropy_coeff"] * entropy
-        if self._updates < hp["critic_warmup_updates"]:
+        actor_loss = -(adv * logp).mean() - hp.entropy_coeff * entropy
+        if self._updates < hp.critic_warmup_updates:
             actor_loss = actor_loss * 0.0  # critic only: the advantage is meaningless before it fits
         self.metrics.log_dict(
             {
@@ -173,16 +181,17 @@ class COMATorchLearner(TorchLearner):
         )
         return critic_loss + actor_loss
 
+    @override(TorchLearner)
     def after_gradient_based_update(self, *, timesteps: dict[str, Any]) -> None:
         super().after_gradient_based_update(timesteps=timesteps)
-        hp = self.config.learner_config_dict
+        hp = self.config.hparams
         self._updates += 1
-        hard_every = hp["target_hard_update_every"]
+        hard_every = hp.target_hard_update_every
         for module_id in self.module.keys():
             module = self.module[module_id].unwrapped()
             if hard_every:
                 if self._updates % hard_every == 0:
                     update_target_network(main_net=module.critic, target_net=module.target_critic, tau=1.0)
             else:
-                update_target_network(main_net=module.critic, target_net=module.target_critic, tau=hp["tau"])
+                update_target_network(main_net=module.critic, target_net=module.target_critic, tau=hp.tau)
             self.metrics.log_value((module_id, "num_critic_updates"), self._updates, window=1)

@@ -1,12 +1,12 @@
 """COMA's networks (Foerster et al., AAAI 2018) as one RLlib RLModule, and its pure maths.
 
-Layout of the team view (uavlora_rllib/team_env.py): observation [U, obs_dim] (row u is UAV
+Layout of the team view (uavlora_rllib/envs/team.py): observation [U, obs_dim] (row u is UAV
 u's LOCAL observation), action MultiDiscrete([A] * U) with A = 90 (per_uav), shared reward,
 global state under info["state"].
 
-* Actor (decentralised, shared by all UAVs): row u of the observation, concatenated with
-  the one-hot id of u, -> Linear + ReLU (actor_hidden) -> GRU (gru_hidden) -> Linear -> A
-  logits; with `actor_agent_heads` each UAV adds its own linear output layer to the shared
+* Actor (the common `RecurrentAgentNet`, decentralised, shared by all UAVs): row u of the
+  observation, concatenated with the one-hot id of u, -> Linear + ReLU (actor_hidden) -> GRU
+  (gru_hidden) -> Linear -> A logits; with `actor_agent_heads` each UAV adds its own linear output layer to the shared
   one's logits (everything before the output layer stays shared). Why: the UAVs must pick
   DIFFERENT SFs (same-SF EDs interfere), and with a fully shared net the two argmaxes kept
   landing on the same SF (greedy EE ~0.35x random on the small scenario, 3 seeds, up to
@@ -32,16 +32,20 @@ from typing import Any
 import numpy as np
 import torch
 from ray.rllib.core.columns import Columns
-from ray.rllib.core.distribution.torch.torch_distribution import TorchMultiCategorical
 from ray.rllib.core.rl_module.apis import InferenceOnlyAPI
+from ray.rllib.core.rl_module.rl_module import RLModule
 from ray.rllib.core.rl_module.torch import TorchRLModule
+from ray.rllib.utils.annotations import override
 from torch import nn
 
-# Batch columns of the learner's episode batch (coma_learner.COMAEpisodeBatch).
-OBS = Columns.OBS  # [B, T + 1, U, obs_dim]
-ACTIONS = Columns.ACTIONS  # [B, T, U] int64
-REWARDS = Columns.REWARDS  # [B, T]
-GLOBAL_STATE = "global_state"  # [B, T + 1, state_dim]
+from uavlora_rllib.algorithms.common.agent_net import ActionHead, RecurrentAgentNet
+from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE, HIDDEN
+
+# Batch columns of the learner's episode batch (coma_learner.COMAEpisodeBatch): obs
+# [B, T + 1, U, obs_dim], actions [B, T, U] int64, rewards [B, T], GLOBAL_STATE [B, T + 1, S].
+OBS = Columns.OBS
+ACTIONS = Columns.ACTIONS
+REWARDS = Columns.REWARDS
 # Outputs of forward_train.
 LOGITS = "coma_logits"  # [B, T + 1, U, A] actor logits (the last step only for bootstrapping)
 Q_VALUES = "coma_q"  # [B, T, U, A] critic: Q_u(s_t, a_t,-u, .)
@@ -174,6 +178,7 @@ class QHead(nn.Module):
         if factors:
             self.register_buffer("factor_map", factor_onehot(torch.arange(n_actions), tuple(factors)))  # [A, F]
 
+    @override(nn.Module)
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h = self.act(self.trunk(x))
         y = self.out(h)
@@ -185,52 +190,13 @@ class QHead(nn.Module):
         return value + diff - diff.mean(-1, keepdim=True)
 
 
-class COMAActor(nn.Module):
-    """Shared recurrent actor: (o_u, one-hot u) -> ReLU MLP -> GRU -> logits over A actions."""
-
-    def __init__(
-        self, obs_dim: int, n_agents: int, n_actions: int, hidden: int, gru_hidden: int, agent_heads: bool = False
-    ):
-        super().__init__()
-        self.n_agents, self.n_actions, self.gru_hidden = n_agents, n_actions, gru_hidden
-        self.input_dim = obs_dim + n_agents
-        self.fc_in = nn.Sequential(nn.Linear(self.input_dim, hidden), nn.ReLU())
-        self.gru = nn.GRU(hidden, gru_hidden, batch_first=True)
-        self.head = nn.Linear(gru_hidden, n_actions)
-        # agent_heads: each UAV adds its own linear output layer to the shared head's logits.
-        self.agent_head = None
-        if agent_heads:
-            bound = 1.0 / np.sqrt(gru_hidden)
-            self.agent_head = nn.Parameter(torch.empty(n_agents, gru_hidden, n_actions).uniform_(-bound, bound))
-
-    def initial_state(self, batch: int) -> torch.Tensor:
-        return torch.zeros(batch, self.n_agents, self.gru_hidden)
-
-    def inputs(self, obs: torch.Tensor) -> torch.Tensor:
-        """obs [B, T, U, obs_dim] -> [B, T, U, obs_dim + U] (each row gets its agent id)."""
-        eye = torch.eye(self.n_agents, dtype=obs.dtype, device=obs.device)
-        return torch.cat([obs, eye.expand(*obs.shape[:-2], self.n_agents, self.n_agents)], dim=-1)
-
-    def forward(self, obs: torch.Tensor, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """obs [B, T, U, obs_dim], h [B, U, H] -> logits [B, T, U, A], h' [B, U, H]."""
-        b, t, u, _ = obs.shape
-        x = self.fc_in(self.inputs(obs))  # [B, T, U, hidden]
-        x = x.permute(0, 2, 1, 3).reshape(b * u, t, -1)  # one sequence per (scenario, agent)
-        y, h_out = self.gru(x, h.reshape(1, b * u, -1))
-        logits = self.head(y)  # [B U, T, A]
-        if self.agent_head is not None:
-            y4 = y.reshape(b, u, t, -1)
-            logits = logits + torch.einsum("buth,uha->buta", y4, self.agent_head).reshape(b * u, t, -1)
-        logits = logits.reshape(b, u, t, -1).permute(0, 2, 1, 3)
-        return logits, h_out.reshape(b, u, -1)
-
-
 class COMATorchRLModule(TorchRLModule, InferenceOnlyAPI):
     """Actor on env runners; actor + critic + target critic on the learner.
 
-    model_config: state_dim (required), actor_hidden, gru_hidden, critic_hidden,
-    critic_use_obs, critic_dueling, action_factors, torch_threads."""
+    model_config: COMAHParams' fields (actor_hidden, gru_hidden, actor_agent_heads,
+    critic_hidden, critic_use_obs, critic_dueling), state_dim, action_factors, torch_threads."""
 
+    @override(TorchRLModule)
     def setup(self) -> None:
         mc = self.model_config
         if mc.get("torch_threads"):
@@ -245,14 +211,16 @@ class COMATorchRLModule(TorchRLModule, InferenceOnlyAPI):
         self.factors = tuple(int(f) for f in mc.get("action_factors", ()) or ())
         if self.factors and int(np.prod(self.factors)) != self.n_actions:
             raise ValueError(f"action_factors {self.factors} do not multiply to {self.n_actions} actions")
-        self.actor = COMAActor(
+        self.actor = RecurrentAgentNet(
             self.obs_dim,
             self.n_agents,
             self.n_actions,
-            int(mc.get("actor_hidden", 128)),
-            int(mc.get("gru_hidden", 128)),
-            bool(mc.get("actor_agent_heads", False)),
+            fc_hidden=int(mc.get("actor_hidden", 128)),
+            gru_hidden=int(mc.get("gru_hidden", 128)),
+            share=True,
+            agent_heads=bool(mc.get("actor_agent_heads", False)),
         )
+        self.head = ActionHead([self.n_actions])
         if not self.inference_only:
             in_dim = critic_input_dim(
                 self.state_dim, self.obs_dim, self.n_agents, self.n_actions, self.use_obs, self.factors
@@ -268,35 +236,42 @@ class COMATorchRLModule(TorchRLModule, InferenceOnlyAPI):
             for p in self.target_critic.parameters():
                 p.requires_grad_(False)
 
-    # -- InferenceOnlyAPI
+    @override(InferenceOnlyAPI)
     def get_non_inference_attributes(self) -> list[str]:
         return ["critic", "target_critic"]
 
-    # -- stateful module
+    @override(RLModule)
     def get_initial_state(self) -> dict[str, Any]:
-        return {"h": torch.zeros(self.n_agents, self.actor.gru_hidden)}
+        return {HIDDEN: torch.zeros(self.n_agents, self.actor.gru_hidden)}
 
-    def get_exploration_action_dist_cls(self):
-        return TorchMultiCategorical.get_partial_dist_cls(input_lens=[self.n_actions] * self.n_agents)
-
-    def get_inference_action_dist_cls(self):
-        return self.get_exploration_action_dist_cls()
-
-    def get_train_action_dist_cls(self):
-        return self.get_exploration_action_dist_cls()
-
-    def _forward(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
+    def _logits(self, batch: dict[str, Any]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """Env runners: obs [N, 1, U, d] (RLlib adds the time axis for stateful modules)."""
         obs = batch[Columns.OBS]
         if obs.dim() == 3:  # no time axis (e.g. called by hand): add it
             obs = obs.unsqueeze(1)
-        logits, h = self.actor(obs, batch[Columns.STATE_IN]["h"])
-        return {Columns.ACTION_DIST_INPUTS: logits.flatten(-2), Columns.STATE_OUT: {"h": h}}
+        logits, h = self.actor(obs.float(), batch[Columns.STATE_IN][HIDDEN])
+        return logits, {HIDDEN: h}
+
+    @override(RLModule)
+    def _forward_inference(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
+        logits, state = self._logits(batch)
+        return {Columns.ACTIONS: self.head.greedy(logits), Columns.STATE_OUT: state}
+
+    @override(RLModule)
+    def _forward_exploration(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
+        logits, state = self._logits(batch)
+        actions, logp = self.head.sample(logits)
+        return {Columns.ACTIONS: actions, Columns.ACTION_LOGP: logp, Columns.STATE_OUT: state}
+
+    @override(RLModule)
+    def _forward(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
+        return self._forward_inference(batch, **kwargs)
 
     # -- learner
     def critic_q(self, net: nn.Module, state: torch.Tensor, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         return net(critic_inputs(state, obs if self.use_obs else None, actions, self.n_actions, self.factors))
 
+    @override(RLModule)
     def _forward_train(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
         """Whole episodes: obs [B, T+1, U, d], actions [B, T, U], global_state [B, T+1, S]."""
         obs, actions, state = batch[OBS], batch[ACTIONS].long(), batch[GLOBAL_STATE]

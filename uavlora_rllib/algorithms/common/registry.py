@@ -4,6 +4,12 @@ An algorithm module registers one `AlgorithmEntry` per name at import time. The 
 entry point, the evaluate CLI and the tests only go through this registry, so a new
 algorithm needs no change anywhere else. Modules are imported lazily (importing RLlib and
 torch costs seconds), from `MODULES`.
+
+Adding an algorithm: a typed hyperparameter class and an AlgorithmConfig that follow
+common/config.py, a team-view RLModule whose forward_inference / forward_exploration return
+Columns.ACTIONS (then the default `make_policy` runs it, greedy or sampled), a `build` that
+calls `config.team_config`, and a line in `MODULES`. tests/test_algorithm_matrix.py then
+trains, checkpoints, restores and evaluates it with no new test code.
 """
 
 from __future__ import annotations
@@ -37,25 +43,63 @@ MODULES: dict[str, str] = {
 class Resources:
     """How one trial samples and learns (grid YAML `resources:`)."""
 
-    num_env_runners: int = Field(0, ge=0)  # 0: sample in the trial's own process
-    num_envs_per_env_runner: int = Field(16, ge=1)  # scenarios per runner, all in one BatchCore
-    num_cpus_per_env_runner: float = Field(1.0, gt=0)
-    num_cpus_per_learner: float = Field(1.0, gt=0)
-    torch_threads: int = Field(1, ge=1)
+    num_env_runners: int = Field(0, ge=0, description="remote env runners; 0: sample in the trial's own process")
+    num_envs_per_env_runner: int = Field(16, ge=1, description="scenarios per env runner, all in one BatchCore")
+    num_cpus_per_env_runner: float = Field(1.0, gt=0, description="CPUs reserved per remote env runner")
+    num_learners: int = Field(
+        0, ge=0, description="remote learner actors (data-parallel updates); 0: learn in the trial's own process"
+    )
+    num_gpus_per_learner: float = Field(
+        0.0, ge=0, description="GPUs per learner (per the trial's own process when num_learners is 0)"
+    )
+    num_cpus_per_learner: float = Field(1.0, gt=0, description="CPUs per learner (the trial's process when num_learners is 0)")
+    torch_threads: int = Field(1, ge=1, description="torch intra-op threads per process")
+
+    def bundles(self) -> list[dict[str, float]]:
+        """Placement-group bundles of one trial, in RLlib's layout
+        (`Algorithm.default_resource_request`, which tests/test_algorithm_matrix.py checks this
+        against): the trial's own process (which also learns when num_learners is 0), the
+        remote env runners, the remote learners. Zero amounts are left out."""
+
+        def bundle(cpu: float, gpu: float) -> dict[str, float]:
+            return {k: float(v) for k, v in (("CPU", cpu), ("GPU", gpu)) if v}
+
+        if self.num_learners == 0:
+            main = bundle(max(self.num_cpus_per_learner, 1.0), self.num_gpus_per_learner)
+        else:
+            main = bundle(1.0, 0.0)
+        runners = [bundle(self.num_cpus_per_env_runner, 0.0)] * self.num_env_runners
+        learners = [bundle(self.num_cpus_per_learner, self.num_gpus_per_learner)] * self.num_learners
+        return [main] + runners + learners
+
+
+def _team_policy(algo: "Algorithm", scenario: "ScenarioConfig", explore: bool = False, seed: int = 0) -> "Policy":
+    from uavlora_rllib.algorithms.common.policy import team_policy
+
+    return team_policy(algo, scenario, explore=explore, seed=seed)
 
 
 @dataclass(frozen=True)
 class AlgorithmEntry:
     name: str
-    hparams_cls: type  # pydantic dataclass of hyperparameters; defaults = SPEC.md's training table
+    hparams_cls: type  # the algorithm's typed config (pydantic dataclass, see common/config.py)
     action_modes: tuple[str, ...]  # scenario.action_mode values it supports
     # (scenario, hparams, resources, seed) -> an RLlib AlgorithmConfig ready for .build_algo()
     build: Callable[["ScenarioConfig", Any, Resources, int], "AlgorithmConfig"]
-    # (built or restored algorithm, scenario) -> the decentralised greedy policy for evaluation
-    greedy_policy: Callable[["Algorithm", "ScenarioConfig"], "Policy"]
+    # (built or restored algorithm, scenario, explore, seed) -> the decentralised policy for
+    # evaluation: greedy (explore=False, the paper's execution) or sampled (explore=True). The
+    # default runs the algorithm's own team-view RLModule (common/policy.py).
+    make_policy: Callable[..., "Policy"] = _team_policy
 
     def hparams(self, overrides: dict | None, prefix: str | None = None) -> Any:
         return build(self.hparams_cls, overrides or {}, prefix or f"algorithms.{self.name}")
+
+    def policy(self, algo: "Algorithm", scenario: "ScenarioConfig", explore: bool = False, seed: int = 0) -> "Policy":
+        """Greedy (argmax per UAV) or, with explore=True, sampled execution of a trained algorithm."""
+        return self.make_policy(algo, scenario, explore=explore, seed=seed)
+
+    def greedy_policy(self, algo: "Algorithm", scenario: "ScenarioConfig") -> "Policy":
+        return self.policy(algo, scenario, explore=False)
 
     def check_scenario(self, scenario: "ScenarioConfig", prefix: str = "scenario.action_mode") -> None:
         if scenario.action_mode not in self.action_modes:

@@ -41,22 +41,23 @@ from ray.rllib.core.learner.learner import ENTROPY_KEY, POLICY_LOSS_KEY, VF_LOSS
 from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 from ray.rllib.core.rl_module.apis import ValueFunctionAPI
 from ray.rllib.evaluation.postprocessing import Postprocessing
+from ray.rllib.utils.annotations import override
 
-from uavlora_rllib.algorithms.mappo.mappo_module import STATE_COL, VF_PREDS_COL
-from uavlora_rllib.envs.multi_agent import STATE_KEY
+from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE, VF_PREDS
 
 
 class AddGlobalStateToBatch(ConnectorV2):
     """Train-batch column "state": info["state"] of every observation of every episode chunk
     (including the phantom bootstrap step), so it is zero-padded like the observations."""
 
+    @override(ConnectorV2)
     def __call__(self, *, rl_module, batch: Dict[str, Any], episodes: List[Any], **kwargs) -> Any:
-        if STATE_COL in batch:
+        if GLOBAL_STATE in batch:
             return batch
         for ep in self.single_agent_episode_iterator(episodes, agents_that_stepped_only=False):
             infos = ep.get_infos(slice(0, len(ep)))
-            states = np.stack([np.asarray(i[STATE_KEY], dtype=np.float32) for i in infos])
-            self.add_n_batch_items(batch, STATE_COL, items_to_add=states, num_items=len(ep), single_agent_episode=ep)
+            states = np.stack([np.asarray(i[GLOBAL_STATE], dtype=np.float32) for i in infos])
+            self.add_n_batch_items(batch, GLOBAL_STATE, items_to_add=states, num_items=len(ep), single_agent_episode=ep)
         return batch
 
 
@@ -101,6 +102,7 @@ class PerAgentGAE(ConnectorV2):
         super().__init__(input_observation_space, input_action_space)
         self.gamma, self.lambda_ = gamma, lambda_
 
+    @override(ConnectorV2)
     def __call__(self, *, rl_module, batch: Dict[str, Any], episodes: List[Any], **kwargs) -> Any:
         for mid, mb in batch.items():
             module = rl_module[mid]
@@ -135,38 +137,44 @@ class PerAgentGAE(ConnectorV2):
 
             mb[Postprocessing.ADVANTAGES] = pad(adv)
             mb[Postprocessing.VALUE_TARGETS] = pad(targets)
-            mb[VF_PREDS_COL] = pad(old)
+            mb[VF_PREDS] = pad(old)
         return batch
 
 
 class MAPPOTorchLearner(TorchLearner):
-    """Per-agent clipped PPO with a (central or local) critic. Settings come from
-    `config.learner_config_dict` (value_clip, use_critic_state) and PPOConfig's fields
-    (clip_param, vf_loss_coeff, entropy_coeff, gamma, lambda_, grad_clip)."""
+    """Per-agent clipped PPO with a (central or local) critic. Settings: the typed
+    `config.hparams` (MAPPOHParams: value_clip) and the PPOConfig fields MAPPOConfig sets from
+    it (clip_param, vf_loss_coeff, entropy_coeff, gamma, lambda_, grad_clip, lr); the critic
+    kind from the module's model_config."""
 
+    @override(TorchLearner)
     def build(self) -> None:
         super().build()
+        # Extends the learner's connector pipeline in place, the way RLlib's own PPOLearner
+        # adds its GAE piece (config.learner_connector could only prepend).
         if self._learner_connector is not None and self.config.add_default_connectors_to_learner_pipeline:
-            if self.config.learner_config_dict.get("critic", "central") == "central":
+            if self.config.model_config.get("critic", "central") == "central":
                 self._learner_connector.prepend(AddGlobalStateToBatch())
             self._learner_connector.prepend(AddOneTsToEpisodesAndTruncate())
             self._learner_connector.append(PerAgentGAE(gamma=self.config.gamma, lambda_=self.config.lambda_))
 
     @classmethod
+    @override(TorchLearner)
     def rl_module_required_apis(cls) -> list[type]:
         return [ValueFunctionAPI]
 
+    @override(TorchLearner)
     def configure_optimizers_for_module(self, module_id, config=None) -> None:
         # RLlib's default Adam, but with the multi-tensor ("foreach") step: on CPU torch picks
         # the per-parameter loop, ~1 ms of small ops per minibatch update here (60 per batch).
-        params = self.get_parameters(self._module[module_id])
+        params = self.get_parameters(self.module[module_id])
         self.register_optimizer(
             module_id=module_id, optimizer=torch.optim.Adam(params, foreach=True), params=params, lr_or_lr_schedule=config.lr
         )
 
+    @override(TorchLearner)
     def compute_loss_for_module(self, *, module_id, config, batch: Dict[str, Any], fwd_out: Dict[str, Any]):
         module = self.module[module_id].unwrapped()
-        lcd = config.learner_config_dict
         mask = batch[Columns.LOSS_MASK].float().unsqueeze(-1)  # [B, T, 1]
         n_valid = mask.sum() * module.n_agents
 
@@ -183,9 +191,9 @@ class MAPPOTorchLearner(TorchLearner):
         values = module.compute_values(batch)
         targets = module.normalize(batch[Postprocessing.VALUE_TARGETS])
         vf_loss = (values - targets) ** 2
-        value_clip = lcd.get("value_clip")
+        value_clip = config.hparams.value_clip
         if value_clip:
-            old = batch[VF_PREDS_COL]
+            old = batch[VF_PREDS]
             clipped = old + torch.clamp(values - old, -value_clip, value_clip)
             vf_loss = torch.max(vf_loss, (clipped - targets) ** 2)
         vf_loss = 0.5 * vf_loss

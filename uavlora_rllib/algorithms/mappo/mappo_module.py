@@ -3,10 +3,11 @@
 Spaces (team view, `uavlora_rllib.envs.team`): observation Box [U, obs_dim]; action
 MultiDiscrete [U] (per_uav) or [U, 2 quota + 1] (per_device).
 
-* `actor` (`GRUActor`): decentralised; reads row u of the observation only (plus the agent
-  id one-hot when shared). Its GRU state [U, gru_hidden] per scenario is RLlib's
-  `STATE_IN/STATE_OUT` {"h": ...}; RLlib resets it to zeros at every episode start.
-* `critic`: centralised V(s, u) on the GLOBAL state (train-batch column "state", filled by
+* `actor` (common `RecurrentAgentNet`, with a ReLU layer after the GRU and a near-zero last
+  layer): decentralised; reads row u of the observation only (plus the agent id one-hot when
+  shared). Its GRU state [U, gru_hidden] per scenario is RLlib's `STATE_IN/STATE_OUT`
+  {HIDDEN: ...}; RLlib resets it to zeros at every episode start.
+* `critic`: centralised V(s, u) on the GLOBAL state (train-batch column GLOBAL_STATE, filled by
   `mappo_learner.AddGlobalStateToBatch` from info["state"]) with the agent id one-hot
   (input state_dim + U) for `critic="central"` (MAPPO); V(o_u, u) on the agent's own
   observation row (input obs_dim + U) for `critic="local"` (IPPO). Output [B, T, U]. It
@@ -29,13 +30,13 @@ import numpy as np
 import torch
 from ray.rllib.core.columns import Columns
 from ray.rllib.core.rl_module.apis import InferenceOnlyAPI, ValueFunctionAPI
+from ray.rllib.core.rl_module.rl_module import RLModule
 from ray.rllib.core.rl_module.torch import TorchRLModule
+from ray.rllib.utils.annotations import override
 from torch import nn
 
-from uavlora_rllib.algorithms.common.gru_actor import ActionHead, GRUActor
-
-STATE_COL = "state"  # global state column in the train batch (env.STATE_KEY)
-VF_PREDS_COL = "mappo_vf_preds"  # old (normalised) value predictions, for value clipping
+from uavlora_rllib.algorithms.common.agent_net import ActionHead, RecurrentAgentNet
+from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE, HIDDEN
 
 
 class ValueNorm(nn.Module):
@@ -98,9 +99,11 @@ class Critic(nn.Module):
 
 
 class MAPPOTorchRLModule(TorchRLModule, ValueFunctionAPI, InferenceOnlyAPI):
-    """See module docstring. model_config keys: gru_hidden, fc_hidden, critic_hidden,
-    share_actor, critic ("central" | "local"), state_dim, value_norm, max_seq_len, torch_threads."""
+    """See module docstring. model_config: MAPPOHParams' fields (gru_hidden, fc_hidden,
+    critic_hidden, share_actor, value_norm, max_seq_len), critic ("central" | "local", resolved
+    by the algorithm), state_dim, torch_threads."""
 
+    @override(TorchRLModule)
     def setup(self):
         mc = self.model_config
         if mc.get("torch_threads"):
@@ -111,13 +114,16 @@ class MAPPOTorchRLModule(TorchRLModule, ValueFunctionAPI, InferenceOnlyAPI):
         row = nvec.reshape(self.n_agents, -1)[0]
         self.per_device = nvec.ndim == 2
         self.head = ActionHead(row.tolist())
-        self.actor = GRUActor(
+        fc_hidden = int(mc.get("fc_hidden", 128))
+        self.actor = RecurrentAgentNet(
             self.obs_dim,
             self.n_agents,
             self.head.n_logits,
+            fc_hidden=fc_hidden,
             gru_hidden=int(mc.get("gru_hidden", 128)),
-            fc_hidden=int(mc.get("fc_hidden", 128)),
-            share_actor=bool(mc.get("share_actor", True)),
+            share=bool(mc.get("share_actor", True)),
+            out_hidden=fc_hidden,
+            out_gain=0.01,  # near-uniform initial policy (standard for PPO actors)
         )
         self.critic_kind = mc.get("critic", "central")
         if not self.inference_only:  # TorchRLModule would delete it anyway (InferenceOnlyAPI)
@@ -125,9 +131,11 @@ class MAPPOTorchRLModule(TorchRLModule, ValueFunctionAPI, InferenceOnlyAPI):
             self.critic = Critic(in_dim, int(mc.get("critic_hidden", 128)), self.n_agents, bool(mc.get("value_norm", True)))
 
     # ---------------------------------------------------------------- RLModule API
+    @override(RLModule)
     def get_initial_state(self) -> Dict[str, Any]:
-        return {"h": np.zeros((self.n_agents, self.actor.gru_hidden), dtype=np.float32)}
+        return {HIDDEN: np.zeros((self.n_agents, self.actor.gru_hidden), dtype=np.float32)}
 
+    @override(InferenceOnlyAPI)
     def get_non_inference_attributes(self) -> List[str]:
         return ["critic"]
 
@@ -135,21 +143,25 @@ class MAPPOTorchRLModule(TorchRLModule, ValueFunctionAPI, InferenceOnlyAPI):
         obs = batch[Columns.OBS]
         if obs.dim() == 3:  # no time rank (direct calls): [B, U, d]
             obs = obs.unsqueeze(1)
-        logits, h = self.actor(obs.float(), batch[Columns.STATE_IN]["h"].float())
-        return logits, {"h": h}
+        logits, h = self.actor(obs.float(), batch[Columns.STATE_IN][HIDDEN].float())
+        return logits, {HIDDEN: h}
 
+    @override(RLModule)
     def _forward_inference(self, batch: Dict[str, Any], **kwargs) -> Dict[str, Any]:
         logits, state = self._actor(batch)
         return {Columns.ACTIONS: self.head.greedy(logits), Columns.STATE_OUT: state}
 
+    @override(RLModule)
     def _forward_exploration(self, batch: Dict[str, Any], **kwargs) -> Dict[str, Any]:
         logits, state = self._actor(batch)
         actions, logp = self.head.sample(logits)
         return {Columns.ACTIONS: actions, Columns.ACTION_LOGP: logp, Columns.STATE_OUT: state}
 
+    @override(RLModule)
     def _forward(self, batch: Dict[str, Any], **kwargs) -> Dict[str, Any]:
         return self._forward_inference(batch, **kwargs)
 
+    @override(RLModule)
     def _forward_train(self, batch: Dict[str, Any], **kwargs) -> Dict[str, Any]:
         logits, state = self._actor(batch)
         return {Columns.ACTION_DIST_INPUTS: logits, Columns.STATE_OUT: state}
@@ -159,9 +171,10 @@ class MAPPOTorchRLModule(TorchRLModule, ValueFunctionAPI, InferenceOnlyAPI):
         """The global state [..., S] (central; the same for every agent) or each agent's own
         observation row [..., U, d] (local)."""
         if self.critic_kind == "central":
-            return batch[STATE_COL].float()
+            return batch[GLOBAL_STATE].float()
         return batch[Columns.OBS].float()
 
+    @override(ValueFunctionAPI)
     def compute_values(self, batch: Dict[str, Any], embeddings: Any = None) -> torch.Tensor:
         """Per-agent values [B, T, U] in the critic's (normalised, if value_norm) space."""
         return self.critic(self.critic_input(batch), shared=self.critic_kind == "central")

@@ -17,9 +17,11 @@ import torch
 from ray.rllib.core.columns import Columns
 from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 from ray.rllib.core.rl_module.apis import QNetAPI, TargetNetworkAPI
+from ray.rllib.utils.annotations import override
+from ray.rllib.utils.torch_utils import update_target_network
 
+from uavlora_rllib.algorithms.common.columns import TERMINATED
 from uavlora_rllib.algorithms.qmix.qmix_module import Q_TAKEN, Q_TOT, TARGET_Q_TOT_NEXT
-from uavlora_rllib.algorithms.qmix.qmix_replay import TERMINATED
 
 TD_LOSS = "td_loss"
 NUM_TARGET_UPDATES = "num_soft_target_updates"
@@ -43,25 +45,19 @@ def nstep_targets(
     return ret + torch.pow(torch.full_like(m, gamma), m).view(1, t) * boot * (~done).to(rewards.dtype)
 
 
-def soft_update(main: torch.nn.Module, target: torch.nn.Module, tau: float) -> None:
-    """target <- (1 - tau) target + tau main, parameters and buffers."""
-    with torch.no_grad():
-        for p_t, p in zip(target.state_dict().values(), main.state_dict().values()):
-            if p_t.dtype.is_floating_point:
-                p_t.mul_(1.0 - tau).add_(p, alpha=tau)
-            else:
-                p_t.copy_(p)
-
-
 class QMIXTorchLearner(TorchLearner):
+    """TD loss above; hyperparameters from the typed config.hparams (QMIXHParams)."""
+
+    @override(TorchLearner)
     def build(self) -> None:
         super().build()
         self.module.foreach_module(
             lambda mid, mod: mod.make_target_networks() if isinstance(mod, TargetNetworkAPI) else None
         )
 
+    @override(TorchLearner)
     def configure_optimizers_for_module(self, module_id, config=None) -> None:
-        module = self._module[module_id]
+        module = self.module[module_id]
         params = [p for p in module.parameters() if p.requires_grad]  # agent net + mixer
         self.register_optimizer(
             module_id=module_id,
@@ -70,10 +66,11 @@ class QMIXTorchLearner(TorchLearner):
             lr_or_lr_schedule=config.lr,
         )
 
+    @override(TorchLearner)
     def compute_loss_for_module(self, *, module_id, config, batch: Dict[str, Any], fwd_out: Dict[str, Any]):
         rewards = batch[Columns.REWARDS].float()
         q_tot = fwd_out[Q_TOT]
-        y = nstep_targets(rewards, fwd_out[TARGET_Q_TOT_NEXT].detach(), batch[TERMINATED], config.gamma, config.n_step)
+        y = nstep_targets(rewards, fwd_out[TARGET_Q_TOT_NEXT].detach(), batch[TERMINATED], config.gamma, config.hparams.n_step)
         td = q_tot - y
         loss = (td**2).mean()
         self.metrics.log_dict(
@@ -89,17 +86,19 @@ class QMIXTorchLearner(TorchLearner):
         )
         return loss
 
+    @override(TorchLearner)
     def after_gradient_based_update(self, *, timesteps: Dict[str, Any]) -> None:
         super().after_gradient_based_update(timesteps=timesteps)
-        for module_id, module in self.module._rl_modules.items():
-            mod = module.unwrapped()
+        for module_id in self.module.keys():
+            mod = self.module[module_id].unwrapped()
             if not isinstance(mod, TargetNetworkAPI):
                 continue
-            tau = self.config.get_config_for_module(module_id).tau
+            tau = self.config.get_config_for_module(module_id).hparams.tau
             for main, target in mod.get_target_network_pairs():
-                soft_update(main, target, tau)
+                update_target_network(main_net=main, target_net=target, tau=tau)
             self.metrics.log_value((module_id, NUM_TARGET_UPDATES), 1, reduce="lifetime_sum")
 
     @classmethod
+    @override(TorchLearner)
     def rl_module_required_apis(cls) -> list[type]:
         return [QNetAPI, TargetNetworkAPI]

@@ -6,7 +6,7 @@ Shapes (one team = one row of the batch; U UAVs, d = obs_dim, A = actions per UA
   h       [B, U, H]      GRU hidden state, H = gru_hidden
   q       [B, T, U, A]   per-UAV Q-values
 
-Agent network (one per team, shared by the UAVs unless share_agent_net=False):
+Agent network: the common `RecurrentAgentNet` (shared by the UAVs unless share_agent_net=False):
   [o_u ; one-hot(u)] -> Linear(fc_hidden) -> ReLU -> GRU(gru_hidden) -> Linear(A)
 The one-hot id is only appended when the network is shared.
 
@@ -33,10 +33,13 @@ from torch import nn
 from ray.rllib.core.columns import Columns
 from ray.rllib.core.learner.utils import make_target_network
 from ray.rllib.core.rl_module.apis import InferenceOnlyAPI, QNetAPI, TargetNetworkAPI
+from ray.rllib.core.rl_module.rl_module import RLModule
 from ray.rllib.core.rl_module.torch import TorchRLModule
+from ray.rllib.utils.annotations import override
 
-STATE = "state"  # batch column: global state [B, T+1, S] (learner only)
-HIDDEN = "h"  # key of the GRU state in Columns.STATE_IN / STATE_OUT
+from uavlora_rllib.algorithms.common.agent_net import RecurrentAgentNet
+from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE, HIDDEN
+
 Q_ALL = "q_all"  # [B, T+1, U, A] online Qs over the whole sequence
 Q_TAKEN = "q_taken"  # [B, T, U] online Q of the action taken
 Q_TOT = "q_tot"  # [B, T] mixed online Q of the joint action taken
@@ -51,43 +54,8 @@ def linear_epsilon(t: int | float, start: float, end: float, anneal_steps: int |
     return float(start + frac * (end - start))
 
 
-class AgentQNet(nn.Module):
-    """Per-UAV recurrent Q-network over local observations (shared weights or one per UAV)."""
-
-    def __init__(self, n_agents: int, obs_dim: int, n_actions: int, fc_hidden: int, gru_hidden: int, share: bool):
-        super().__init__()
-        self.n_agents, self.n_actions, self.share = n_agents, n_actions, share
-        self.gru_hidden = gru_hidden
-        n_nets = 1 if share else n_agents
-        in_dim = obs_dim + (n_agents if share else 0)
-        self.fc_in = nn.ModuleList(nn.Linear(in_dim, fc_hidden) for _ in range(n_nets))
-        self.gru = nn.ModuleList(nn.GRU(fc_hidden, gru_hidden, batch_first=True) for _ in range(n_nets))
-        self.fc_out = nn.ModuleList(nn.Linear(gru_hidden, n_actions) for _ in range(n_nets))
-
-    def _one(self, k: int, x: torch.Tensor, h0: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
-        """x [M, T, in], h0 [M, H] -> q [M, T, A], h_T [M, H]."""
-        z = F.relu(self.fc_in[k](x))
-        out, h_t = self.gru[k](z, h0.unsqueeze(0).contiguous())
-        return self.fc_out[k](out), h_t.squeeze(0)
-
-    def forward(self, obs: torch.Tensor, h0: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
-        """obs [B, T, U, d], h0 [B, U, H] -> q [B, T, U, A], h_T [B, U, H]. The GRU starts
-        from h0 at t = 0 of every row: rows never share a hidden state."""
-        b, t, u, _ = obs.shape
-        if self.share:
-            ids = torch.eye(u, dtype=obs.dtype, device=obs.device).expand(b, t, u, u)
-            x = torch.cat([obs, ids], dim=-1).permute(0, 2, 1, 3).reshape(b * u, t, -1)
-            q, h_t = self._one(0, x, h0.reshape(b * u, -1))
-            return q.reshape(b, u, t, -1).permute(0, 2, 1, 3), h_t.reshape(b, u, -1)
-        qs, hs = [], []
-        for k in range(u):
-            q, h_t = self._one(k, obs[:, :, k], h0[:, k])
-            qs.append(q)
-            hs.append(h_t)
-        return torch.stack(qs, dim=2), torch.stack(hs, dim=1)
-
-
 class VDNMixer(nn.Module):
+    @override(nn.Module)
     def forward(self, q: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
         """q [B, T, U] -> Q_tot [B, T] (state unused)."""
         return q.sum(dim=-1)
@@ -106,6 +74,7 @@ class QMixer(nn.Module):
         self.hyper_w2 = nn.Sequential(nn.Linear(state_dim, hypernet_embed), nn.ReLU(), nn.Linear(hypernet_embed, embed_dim))
         self.v = nn.Sequential(nn.Linear(state_dim, embed_dim), nn.ReLU(), nn.Linear(embed_dim, 1))
 
+    @override(nn.Module)
     def forward(self, q: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
         """q [B, T, U], state [B, T, S] -> Q_tot [B, T]."""
         lead = q.shape[:-1]
@@ -128,10 +97,10 @@ def make_mixer(kind: str, n_agents: int, state_dim: int, embed_dim: int, hyperne
 
 
 class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
-    """model_config keys: n_agents, obs_dim, n_actions, state_dim, fc_hidden, gru_hidden,
-    share_agent_net, mixer, mixing_embed_dim, hypernet_embed_dim, double_q, epsilon_start,
-    epsilon_end, epsilon_anneal_env_steps, torch_threads."""
+    """model_config: QMIXHParams' fields plus n_agents, obs_dim, n_actions, state_dim, mixer,
+    epsilon_anneal_env_steps, torch_threads (common/config.py)."""
 
+    @override(TorchRLModule)
     def setup(self) -> None:
         mc = self.model_config
         threads = mc.get("torch_threads")
@@ -141,13 +110,13 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
         self.n_actions = int(mc["n_actions"])
         self.gru_hidden = int(mc.get("gru_hidden", 128))
         self.double_q = bool(mc.get("double_q", True))
-        self.agent = AgentQNet(
-            self.n_agents,
+        self.agent = RecurrentAgentNet(
             int(mc["obs_dim"]),
+            self.n_agents,
             self.n_actions,
-            int(mc.get("fc_hidden", 128)),
-            self.gru_hidden,
-            bool(mc.get("share_agent_net", True)),
+            fc_hidden=int(mc.get("fc_hidden", 128)),
+            gru_hidden=self.gru_hidden,
+            share=bool(mc.get("share_agent_net", True)),
         )
         # The mixer is built here and removed again on inference-only (env runner) copies.
         self.mixer = make_mixer(
@@ -164,11 +133,14 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
         )
 
     # ------------------------------------------------------------------ recurrent state
+    @override(RLModule)
     def get_initial_state(self) -> Dict[str, Any]:
         return {HIDDEN: torch.zeros(self.n_agents, self.gru_hidden)}
 
-    def epsilon(self, t: int | float) -> float:
-        return linear_epsilon(t, *self._eps)
+    def epsilon(self, t: int | float | None) -> float:
+        """Exploration epsilon after t env steps; t None (no training clock, e.g. sampled
+        execution after training): the end of the schedule, epsilon_end."""
+        return self._eps[1] if t is None else linear_epsilon(t, *self._eps)
 
     # ------------------------------------------------------------------ acting (env runners)
     def _step(self, batch: Dict[str, Any]) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -180,12 +152,16 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
         q, h = self.agent(obs, h0)
         return q[:, -1], h
 
+    @override(RLModule)
     def _forward_inference(self, batch: Dict[str, Any], **kwargs) -> Dict[str, Any]:
         with torch.no_grad():
             q, h = self._step(batch)
             return {Columns.ACTIONS: q.argmax(-1).unsqueeze(1), Columns.STATE_OUT: {HIDDEN: h}}
 
-    def _forward_exploration(self, batch: Dict[str, Any], t: int = 0, **kwargs) -> Dict[str, Any]:
+    @override(RLModule)
+    def _forward_exploration(self, batch: Dict[str, Any], t: int | None = None, **kwargs) -> Dict[str, Any]:
+        """Epsilon-greedy per UAV. RLlib's env runners pass t (env steps sampled so far);
+        without it (sampled execution of a trained policy) epsilon is epsilon_end."""
         with torch.no_grad():
             q, h = self._step(batch)
             greedy = q.argmax(-1)
@@ -199,19 +175,21 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
     def _zero_h(self, obs: torch.Tensor) -> torch.Tensor:
         return obs.new_zeros(obs.shape[0], self.n_agents, self.gru_hidden)
 
+    @override(QNetAPI)
     def compute_q_values(self, batch: Dict[str, Any]) -> Dict[str, Any]:
         """Online per-UAV Qs over whole sequences, GRU started at zero: obs [B, T, U, d]."""
         obs = batch[Columns.OBS].float()
         q, _ = self.agent(obs, self._zero_h(obs))
         return {Q_ALL: q}
 
+    @override(RLModule)
     def _forward_train(self, batch: Dict[str, Any], **kwargs) -> Dict[str, Any]:
         """Batch of whole episodes: obs [B, T+1, U, d], actions [B, T, U], state [B, T+1, S]."""
         q_all = self.compute_q_values(batch)[Q_ALL]
         actions = batch[Columns.ACTIONS].long()
         n_t = actions.shape[1]
         q_taken = q_all[:, :n_t].gather(-1, actions.unsqueeze(-1)).squeeze(-1)
-        state = batch[STATE].float()
+        state = batch[GLOBAL_STATE].float()
         q_tot = self.mixer(q_taken, state[:, :n_t])
         out = {Q_ALL: q_all, Q_TAKEN: q_taken, Q_TOT: q_tot}
         with torch.no_grad():
@@ -219,20 +197,23 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
         return out
 
     # ------------------------------------------------------------------ target networks
+    @override(TargetNetworkAPI)
     def make_target_networks(self) -> None:
         self._target_agent = make_target_network(self.agent)
         self._target_mixer = make_target_network(self.mixer)
 
+    @override(TargetNetworkAPI)
     def get_target_network_pairs(self) -> List[Tuple[nn.Module, nn.Module]]:
         return [(self.agent, self._target_agent), (self.mixer, self._target_mixer)]
 
+    @override(TargetNetworkAPI)
     def forward_target(self, batch: Dict[str, Any]) -> Dict[str, Any]:
         """Target Q_tot at s_{t+1}, t = 0..T-1. Double Q: the ONLINE agent net picks the
         argmax at t+1 (batch[Q_ALL] if given), the target agent net evaluates it, and the
         target mixer mixes on s_{t+1}. The last transition bootstraps from the final
         observation/state (truncation is not termination)."""
         obs = batch[Columns.OBS].float()
-        state = batch[STATE].float()
+        state = batch[GLOBAL_STATE].float()
         tq_all, _ = self._target_agent(obs, self._zero_h(obs))
         nxt = tq_all[:, 1:]
         if self.double_q:
@@ -246,5 +227,6 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
         return {TARGET_Q_TOT_NEXT: self._target_mixer(tq_next, state[:, 1:])}
 
     # ------------------------------------------------------------------ inference-only
+    @override(InferenceOnlyAPI)
     def get_non_inference_attributes(self) -> List[str]:
         return ["mixer", "_target_agent", "_target_mixer"]

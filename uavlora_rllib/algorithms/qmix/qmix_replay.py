@@ -1,7 +1,7 @@
 """Episode replay for recurrent value decomposition: whole, fixed-length episodes.
 
 RLlib 2.60's multi-agent episode buffer cannot sample sequences for RNNs, so QMIX/VDN keep
-their own ring buffer of |D| episodes (SPEC.md: 32). Every episode of a scenario has the same
+their own ring buffer of |D| episodes (the paper: 32). Every episode of a scenario has the same
 length T (truncation at episode_len, never termination), so one episode is one row:
 
   obs        [T+1, U, d]   o_0 .. o_T (o_T is the final observation after the last step)
@@ -23,9 +23,7 @@ import numpy as np
 
 from ray.rllib.core.columns import Columns
 
-from uavlora_rllib.algorithms.qmix.qmix_module import STATE
-
-TERMINATED = "terminated"  # [B] bool
+from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE, TERMINATED
 
 
 class EpisodeReplay:
@@ -74,6 +72,6 @@ class EpisodeReplay:
             Columns.OBS: self.obs[idx],
             Columns.ACTIONS: self.actions[idx],
             Columns.REWARDS: self.rewards[idx],
-            STATE: self.state[idx],
+            GLOBAL_STATE: self.state[idx],
             TERMINATED: self.terminated[idx],
         }

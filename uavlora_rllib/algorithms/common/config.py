@@ -1,0 +1,96 @@
+"""How an algorithm's hyperparameters are declared, checked, listed and handed to RLlib.
+
+The convention every algorithm follows:
+
+* ONE typed config class, a pydantic dataclass (`MAPPOHParams`, `QMIXHParams`,
+  `COMAHParams`) whose every field is `Field(default, description="what it does [unit]")`.
+  The description is the documentation: `python -m uavlora_rllib.tune --list-hparams ALGO`
+  prints it with the default (see `describe_hparams`). Checks between its own fields: a
+  pydantic `model_validator`. Checks against the scenario and the trial's resources: its
+  `check(scenario, resources, path)` method (raises ConfigError naming the field). Each
+  check lives in exactly one of those two places.
+* ONE way into RLlib: the algorithm's AlgorithmConfig subclass mixes in `HParamsConfig` and
+  implements `apply_hparams`, which sets the fields RLlib's own machinery reads (lr, gamma,
+  batch sizes, grad_clip, ...). `team_config` builds every trial's config the same way: team
+  env, resources, `config.uavlora(hparams, scenario, torch_threads)` (the typed object is
+  kept as `config.hparams`, where learners read it; its fields plus the scenario's
+  dimensions become the RLModule's model_config), the episode-metric callbacks and the seed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, ClassVar
+
+from uavlora_rllib.algorithms.common.metrics import log_episode_metrics
+from uavlora_rllib.sim.core import obs_dim, state_dim
+from uavlora_rllib.sim.scenario import ScenarioConfig
+
+
+def module_dims(scenario: ScenarioConfig) -> dict[str, int]:
+    """The scenario's sizes an RLModule needs beyond its spaces (the global state's width)."""
+    return {
+        "n_agents": scenario.n_uavs,
+        "obs_dim": obs_dim(scenario),
+        "state_dim": state_dim(scenario),
+        "n_actions": scenario.n_joint_actions,
+    }
+
+
+class HParamsConfig:
+    """Mixin for an AlgorithmConfig: the one way a typed hyperparameter object reaches RLlib."""
+
+    hparams_cls: ClassVar[type]
+
+    def uavlora(self, hparams: Any, scenario: ScenarioConfig, torch_threads: int = 1) -> Any:
+        if not isinstance(hparams, self.hparams_cls):
+            raise TypeError(f"hparams: expected {self.hparams_cls.__name__}, got {type(hparams).__name__}")
+        self.hparams = hparams
+        self.torch_threads = int(torch_threads)
+        resolved = self.apply_hparams(hparams, scenario) or {}
+        self.rl_module(
+            model_config={
+                **module_dims(scenario),
+                **dataclasses.asdict(hparams),
+                **resolved,
+                "torch_threads": self.torch_threads,
+            }
+        )
+        return self
+
+    def apply_hparams(self, hparams: Any, scenario: ScenarioConfig) -> dict[str, Any] | None:
+        """Set the AlgorithmConfig fields that RLlib itself reads from `hparams`; return the
+        model_config entries the algorithm resolves itself (e.g. a default that depends on it)."""
+        raise NotImplementedError
+
+
+def apply_resources(config: Any, resources: Any) -> Any:
+    """The learner side of a trial's `registry.Resources` (env runners: `sample_through_team_env`)."""
+    return config.learners(
+        num_learners=resources.num_learners,
+        num_gpus_per_learner=resources.num_gpus_per_learner,
+        num_cpus_per_learner=resources.num_cpus_per_learner,
+    )
+
+
+def team_config(
+    config: Any, name: str, scenario: ScenarioConfig, hparams: Any, resources: Any, seed: int, **env_runner_settings: Any
+) -> Any:
+    """`config` (a fresh HParamsConfig AlgorithmConfig) set up for one trial of algorithm `name`."""
+    from uavlora_rllib.envs.team import sample_through_team_env
+
+    hparams.check(scenario, resources, f"algorithms.{name}")
+    config = sample_through_team_env(config, scenario, resources, name, **env_runner_settings).framework("torch")
+    config = apply_resources(config, resources).uavlora(hparams, scenario, torch_threads=resources.torch_threads)
+    return log_episode_metrics(config).debugging(seed=seed)
+
+
+def describe_hparams(cls: type) -> str:
+    """One block per field: name, type and default, then its description (--list-hparams)."""
+    lines = []
+    for name, info in cls.__pydantic_fields__.items():  # pydantic's FieldInfo of each field, in order
+        ann = info.annotation
+        typ = ann.__name__ if isinstance(ann, type) else str(ann).replace("typing.", "")
+        lines.append(f"{name} ({typ}, default {info.default!r})")
+        lines.append(f"    {info.description or '(no description)'}")
+    return "\n".join(lines)
