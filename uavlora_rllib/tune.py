@@ -49,6 +49,8 @@ from uavlora_rllib.experiment.grid import (
     TrialSpec,
     baseline_runs,
     hparams_dict,
+    check_local_resources,
+    check_storage,
     import_plugins,
     load_grid,
     run_name,
@@ -64,9 +66,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue the grid's Tune experiment")
     p.add_argument("--dry-run", action="store_true", help="print the trials and baseline runs, start nothing")
     p.add_argument("--address", default=None, help="Ray cluster address (default: start a local Ray)")
-    p.add_argument("--storage", default=None, help="Ray results directory (overrides the grid's storage)")
+    p.add_argument("--storage", type=_storage_arg, default=None, help="Ray results directory (overrides the grid's storage)")
     p.add_argument("--num-cpus", type=positive_int, default=None, help="CPUs of the local Ray (default: all)")
     return p
+
+
+def _storage_arg(text: str) -> str:
+    try:
+        return check_storage(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 # --------------------------------------------------------------------------- paths
@@ -326,6 +335,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
         grid = load_grid(args.grid)
+        if not args.address:  # a local Ray: a trial that needs more CPUs than it has never starts
+            try:
+                check_local_resources(grid, args.num_cpus or os.cpu_count() or 1)
+            except ConfigError as exc:
+                raise ConfigError(f"{args.grid}: {exc}") from None
         specs = trials(grid)
         if args.dry_run:
             print(trial_table(grid, specs))
