@@ -142,8 +142,9 @@ class AdrPolicy:
     the ADR rule once, and the new setting is used in this slot and kept for the next one
     (a one-slot idealisation of ADR's uplink history). State starts at SF12 / 14 dBm (the
     largest SF and TP of the scenario's sets) at every episode reset; BW is fixed at
-    `bw_khz` (default 125 kHz, LoRaWAN's usual uplink channel width; must be in the
-    scenario's BW set). Installation margin `margin_db` = 10 dB (Semtech's default).
+    `bw_khz` (default: 125 kHz, LoRaWAN's usual uplink channel width, or the scenario's
+    smallest BW when its set has no 125 kHz; an explicit value must be in the scenario's BW
+    set). Installation margin `margin_db` = 10 dB (Semtech's default).
 
     per_uav: one setting per UAV, adapted on the WORST (minimum) margin of the EDs it serves
     this slot, so that every served ED keeps the installation margin (the conservative choice
@@ -152,7 +153,9 @@ class AdrPolicy:
     placed into the ED's observation slot; unassociated EDs keep their setting.
     """
 
-    def __init__(self, cfg: ScenarioConfig, bw_khz: int = 125, margin_db: float = 10.0):
+    def __init__(self, cfg: ScenarioConfig, bw_khz: int | None = None, margin_db: float = 10.0):
+        if bw_khz is None:  # the BW sets are sorted ascending: [0] is the narrowest, closest to 125
+            bw_khz = 125 if 125 in cfg.bw_khz else cfg.bw_khz[0]
         if bw_khz not in cfg.bw_khz:
             raise ConfigError(f"adr.bw_khz: {bw_khz} is not in the scenario's BW set {list(cfg.bw_khz)}")
         self.name = "adr"
