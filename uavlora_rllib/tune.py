@@ -42,7 +42,7 @@ from ray import tune
 
 from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.cli_args import Parser, UsageError, positive_int
+from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in
 from uavlora_rllib.experiment.grid import (
     GridConfig,
     algorithm_overrides,
@@ -67,7 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dry-run", action="store_true", help="print the trials and baseline runs, start nothing")
     p.add_argument("--address", default=None, help="Ray cluster address (default: start a local Ray)")
     p.add_argument("--storage", type=_storage_arg, default=None, help="Ray results directory (overrides the grid's storage)")
-    p.add_argument("--num-cpus", type=positive_int, default=None, help="CPUs of the local Ray (default: all)")
+    p.add_argument("--num-cpus", type=int_in(1, 100_000), default=None, help="CPUs of the local Ray (default: all)")
     return p
 
 
@@ -346,8 +346,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             return EXIT_OK
         return run_grid(grid, args.grid, args)
     except (UsageError, ConfigError) as exc:
-        print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)
-        return EXIT_USAGE
+        return fail(exc, code=EXIT_USAGE)
+    except ConnectionError as exc:  # ray.init(address=...) found no cluster there
+        return fail(f"--address: cannot connect to a Ray cluster at {args.address!r}: {exc}", code=EXIT_USAGE)
 
 
 if __name__ == "__main__":

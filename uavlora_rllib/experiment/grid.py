@@ -297,7 +297,8 @@ def parse_yaml(text: str, path: str) -> Any:
         mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
         problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise ConfigError(f"{path}: {where}YAML syntax error: {problem}") from None
+        label = "YAML error" if isinstance(exc, yaml.constructor.ConstructorError) else "YAML syntax error"
+        raise ConfigError(f"{path}: {where}{label}: {problem}") from None
 
 
 def _read_yaml(path: str) -> Any:
