@@ -65,6 +65,15 @@ def from_validation_error(exc: pydantic.ValidationError, prefix: str, root: type
 # remember a strict flag.
 
 
+INT64_MAX = 2**63 - 1
+
+
+def _show(value: Any) -> str:
+    """repr of a value, shortened (a 400-digit integer is not worth a terminal screen)."""
+    text = repr(value)
+    return text if len(text) <= 40 else f"{text[:20]}...{text[-8:]} ({len(text)} characters)"
+
+
 def _describe_range(metadata: list[Any]) -> str:
     """' in [lo, hi]' style text from pydantic's constraint metadata (Ge/Gt/Le/Lt)."""
     low = high = None
@@ -105,14 +114,17 @@ def _scalar_problems(hint: Any, value: Any, path: str, metadata: list[Any]) -> l
         kind = "a number" if hint is float else "an integer"
         allowed = f"{kind}{_describe_range(metadata)}"
         if isinstance(value, (bool, str)) or not isinstance(value, (int, float)):
-            return [f"{path}: expected {allowed}, got {value!r} ({type(value).__name__})"]
+            return [f"{path}: expected {allowed}, got {_show(value)} ({type(value).__name__})"]
+        if hint is int and isinstance(value, int) and not -INT64_MAX - 1 <= value <= INT64_MAX:
+            # beyond what NumPy, torch and Ray hold (and an unbounded field would pass it on)
+            return [f"{path}: expected {allowed} within the 64-bit range, got {_show(value)}"]
         if hint is float and not _allows_non_finite(metadata):
             try:
                 finite = math.isfinite(float(value))
             except OverflowError:
                 finite = False
             if not finite:
-                return [f"{path}: expected a finite number{_describe_range(metadata)}, got {value!r}"]
+                return [f"{path}: expected a finite number{_describe_range(metadata)}, got {_show(value)}"]
         return []
     if origin in (list, tuple, set, frozenset) and isinstance(value, (list, tuple)):
         if origin is tuple and not (len(args) == 2 and args[1] is Ellipsis):
