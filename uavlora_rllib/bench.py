@@ -243,7 +243,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--repeats", type=int_in(1, 1000), default=None, help="timed runs per figure (default 5, 2 with --quick)"
     )
     env.add_argument(
-        "--write", metavar="FILE", type=_writable_file, default=None, help="write the results into FILE's Simulator section"
+        "--write",
+        metavar="FILE",
+        type=_writable_file,
+        default=None,
+        help="write the results into FILE's Simulator section",
     )
     return p
 

@@ -93,7 +93,11 @@ def _resolve(args: argparse.Namespace):
     hparams = entry.hparams(_parse_set(args.set), prefix="--set")
     resources = build(
         registry.Resources,
-        {"num_env_runners": args.env_runners, "num_envs_per_env_runner": args.envs_per_runner, "torch_threads": args.torch_threads},
+        {
+            "num_env_runners": args.env_runners,
+            "num_envs_per_env_runner": args.envs_per_runner,
+            "torch_threads": args.torch_threads,
+        },
         "resources",
     )
     need = resources.num_cpus_per_learner + resources.num_env_runners * resources.num_cpus_per_env_runner

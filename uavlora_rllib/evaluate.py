@@ -51,7 +51,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--n-eds", type=positive_int, default=None, help="V (default: scenario's, 10)")
     p.add_argument("--n-uavs", type=positive_int, default=None, help="U (default: scenario's, 2)")
     p.add_argument("--episodes", type=int_in(1, MAX_EPISODES), default=10, help="episodes (default 10)")
-    p.add_argument("--seed", type=seed, default=0, help="evaluation seed in [0, 2^32 - 1] (episode seeds derive from it)")
+    p.add_argument(
+        "--seed", type=seed, default=0, help="evaluation seed in [0, 2^32 - 1] (episode seeds derive from it)"
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--scenario-yaml", default=None, help="YAML file of scenario fields (or with a 'scenario:' key)")
     p.add_argument("--objective", choices=OBJECTIVES, default="ee", help="greedy/optimal objective (default ee)")
@@ -89,7 +91,9 @@ def load_checkpoint_policy(path: str, scenario_overrides: Mapping[str, Any] | No
         algo = Algorithm.from_checkpoint(os.path.abspath(path))
     except Exception as exc:  # RLlib raises many kinds for a directory that is not its checkpoint
         first = (str(exc).strip().splitlines() or [""])[0]
-        raise ConfigError(f"--policy: {path!r} is not a valid RLlib checkpoint: {type(exc).__name__}: {first}") from None
+        raise ConfigError(
+            f"--policy: {path!r} is not a valid RLlib checkpoint: {type(exc).__name__}: {first}"
+        ) from None
     env_config = algo.config.env_config or {}
     trained = env_config.get("scenario", {})
     trained = trained if isinstance(trained, ScenarioConfig) else ScenarioConfig.from_dict(trained)
@@ -185,22 +189,28 @@ class _Progress:
         return actions
 
 
-def _evaluate(policy: Any, cfg: ScenarioConfig, args: argparse.Namespace):
+def run_with_progress(
+    policy: Any, cfg: ScenarioConfig, episodes: int, seed: int, kind: str, label: str, prefix: str = "", out: Any = None
+):
+    """evaluation.run_episodes, plus, when the run is estimated to take more than LONG_SECONDS
+    (baselines.policies.evaluation_seconds; `kind` a baseline name, or anything else for a
+    learned policy), one line with the estimate and a tqdm progress bar on `out` (stderr).
+    The bar only watches: the episodes, seeds and metrics are those of run_episodes. Usable
+    by any driver that evaluates (e.g. the baseline phase of tune: `kind` = the baseline)."""
     from uavlora_rllib.experiment.evaluation import run_episodes
 
-    name = args.policy if args.policy in BASELINES else "checkpoint"
-    estimate = evaluation_seconds(args.policy if args.policy in BASELINES else "learned", cfg, args.episodes)
+    estimate = evaluation_seconds(kind, cfg, episodes)
     if estimate <= LONG_SECONDS:
-        return run_episodes(policy, cfg, episodes=args.episodes, seed=args.seed)
+        return run_episodes(policy, cfg, episodes=episodes, seed=seed)
     from tqdm import tqdm
 
-    what = f"{args.episodes} episodes x {cfg.episode_len} slots, V={cfg.n_eds} U={cfg.n_uavs}"
-    if args.policy == "optimal":
+    out = out or sys.stderr
+    what = f"{episodes} episodes x {cfg.episode_len} slots, V={cfg.n_eds} U={cfg.n_uavs}"
+    if kind == "optimal":
         what += f", {cfg.n_joint_actions}^{cfg.n_uavs} = {cfg.n_joint_actions**cfg.n_uavs:,} joint actions per slot"
-    print(f"{PROG}: {name} on {what}: estimated {_duration(estimate)} on one core", file=sys.stderr, flush=True)
-    total = args.episodes * cfg.episode_len
-    with tqdm(total=total, unit="slot", desc=name, file=sys.stderr, dynamic_ncols=True) as bar:
-        return run_episodes(_Progress(policy, cfg, args.episodes, bar), cfg, episodes=args.episodes, seed=args.seed)
+    print(f"{prefix}{label} on {what}: estimated {_duration(estimate)} on one core", file=out, flush=True)
+    with tqdm(total=episodes * cfg.episode_len, unit="slot", desc=label, file=out, dynamic_ncols=True) as bar:
+        return run_episodes(_Progress(policy, cfg, episodes, bar), cfg, episodes=episodes, seed=seed)
 
 
 def _duration(seconds: float) -> str:
@@ -215,7 +225,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
         policy, cfg = _resolve(args)
-        result = _evaluate(policy, cfg, args)
+        kind = args.policy if args.policy in BASELINES else "learned"
+        label = args.policy if args.policy in BASELINES else "checkpoint"
+        result = run_with_progress(policy, cfg, args.episodes, args.seed, kind, label, prefix=f"{PROG}: ")
     except (UsageError, ConfigError) as exc:
         return fail(exc, PROG)
     except ActionError as exc:  # a policy whose actions do not fit the scenario's action space

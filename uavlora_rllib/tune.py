@@ -66,7 +66,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue the grid's Tune experiment")
     p.add_argument("--dry-run", action="store_true", help="print the trials and baseline runs, start nothing")
     p.add_argument("--address", default=None, help="Ray cluster address (default: start a local Ray)")
-    p.add_argument("--storage", type=_storage_arg, default=None, help="Ray results directory (overrides the grid's storage)")
+    p.add_argument(
+        "--storage", type=_storage_arg, default=None, help="Ray results directory (overrides the grid's storage)"
+    )
     p.add_argument("--num-cpus", type=int_in(1, 100_000), default=None, help="CPUs of the local Ray (default: all)")
     return p
 

@@ -354,7 +354,8 @@ def sinr_cross_gain(
     the batch's gains [N, U, V] and association [N, V]); the index arrays are broadcast to the
     common shape because take_along_axis needs as many axes in its indices as in its array.
     """
-    tx_power_w, sf_idx, associated, serving_uav = (np.asarray(x) for x in (tx_power_w, sf_idx, associated, serving_uav))
+    tx_power_w, sf_idx = np.asarray(tx_power_w), np.asarray(sf_idx)
+    associated, serving_uav = np.asarray(associated), np.asarray(serving_uav)
     lead = np.broadcast_shapes(
         tx_power_w.shape, sf_idx.shape, associated.shape, serving_uav.shape, gains.shape[:-2] + gains.shape[-1:]
     )

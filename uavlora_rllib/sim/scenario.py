@@ -101,7 +101,9 @@ class ScenarioConfig:
     )
     carrier_hz: float = Field(868e6, ge=1e6, le=1e11, description="carrier frequency f (Hz), [1e6, 1e11]")
     speed_of_light_mps: float = Field(3e8, ge=1e6, le=1e9, description="c in the free-space term (m/s), [1e6, 1e9]")
-    los_a: float = Field(4.88, ge=0.0, le=100.0, description="Al-Hourani 'a' (vartheta), elevation in degrees, [0, 100]")
+    los_a: float = Field(
+        4.88, ge=0.0, le=100.0, description="Al-Hourani 'a' (vartheta), elevation in degrees, [0, 100]"
+    )
     los_b: float = Field(0.43, ge=0.0, le=5.0, description="Al-Hourani 'b' (lambda), [0, 5]")
     eta_los_db: float = Field(0.1, ge=0.0, le=150.0, description="excess loss in LoS (dB), [0, 150]")
     eta_nlos_db: float = Field(21.0, ge=0.0, le=150.0, description="excess loss in NLoS (dB), [0, 150]")
