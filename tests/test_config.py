@@ -169,6 +169,25 @@ def test_a_field_may_document_non_finite_values():
         build(Knobs, {"clip": True}, "k")
 
 
+@pytest.mark.parametrize("value", [1, 0, "yes", "false"])
+def test_bools_are_strict_too(value):
+    from pydantic import Field
+    from pydantic.dataclasses import dataclass
+
+    from uavlora_rllib.config_errors import build
+
+    @dataclass(config={"extra": "forbid"})
+    class Flags:
+        share: bool = True
+        n: int | float = Field(1, gt=0)
+
+    assert build(Flags, {"share": False, "n": 2.5}, "f") == Flags(False, 2.5)
+    with pytest.raises(ConfigError, match=r"^f\.share: expected true or false, got "):
+        build(Flags, {"share": value}, "f")
+    with pytest.raises(ConfigError, match=r"^f\.n: expected a number in \(0, inf\), got True"):
+        build(Flags, {"n": True}, "f")
+
+
 def test_bad_input_at_every_entry_point():
     with pytest.raises(ConfigError, match=r"^scenario: expected a mapping, got list"):
         ScenarioConfig.from_dict([("n_eds", 3)])

@@ -56,9 +56,9 @@ def from_validation_error(exc: pydantic.ValidationError, prefix: str, root: type
 
 
 # --------------------------------------------------------------------------- strict numbers
-# pydantic's lax mode turns `true` into 1, "3" into 3 and accepts NaN and inf; user input
-# (YAML, CLI) goes through `build`, which refuses all of these for every number field of the
-# class it builds, nested groups, lists, tuples and dict values included, before pydantic
+# pydantic's lax mode turns `true` into 1, "3" into 3, 0 into false and accepts NaN and inf; user input
+# (YAML, CLI) goes through `build`, which refuses all of these for every number (and bool)
+# field of the class it builds, nested groups, lists, tuples and dict values included, before pydantic
 # sees the data. A field that documents non-finite values opts in with AllowInfNan(True)
 # (`Field(allow_inf_nan=True)`). This covers every class built through `build`
 # (scenario, grid, resources, each algorithm's hyperparameters) without each class having to
@@ -109,7 +109,11 @@ def _scalar_problems(hint: Any, value: Any, path: str, metadata: list[Any]) -> l
         if value is None and type(None) in args:
             return []
         options = [a for a in args if a is not type(None)]
+        if len(options) > 1 and set(options) <= {int, float}:  # int | float: a number
+            options = [float]
         return _scalar_problems(options[0], value, path, metadata) if len(options) == 1 else []
+    if hint is bool and not isinstance(value, bool):  # lax mode reads 0, 1, "yes", "off"... as bools
+        return [f"{path}: expected true or false, got {_show(value)} ({type(value).__name__})"]
     if hint is float or hint is int:
         kind = "a number" if hint is float else "an integer"
         allowed = f"{kind}{_describe_range(metadata)}"
