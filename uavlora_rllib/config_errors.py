@@ -56,13 +56,13 @@ def from_validation_error(exc: pydantic.ValidationError, prefix: str, root: type
 
 
 # --------------------------------------------------------------------------- strict numbers
-# pydantic's lax mode turns `true` into 1, "3" into 3, 0 into false and accepts NaN and inf; user input
-# (YAML, CLI) goes through `build`, which refuses all of these for every number (and bool)
-# field of the class it builds, nested groups, lists, tuples and dict values included, before pydantic
-# sees the data. A field that documents non-finite values opts in with AllowInfNan(True)
-# (`Field(allow_inf_nan=True)`). This covers every class built through `build`
-# (scenario, grid, resources, each algorithm's hyperparameters) without each class having to
-# remember a strict flag.
+# pydantic's lax mode turns `true` into 1, "3" into 3 and 0 into false, and accepts NaN and
+# inf. User input (YAML, CLI) goes through `build`, which refuses all of these for every number
+# (and bool) field of the class it builds, in nested groups, lists, tuples and dict values
+# too, before pydantic sees the data; ints beyond int64 are refused as well. A field that
+# documents non-finite values opts in with `Field(allow_inf_nan=True)`. This covers every
+# class built through `build` (scenario, grid, resources, each algorithm's hyperparameters)
+# without each class having to remember a strict flag.
 
 
 INT64_MAX = 2**63 - 1
