@@ -205,3 +205,14 @@ def test_checkpoint_on_a_scenario_it_was_not_trained_for(tmp_path, capsys):
             assert field in err.split("differ: ")[1], err
     finally:
         ray.shutdown()
+
+
+def test_directory_that_is_not_a_checkpoint(capsys, tmp_path):
+    assert main(["--policy", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err == f"evaluate: error: --policy: {str(tmp_path)!r} is not an RLlib checkpoint (no rllib_checkpoint.json)\n"
+    for name in ("checkpoint_000002", "checkpoint_000010"):  # a Tune trial directory
+        (tmp_path / name).mkdir()
+    assert main(["--policy", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.rstrip().endswith(f"the latest is {tmp_path / 'checkpoint_000010'}"), err

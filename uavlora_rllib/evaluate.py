@@ -144,6 +144,11 @@ def _resolve(args: argparse.Namespace):
         )
     if not os.path.isdir(args.policy):
         raise UsageError(f"--policy: checkpoint path {args.policy!r} is not a directory")
+    if not os.path.isfile(os.path.join(args.policy, "rllib_checkpoint.json")):
+        # (checked here: RLlib itself logs warnings and guesses before it gives up)
+        inner = sorted(d for d in os.listdir(args.policy) if d.startswith("checkpoint_"))
+        hint = f"; it holds checkpoints, the latest is {os.path.join(args.policy, inner[-1])}" if inner else ""
+        raise UsageError(f"--policy: {args.policy!r} is not an RLlib checkpoint (no rllib_checkpoint.json){hint}")
     if args.scenario_yaml:
         overrides = {**_load_yaml_scenario(args.scenario_yaml), **overrides}
     return load_checkpoint_policy(args.policy, overrides)

@@ -227,7 +227,7 @@ def _trial_dirname(trial) -> str:
 # --------------------------------------------------------------------------- phases
 def run_baselines(grid: GridConfig, tracker, out=None) -> None:
     from uavlora_rllib.baselines.policies import make_baseline
-    from uavlora_rllib.experiment.evaluation import run_episodes
+    from uavlora_rllib.evaluate import run_with_progress
     from uavlora_rllib.experiment.tracking import run_params
 
     out = out or sys.stdout
@@ -241,7 +241,8 @@ def run_baselines(grid: GridConfig, tracker, out=None) -> None:
 
         def evaluate(b=b):
             policy = make_baseline(b.baseline, b.scenario, seed=b.seed)
-            return run_episodes(policy, b.scenario, episodes, b.seed).summary()
+            # run_episodes, with an estimate and a progress bar on stderr when it is long (optimal)
+            return run_with_progress(policy, b.scenario, episodes, b.seed, b.baseline, f"baseline {b.name}").summary()
 
         tracker.log_baseline(b.baseline, b.name, b.seed, b.n_eds, b.n_uavs, params, evaluate, grid.stop.env_steps)
         print(f"baseline {b.name}: evaluated in {time.perf_counter() - t0:.1f} s", file=out, flush=True)
