@@ -105,6 +105,89 @@ def test_several_errors_are_reported_together():
     assert "scenario.n_eds" in msg and "scenario.interference" in msg and "scenario.foo" in msg
 
 
+# ------------------------------------------------------------------ strict numbers, bounded physics
+@pytest.mark.parametrize(
+    "data,pattern",
+    [
+        ({"n_eds": True}, r"^scenario\.n_eds: expected an integer in \[1, 10000\], got True \(bool\)$"),
+        ({"episode_len": "150"}, r"^scenario\.episode_len: expected an integer .*got '150' \(str\)$"),
+        ({"area_m": "1e3"}, r"^scenario\.area_m: expected a number in \[1, 1e\+07\], got '1e3' \(str\)$"),
+        ({"area_m": False}, r"^scenario\.area_m: expected a number"),
+        ({"altitude_m": math.inf}, r"^scenario\.altitude_m: expected a finite number in \[1, 10000\], got inf$"),
+        ({"noise_dbm": -math.inf}, r"^scenario\.noise_dbm: expected a finite number"),
+        ({"reward": {"w2": math.nan}}, r"^scenario\.reward\.w2: expected a finite number in \[-1e\+06, 1e\+06\], got nan$"),
+        ({"hover": {"n_rotors": True}}, r"^scenario\.hover\.n_rotors: expected an integer"),
+        ({"tp_dbm": [2, math.nan]}, r"^scenario\.tp_dbm\.1: expected a finite number, got nan$"),
+        ({"sf_set": [7, True]}, r"^scenario\.sf_set\.1: expected an integer, got True"),
+        ({"max_eds_per_uav": 10**30}, r"^scenario\.max_eds_per_uav: expected an integer in \[1, 10000\]"),
+        ({"area_m": 10**400}, r"^scenario\.area_m: expected a finite number .*\(401 characters\)$"),
+        ({"hover": {"thrust_coef": 1e-320}}, r"^scenario\.hover\.thrust_coef: .*greater than or equal to 0.000001"),
+        ({"mobility": {"v_max_mps": 1e300}}, r"^scenario\.mobility\.v_max_mps: .*less than or equal to 1000"),
+    ],
+)
+def test_numbers_are_strict_and_bounded(data, pattern):
+    with pytest.raises(ConfigError, match=pattern):
+        ScenarioConfig.from_dict(data)
+
+
+def test_ints_are_fine_for_floats_and_none_for_optionals():
+    cfg = ScenarioConfig.from_dict({"area_m": 800, "tp_dbm": [2, 14], "max_eds_per_uav": None, "reward": {"w1": 0}})
+    assert cfg.area_m == 800.0 and cfg.tp_dbm == (2.0, 14.0) and cfg.reward.w1 == 0.0
+
+
+def test_every_physical_parameter_is_bounded_and_documented():
+    """The finite box the simulator is tested on (tests/test_scenario_properties.py) is the one
+    the validator enforces: every float field has both bounds and says them in its description."""
+    from uavlora_rllib.sim.scenario import HoverConfig, MobilityConfig, RewardWeights
+
+    for cls in (ScenarioConfig, MobilityConfig, HoverConfig, RewardWeights):
+        for name, info in cls.__pydantic_fields__.items():
+            if info.annotation is not float:
+                continue
+            lows = [m for m in info.metadata if hasattr(m, "ge") or hasattr(m, "gt")]
+            highs = [m for m in info.metadata if hasattr(m, "le") or hasattr(m, "lt")]
+            assert lows and highs, f"{cls.__name__}.{name} is not bounded on both sides"
+            assert info.description and any(c in info.description for c in "[("), f"{cls.__name__}.{name}: no range"
+
+
+def test_a_field_may_document_non_finite_values():
+    """The strict-number guard lets a field opt in to inf (allow_inf_nan=True), and only it."""
+    from pydantic import Field
+    from pydantic.dataclasses import dataclass
+
+    from uavlora_rllib.config_errors import build
+
+    @dataclass(config={"extra": "forbid"})
+    class Knobs:
+        clip: float = Field(1.0, allow_inf_nan=True, description="inf: no clipping")
+        lr: float = 1e-3
+
+    assert build(Knobs, {"clip": math.inf}, "k").clip == math.inf
+    with pytest.raises(ConfigError, match=r"^k\.lr: expected a finite number, got inf$"):
+        build(Knobs, {"lr": math.inf}, "k")
+    with pytest.raises(ConfigError, match=r"^k\.clip: expected a number, got True"):
+        build(Knobs, {"clip": True}, "k")
+
+
+@pytest.mark.parametrize("value", [1, 0, "yes", "false"])
+def test_bools_are_strict_too(value):
+    from pydantic import Field
+    from pydantic.dataclasses import dataclass
+
+    from uavlora_rllib.config_errors import build
+
+    @dataclass(config={"extra": "forbid"})
+    class Flags:
+        share: bool = True
+        n: int | float = Field(1, gt=0)
+
+    assert build(Flags, {"share": False, "n": 2.5}, "f") == Flags(False, 2.5)
+    with pytest.raises(ConfigError, match=r"^f\.share: expected true or false, got "):
+        build(Flags, {"share": value}, "f")
+    with pytest.raises(ConfigError, match=r"^f\.n: expected a number in \(0, inf\), got True"):
+        build(Flags, {"n": True}, "f")
+
+
 def test_bad_input_at_every_entry_point():
     with pytest.raises(ConfigError, match=r"^scenario: expected a mapping, got list"):
         ScenarioConfig.from_dict([("n_eds", 3)])

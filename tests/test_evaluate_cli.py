@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from uavlora_rllib.evaluate import main
@@ -54,6 +55,10 @@ def test_table_in_process(capsys, tmp_path):
         (["--policy", "greedy", "--objective", "bits"], "--objective"),
         (["--policy", "fixed", "--scenario-yaml", "/no/such.yaml"], "--scenario-yaml"),
         ([], "--policy"),
+        (["--policy", "fixed", "--seed", "-1"], "--seed: must be an integer in [0, 4294967295], got -1"),
+        (["--policy", "fixed", "--seed", str(2**32)], "--seed: must be an integer in [0, 4294967295]"),
+        (["--policy", "fixed", "--seed", "1.5"], "--seed: expected an integer"),
+        (["--policy", "fixed", "--episodes", "0"], "--episodes: must be an integer in [1, 1000000], got 0"),
     ],
 )
 def test_bad_args_exit_2_with_field_name(capsys, argv, field):
@@ -85,3 +90,129 @@ def test_subprocess_json_and_error():
     )
     assert bad.returncode == 2
     assert "--n-eds" in bad.stderr and "Traceback" not in bad.stderr
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        (b"episode_len: 3\nepisode_len: 4\n", "line 2, column 1: YAML error: duplicate key 'episode_len' (first given on line 1)"),
+        (b"episode_len: 3\n# \xff\n", "the scenario file is not UTF-8 text (byte 0xff at offset 17)"),
+        (b"episode_len: true\n", "scenario.episode_len: expected an integer in [1, 1e+06], got True (bool)"),
+        (b"noise_dbm: .nan\n", "scenario.noise_dbm: expected a finite number in [-200, 30], got nan"),
+    ],
+)
+def test_bad_scenario_yaml_is_one_line(capsys, tmp_path, content, message):
+    yaml_file = tmp_path / "s.yaml"
+    yaml_file.write_bytes(content)
+    assert main(["--policy", "fixed", "--scenario-yaml", str(yaml_file)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("evaluate: error: ") and err.count("\n") == 1 and message in err, err
+
+
+def test_actions_outside_the_space_are_one_line(capsys, monkeypatch):
+    """A policy whose actions do not fit the scenario (core.ActionError) is an input error."""
+    import uavlora_rllib.evaluate as evaluate_cli
+    from uavlora_rllib.sim.scenario import ScenarioConfig
+
+    class Oversized:
+        name = "oversized"
+
+        def reset(self, core):
+            pass
+
+        def act(self, core):
+            return np.full((core.n, core.cfg.n_uavs), 90, dtype=np.int64)  # 90 actions with sf_set [7]: 0..14
+
+    cfg = ScenarioConfig(sf_set=(7,), episode_len=2)
+    monkeypatch.setattr(evaluate_cli, "_resolve", lambda args: (Oversized(), cfg))
+    assert main(["--policy", "fixed"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("evaluate: error: --policy: its actions do not fit this scenario: ") and err.count("\n") == 1, err
+
+
+def test_cost_estimate_grows_with_the_search():
+    from uavlora_rllib.baselines.policies import evaluation_seconds
+    from uavlora_rllib.evaluate import LONG_SECONDS
+    from uavlora_rllib.sim.scenario import ScenarioConfig
+
+    u2, u3 = ScenarioConfig(n_uavs=2), ScenarioConfig(n_uavs=3)
+    assert evaluation_seconds("optimal", u3, 10) == pytest.approx(90 * evaluation_seconds("optimal", u2, 10), rel=1e-3)
+    assert evaluation_seconds("optimal", u3, 10) > 60 * LONG_SECONDS  # the issue's case: many minutes
+    assert evaluation_seconds("optimal", ScenarioConfig(n_uavs=1), 10) < LONG_SECONDS  # quick: no bar
+    assert evaluation_seconds("random", u2, 100_000) > LONG_SECONDS  # many episodes of a cheap policy
+    assert evaluation_seconds("greedy", u3, 10) < evaluation_seconds("optimal", u3, 10)
+
+
+def test_long_evaluation_prints_estimate_and_progress_same_numbers(capsys, monkeypatch):
+    """Past LONG_SECONDS the CLI prints its estimate, then a progress bar that reaches every
+    episode-slot, on stderr; the metrics are those of the quiet run (the bar only watches)."""
+    import uavlora_rllib.evaluate as evaluate_cli
+
+    argv = ["--policy", "greedy", "--n-eds", "5", "--episodes", "3", "--json", "--seed", "4"]
+    assert main(argv) == 0
+    quiet = capsys.readouterr()
+    assert quiet.err == ""
+    monkeypatch.setattr(evaluate_cli, "LONG_SECONDS", 0.0)
+    assert main(argv) == 0
+    loud = capsys.readouterr()
+    assert json.loads(loud.out) == json.loads(quiet.out)
+    first = loud.err.splitlines()[0]
+    assert first.startswith("evaluate: greedy on 3 episodes x 150 slots, V=5 U=2: estimated ~"), first
+    assert "450/450" in loud.err  # 3 episodes x 150 slots, all counted
+
+
+def test_checkpoint_fit_check():
+    from uavlora_rllib.evaluate import checkpoint_fit_problem
+    from uavlora_rllib.sim.scenario import ScenarioConfig
+
+    trained = ScenarioConfig(n_eds=10, n_uavs=2, max_eds_per_uav=8)
+    assert checkpoint_fit_problem(trained, trained) is None
+    # V may change at a fixed quota (Fig. 3b evaluates across V); so may the channel and rewards
+    assert checkpoint_fit_problem(trained, trained.replace(n_eds=40, noise_dbm=-110.0, reward={"w1": 1.0})) is None
+    for change, field in [({"sf_set": [7]}, "sf_set"), ({"n_uavs": 3}, "n_uavs"), ({"max_eds_per_uav": 9}, "max_eds_per_uav")]:
+        problem = checkpoint_fit_problem(trained, trained.replace(**change))
+        assert problem and "was trained for 2 UAVs" in problem and field in problem.split("differ: ")[1], problem
+
+
+@pytest.mark.slow
+def test_checkpoint_on_a_scenario_it_was_not_trained_for(tmp_path, capsys):
+    """A real checkpoint: evaluating it on its own scenario works; on one whose spaces differ
+    (sf_set [7], another U) it is one line and exit 2, before any episode runs."""
+    import tempfile
+
+    import ray
+
+    from uavlora_rllib.algorithms.common import registry
+    from uavlora_rllib.sim.scenario import ScenarioConfig
+
+    ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False, _temp_dir=tempfile.mkdtemp(prefix="rev", dir="/tmp"))
+    try:
+        entry = registry.get("mappo")
+        cfg = ScenarioConfig(n_eds=4, n_uavs=2, episode_len=4)
+        hp = entry.hparams({"num_epochs": 1, "num_minibatches": 1, "batch_episodes": 2, "max_seq_len": 4, "gru_hidden": 8})
+        algo = entry.build(cfg, hp, registry.Resources(num_envs_per_env_runner=2), 0).build_algo()
+        algo.train()
+        ckpt = str(tmp_path / "ckpt")
+        algo.save_to_path(ckpt)
+        algo.stop()
+        assert main(["--policy", ckpt, "--episodes", "1", "--json"]) == 0
+        capsys.readouterr()
+        (tmp_path / "s.yaml").write_text("sf_set: [7]\n")
+        for extra, field in [(["--scenario-yaml", str(tmp_path / "s.yaml")], "sf_set"), (["--n-uavs", "3"], "n_uavs")]:
+            assert main(["--policy", ckpt, "--episodes", "1", *extra]) == 2
+            err = capsys.readouterr().err
+            assert err.startswith("evaluate: error: --policy: the checkpoint at") and err.count("\n") == 1, err
+            assert field in err.split("differ: ")[1], err
+    finally:
+        ray.shutdown()
+
+
+def test_directory_that_is_not_a_checkpoint(capsys, tmp_path):
+    assert main(["--policy", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err == f"evaluate: error: --policy: {str(tmp_path)!r} is not an RLlib checkpoint (no rllib_checkpoint.json)\n"
+    for name in ("checkpoint_000002", "checkpoint_000010"):  # a Tune trial directory
+        (tmp_path / name).mkdir()
+    assert main(["--policy", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.rstrip().endswith(f"the latest is {tmp_path / 'checkpoint_000010'}"), err

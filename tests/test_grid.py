@@ -124,6 +124,40 @@ BAD = [
     ("bad_evaluation", {"evaluation": {"episodes": 0}}, r"evaluation\.episodes: Input should be greater than or equal to 1"),
     ("bad_plugin", {"plugins": ["no_such_module_xyz"]}, r"plugins\.0: cannot import module 'no_such_module_xyz'"),
     ("yaml_syntax", "experiment: g\nalgorithms: {stock_ppo: null\nseeds: [0]\n", r"line 3, column \d+: YAML syntax error"),
+    # strict numbers: no bool or string for a number, no NaN or inf (issue 15)
+    ("bool_for_float", {"algorithms": {"stock_ppo": {"lr": True}}}, r"algorithms\.stock_ppo\.lr: expected a number in \(0, inf\), got True \(bool\)"),
+    ("inf_for_float", {"algorithms": {"stock_ppo": {"lr": float("inf")}}}, r"algorithms\.stock_ppo\.lr: expected a finite number"),
+    ("string_for_int", {"checkpoint_every": "5"}, r"checkpoint_every: expected an integer in \[1, 1e\+09\], got '5' \(str\)"),
+    ("bool_seed", {"seeds": [True]}, r"seeds\.0: expected an integer in \[0, 4\.29497e\+09\], got True"),
+    ("negative_seed", {"seeds": [-1]}, r"seeds\.0: Input should be greater than or equal to 0"),
+    ("huge_seed", {"seeds": [2**64]}, r"seeds\.0: expected an integer in \[0, 4\.29497e\+09\] within the 64-bit range"),
+    ("seed_above_32_bits", {"seeds": [2**32]}, r"seeds\.0: Input should be less than or equal to 4294967295"),
+    ("nan_reward_weight", {"scenario": {"reward": {"w1": float("nan")}}}, r"scenario\.reward\.w1: expected a finite number in \[-1e\+06, 1e\+06\], got nan"),
+    ("nan_mobility", {"scenario": {"mobility": {"mean_velocity_init_mps": float("nan")}}}, r"scenario\.mobility\.mean_velocity_init_mps: expected a finite number"),
+    ("inf_area", {"scenario": {"area_m": float("inf")}}, r"scenario\.area_m: expected a finite number in \[1, 1e\+07\]"),
+    ("huge_altitude", {"scenario": {"altitude_m": 1e300}}, r"scenario\.altitude_m: Input should be less than or equal to 10000"),
+    ("huge_range", {"scenario": {"comm_range_m": 1e300}}, r"scenario\.comm_range_m: Input should be less than or equal to"),
+    ("tiny_noise", {"scenario": {"noise_dbm": -1e6}}, r"scenario\.noise_dbm: Input should be greater than or equal to -200"),
+    ("huge_weight", {"scenario": {"reward": {"w4": -1e308}}}, r"scenario\.reward\.w4: Input should be greater than or equal to -1000000"),
+    ("bool_in_tuple", {"scenario": {"tp_dbm": [2.0, True]}}, r"scenario\.tp_dbm\.1: expected a number, got True"),
+    ("bool_resources", {"resources": {"num_env_runners": True}}, r"resources\.num_env_runners: expected an integer"),
+    # names, URIs, storage
+    ("escaping_experiment", {"experiment": "../escaped"}, r"experiment: must be 1-64 characters .* without '\.\.'"),
+    ("dotdot_experiment", {"experiment": ".."}, r"experiment: must be 1-64 characters"),
+    ("slash_experiment", {"experiment": "a/b"}, r"experiment: must be 1-64 characters"),
+    ("newline_experiment", {"experiment": "a\nb"}, r"experiment: must be 1-64 characters"),
+    ("blank_experiment", {"experiment": " "}, r"experiment: must be 1-64 characters"),
+    ("bogus_uri", {"mlflow": {"tracking_uri": "bogus://x"}}, r"mlflow\.tracking_uri: must be a database or server URI with scheme one of \['sqlite'"),
+    ("http_without_host", {"mlflow": {"tracking_uri": "http://"}}, r"mlflow\.tracking_uri: .*no host"),
+    ("sqlite_under_a_file", {"mlflow": {"tracking_uri": "sqlite:////dev/null/x.db"}}, r"mlflow\.tracking_uri: the sqlite file's directory is not usable"),
+    ("storage_under_a_file", {"storage": "/dev/null/x"}, r"storage: must be a directory that exists or can be created: cannot create /dev/null/x: /dev/null is not a directory"),
+    ("storage_unknown_scheme", {"storage": "ftp://host/x"}, r"storage: must be a local directory or a URI .*'s3'"),
+    ("plugin_not_a_module_name", {"plugins": ["tune_stock_ppo", "a-b"]}, r"plugins: entry 1: must be a dotted Python module name"),
+    # cross-field checks of an algorithm's hyperparameters
+    ("qmix_learning_starts_above_buffer", {"plugins": [], "algorithms": {"qmix": {"buffer_size_episodes": 4, "batch_size_episodes": 2, "learning_starts_episodes": 8}}}, r"algorithms\.qmix: learning_starts_episodes \(8\) must be <= buffer_size_episodes \(4\)"),
+    ("qmix_batch_above_buffer", {"plugins": [], "algorithms": {"qmix": {"buffer_size_episodes": 4, "batch_size_episodes": 8, "learning_starts_episodes": 2}}}, r"algorithms\.qmix: batch_size_episodes \(8\) must be <= buffer_size_episodes \(4\)"),
+    ("duplicate_key", "experiment: g\nexperiment: h\n", r"line 2, column 1: YAML error: duplicate key 'experiment' \(first given on line 1\)"),
+    ("duplicate_nested_key", "experiment: g\nalgorithms:\n  stock_ppo: {lr: 0.1, lr: 0.2}\n", r"line 3, column \d+: YAML error: duplicate key 'lr'"),
     ("not_a_mapping", "- just\n- a list\n", r"<top level>: expected a mapping"),
 ]
 
@@ -148,6 +182,51 @@ def test_bad_grid_names_the_yaml_path(tmp_path, capsys, case_id, change, pattern
     assert not ray.is_initialized()
     assert not (tmp_path / "ray_results").exists()
     assert not (tmp_path / "mlflow.db").exists()
+
+
+def test_not_utf8(tmp_path, capsys):
+    path = tmp_path / "grid.yaml"
+    path.write_bytes(yaml.safe_dump(base_grid(tmp_path)).encode("utf-8") + b"# caf\xe9\n")  # latin-1
+    rc, out, err = run_cli([str(path)], capsys)
+    assert rc == 2 and out == ""
+    assert err.count("\n") == 1 and "is not UTF-8 text (byte 0xe9 at offset" in err and "Traceback" not in err
+
+
+PLUGIN_FAILURES = [
+    ("syntax", "def broken(:\n", r"importing plugin module 'bad_plugin_syntax' failed: SyntaxError \(.*bad_plugin_syntax\.py, line 1\)"),
+    ("raises", "raise RuntimeError('no GPU here')\n", r"importing plugin module 'bad_plugin_raises' failed: RuntimeError: no GPU here"),
+    ("exits", "import sys\nsys.exit(0)\n", r"importing plugin module 'bad_plugin_exits' failed: SystemExit: 0"),
+    ("missing_dep", "import no_such_dependency_xyz\n", r"cannot import module 'bad_plugin_missing_dep': No module named 'no_such_dependency_xyz'"),
+]
+
+
+@pytest.mark.parametrize("kind,source,pattern", PLUGIN_FAILURES, ids=[p[0] for p in PLUGIN_FAILURES])
+def test_plugin_import_failures_are_one_line(tmp_path, capsys, monkeypatch, kind, source, pattern):
+    name = f"bad_plugin_{kind}"
+    (tmp_path / f"{name}.py").write_text(source)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    rc, out, err = run_cli([write(tmp_path, _mutate(tmp_path, plugins=["tune_stock_ppo", name])), "--dry-run"], capsys)
+    assert rc == 2 and out == "", out
+    assert err.count("\n") == 1 and err.startswith("error: ") and "plugins.1: " in err, err
+    assert re.search(pattern, err), err
+
+
+def test_resources_beyond_the_local_machine(tmp_path, capsys):
+    data = _mutate(tmp_path, resources={"num_cpus_per_learner": 1000})
+    path = write(tmp_path, data)
+    load_grid(path)  # a valid grid in itself: a cluster may have 1000 CPUs ...
+    rc, _, err = run_cli([path, "--dry-run"], capsys)  # ... the local Ray has not
+    assert rc == 2 and re.search(r"resources\.num_cpus_per_learner: one trial needs 1000 CPUs .* local Ray has \d+", err), err
+    rc, _, err = run_cli([path, "--dry-run", "--num-cpus", "2000"], capsys)
+    assert rc == 0, err
+    data = _mutate(tmp_path, resources={"num_env_runners": 3, "num_cpus_per_env_runner": 1})
+    rc, _, err = run_cli([write(tmp_path, data), "--dry-run", "--num-cpus", "2"], capsys)
+    assert rc == 2 and err.startswith("error: ") and ": resources: one trial needs 4 CPUs" in err, err
+
+
+def test_storage_flag_is_checked(tmp_path, capsys):
+    rc, _, err = run_cli([write(tmp_path, base_grid(tmp_path)), "--dry-run", "--storage", "/dev/null/x"], capsys)
+    assert rc == 2 and "--storage" in err and "/dev/null is not a directory" in err
 
 
 def test_missing_file(tmp_path, capsys):

@@ -31,6 +31,7 @@ from typing import Callable  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in  # noqa: E402
 from uavlora_rllib.sim.core import NOISE_CHUNK, BatchCore  # noqa: E402
 from uavlora_rllib.sim.scenario import ScenarioConfig  # noqa: E402
 
@@ -220,21 +221,47 @@ def write_section(path: str, section: str) -> None:
         fh.write(text.rstrip("\n") + "\n")
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m uavlora_rllib.bench", description="simulator benchmarks")
-    sub = p.add_subparsers(dest="what", required=True)
+def _writable_file(text: str) -> str:
+    """--write FILE: a file (new or existing) in an existing directory, checked before the
+    benchmark runs for minutes."""
+    folder = os.path.dirname(os.path.abspath(text)) or "."
+    if os.path.isdir(text):
+        raise argparse.ArgumentTypeError(f"{text!r} is a directory; allowed: a markdown file")
+    if not os.path.isdir(folder) or not os.access(folder, os.W_OK):
+        raise argparse.ArgumentTypeError(f"cannot write {text!r}: {folder} is not a writable directory")
+    if os.path.exists(text) and not os.access(text, os.W_OK):
+        raise argparse.ArgumentTypeError(f"cannot write {text!r}: not writable")
+    return text
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = Parser(prog="python -m uavlora_rllib.bench", description="simulator benchmarks")
+    sub = p.add_subparsers(dest="what", required=True, parser_class=Parser)
     env = sub.add_parser("env", help="env steps per second (single env API and batch core)")
     env.add_argument("--quick", action="store_true", help="fewer steps (a smoke run, noisier)")
-    env.add_argument("--repeats", type=int, default=None, help="timed runs per figure (default 5, 2 with --quick)")
-    env.add_argument("--write", metavar="FILE", default=None, help="write the results into FILE's Simulator section")
-    args = p.parse_args(argv)
+    env.add_argument(
+        "--repeats", type=int_in(1, 1000), default=None, help="timed runs per figure (default 5, 2 with --quick)"
+    )
+    env.add_argument(
+        "--write",
+        metavar="FILE",
+        type=_writable_file,
+        default=None,
+        help="write the results into FILE's Simulator section",
+    )
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        args = build_parser().parse_args(argv)
+    except UsageError as exc:
+        return fail(exc)
     m = machine()
     print(f"machine: {m['nproc']} CPUs ({m['cpu']}), Python {m['python']}, NumPy {m['numpy']}, {m['threads']}")
     # 5: this shared machine has slow spells of several seconds, and the best of 3 runs of
     # ~0.6 s each (the V=100 N=1024 row) fell into one in some full runs
     repeats = args.repeats or (2 if args.quick else 5)
-    if repeats < 1:
-        p.error(f"--repeats: must be >= 1, got {repeats}")
     rows = run_env_bench(args.quick, repeats)
     if args.write:
         command = "python -m uavlora_rllib.bench env" + (" --quick" if args.quick else "")

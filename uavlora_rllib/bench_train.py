@@ -9,17 +9,21 @@ YAML), trains K iterations after one warm-up iteration, and prints env steps per
 to end (env steps sampled / wall-clock of the timed iterations) and how each iteration's
 time splits between sampling and learning (RLlib's `timers`: env_runner_sampling_timer,
 learner_update_timer, synch_weights). Also the wall-clock this rate implies for the paper's
-T_max = 2M env steps.
+T_max = 2M env steps. Bad input (a flag, an unknown algorithm, a bad override, a scenario the
+algorithm does not support) gives one line on stderr and exit code 2 before Ray starts.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 
 import yaml
+
+from uavlora_rllib.cli_args import SEED_MAX, Parser, UsageError, fail, int_in
 
 T_MAX = 2_000_000
 TIMER_KEYS = {"env_runner_sampling_timer": "sample_s", "learner_update_timer": "learn_s", "synch_weights": "sync_s"}
@@ -41,56 +45,82 @@ def _this_iteration(ema_now: float | None, ema_before: float | None) -> float:
 
 
 def _parse_set(items: list[str]) -> dict:
+    """KEY=VALUE overrides, each VALUE read as YAML (so 1e-3 is a number, true a bool: the
+    hyperparameter class then refuses a bool for a number)."""
     out = {}
     for item in items:
-        if "=" not in item:
-            raise SystemExit(f"--set: expected key=value, got {item!r}")
-        key, value = item.split("=", 1)
-        out[key] = yaml.safe_load(value)
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise UsageError(f"--set: expected key=value, got {item!r}")
+        if key in out:
+            raise UsageError(f"--set: {key!r} given twice")
+        try:
+            out[key] = yaml.safe_load(value)
+        except yaml.YAMLError as exc:
+            raise UsageError(f"--set: {key}: cannot read the value {value!r}: {str(exc).splitlines()[0]}") from None
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m uavlora_rllib.bench_train", description=__doc__.split("\n")[0])
+def build_parser() -> argparse.ArgumentParser:
+    p = Parser(prog="python -m uavlora_rllib.bench_train", description=__doc__.split("\n")[0])
     p.add_argument("algo")
-    p.add_argument("--iterations", type=int, default=5)
-    p.add_argument("--n-eds", type=int, default=10)
-    p.add_argument("--n-uavs", type=int, default=2)
-    p.add_argument("--episode-len", type=int, default=150)
-    p.add_argument("--action-mode", default="per_uav")
-    p.add_argument("--envs-per-runner", type=int, default=8)
-    p.add_argument("--env-runners", type=int, default=0)
-    p.add_argument("--torch-threads", type=int, default=1)
-    p.add_argument("--num-cpus", type=int, default=None, help="ray.init(num_cpus=...)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--iterations", type=int_in(1, 100_000), default=5)
+    p.add_argument("--n-eds", type=int_in(1), default=10)
+    p.add_argument("--n-uavs", type=int_in(1), default=2)
+    p.add_argument("--episode-len", type=int_in(1), default=150)
+    p.add_argument("--action-mode", choices=("per_uav", "per_device"), default="per_uav")
+    p.add_argument("--envs-per-runner", type=int_in(1, 100_000), default=8)
+    p.add_argument("--env-runners", type=int_in(0, 10_000), default=0)
+    p.add_argument("--torch-threads", type=int_in(1, 1024), default=1)
+    p.add_argument("--num-cpus", type=int_in(1, 100_000), default=None, help="ray.init(num_cpus=...)")
+    p.add_argument("--seed", type=int_in(0, SEED_MAX), default=0)
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="hyperparameter overrides")
     p.add_argument("--json", action="store_true", help="print one JSON line as well")
-    args = p.parse_args(argv)
+    return p
+
+
+def _resolve(args: argparse.Namespace):
+    """(entry, scenario, hparams, resources) from the flags; UsageError / ConfigError if bad."""
+    from uavlora_rllib.algorithms.common import registry
+    from uavlora_rllib.config_errors import build
+    from uavlora_rllib.sim.scenario import ScenarioConfig
+
+    entry = registry.get(args.algo, path="algo")
+    scenario = ScenarioConfig.from_dict(
+        {"n_eds": args.n_eds, "n_uavs": args.n_uavs, "episode_len": args.episode_len, "action_mode": args.action_mode}
+    )
+    entry.check_scenario(scenario, prefix="--action-mode")
+    hparams = entry.hparams(_parse_set(args.set), prefix="--set")
+    resources = build(
+        registry.Resources,
+        {
+            "num_env_runners": args.env_runners,
+            "num_envs_per_env_runner": args.envs_per_runner,
+            "torch_threads": args.torch_threads,
+        },
+        "resources",
+    )
+    need = resources.num_cpus_per_learner + resources.num_env_runners * resources.num_cpus_per_env_runner
+    cpus = args.num_cpus or os.cpu_count() or 1
+    if need > cpus:  # Ray would wait for the missing CPUs forever
+        raise UsageError(f"--env-runners: {args.env_runners} runners and a learner need {need:g} CPUs; Ray has {cpus}")
+    entry.build(scenario, hparams, resources, args.seed)  # the entry's own cross-checks, before Ray starts
+    return entry, scenario, hparams, resources
+
+
+def main(argv: list[str] | None = None) -> int:
+    from uavlora_rllib.config_errors import ConfigError
+
+    try:
+        args = build_parser().parse_args(argv)
+        entry, scenario, hparams, resources = _resolve(args)
+    except (UsageError, ConfigError) as exc:
+        return fail(exc)
 
     import torch
 
     torch.set_num_threads(args.torch_threads)
     import ray
-
-    from uavlora_rllib.algorithms.common import registry
-    from uavlora_rllib.config_errors import ConfigError
-    from uavlora_rllib.sim.scenario import ScenarioConfig
-
-    try:
-        entry = registry.get(args.algo)
-        scenario = ScenarioConfig.from_dict(
-            {"n_eds": args.n_eds, "n_uavs": args.n_uavs, "episode_len": args.episode_len, "action_mode": args.action_mode}
-        )
-        entry.check_scenario(scenario)
-        hparams = entry.hparams(_parse_set(args.set))
-        resources = registry.Resources(
-            num_env_runners=args.env_runners,
-            num_envs_per_env_runner=args.envs_per_runner,
-            torch_threads=args.torch_threads,
-        )
-    except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
 
     ray.init(num_cpus=args.num_cpus, include_dashboard=False, log_to_driver=False)
     try:

@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import sys
+from typing import Callable
+
+SEED_MAX = 2**32 - 1  # seeds are 32-bit everywhere (NumPy's legacy seeding, Ray, the grid's seeds)
 
 
 class UsageError(Exception):
@@ -23,8 +27,33 @@ def integer(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
 
 
+def int_in(low: int, high: int | None = None) -> Callable[[str], int]:
+    """A parser of integers in [low, high] (high None: no upper bound)."""
+
+    def parse(text: str) -> int:
+        value = integer(text)
+        if value < low or (high is not None and value > high):
+            allowed = f"in [{low}, {high}]" if high is not None else f">= {low}"
+            raise argparse.ArgumentTypeError(f"must be an integer {allowed}, got {value}")
+        return value
+
+    parse.__name__ = "integer"  # argparse names the type in some messages
+    return parse
+
+
 def positive_int(text: str) -> int:
     value = integer(text)
     if value <= 0:
         raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
     return value
+
+
+seed = int_in(0, SEED_MAX)
+
+
+def fail(message: object, prog: str | None = None, code: int = 2) -> int:
+    """Print `[prog: ]error: message` as ONE line on stderr (newlines in the message folded);
+    return the exit code."""
+    head = f"{prog}: error: " if prog else "error: "
+    print(head + " ".join(str(message).split()), file=sys.stderr)
+    return code

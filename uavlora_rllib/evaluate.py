@@ -6,7 +6,11 @@
 
 Prints the paper's execution metrics (evaluation.run_episodes), each as the mean over
 episodes with its 95% CI half-width; `--json` prints one JSON object instead. Bad input
-gives one line on stderr and exit code 2.
+(a flag, the scenario YAML, a checkpoint that cannot be restored or that was trained for a
+scenario whose observation or action spaces differ from this one) gives one line on stderr
+and exit code 2, before anything runs. An evaluation estimated to take more than
+LONG_SECONDS (baselines.policies.evaluation_seconds: `optimal` beyond U = 2, many episodes)
+prints its estimate first and shows a progress bar on stderr.
 """
 
 from __future__ import annotations
@@ -18,12 +22,16 @@ import os
 import sys
 from typing import Any, Mapping, Sequence
 
-import yaml
-
-from uavlora_rllib.baselines.policies import BASELINES, OBJECTIVES, make_baseline
+from uavlora_rllib.baselines.policies import BASELINES, OBJECTIVES, evaluation_seconds, make_baseline
+from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in, positive_int, seed
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.sim.scenario import ScenarioConfig
-from uavlora_rllib.cli_args import Parser, UsageError, integer, positive_int
+from uavlora_rllib.experiment.grid import parse_yaml, read_yaml_text
+from uavlora_rllib.sim.core import ActionError
+from uavlora_rllib.sim.scenario import ScenarioConfig, scenario_field_names
+
+PROG = "evaluate"
+MAX_EPISODES = 1_000_000
+LONG_SECONDS = 10.0  # evaluations estimated longer than this print the estimate and show progress
 
 # (key in the JSON output, label, unit)
 REPORTED = (
@@ -42,8 +50,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--policy", required=True, help=f"one of {', '.join(BASELINES)}, or a checkpoint directory")
     p.add_argument("--n-eds", type=positive_int, default=None, help="V (default: scenario's, 10)")
     p.add_argument("--n-uavs", type=positive_int, default=None, help="U (default: scenario's, 2)")
-    p.add_argument("--episodes", type=positive_int, default=10, help="episodes (default 10)")
-    p.add_argument("--seed", type=integer, default=0, help="evaluation seed (episode seeds derive from it)")
+    p.add_argument("--episodes", type=int_in(1, MAX_EPISODES), default=10, help="episodes (default 10)")
+    p.add_argument(
+        "--seed", type=seed, default=0, help="evaluation seed in [0, 2^32 - 1] (episode seeds derive from it)"
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--scenario-yaml", default=None, help="YAML file of scenario fields (or with a 'scenario:' key)")
     p.add_argument("--objective", choices=OBJECTIVES, default="ee", help="greedy/optimal objective (default ee)")
@@ -53,11 +63,10 @@ def build_parser() -> argparse.ArgumentParser:
 def _load_yaml_scenario(path: str) -> dict[str, Any]:
     if not os.path.isfile(path):
         raise UsageError(f"--scenario-yaml: file not found: {path}")
-    try:
-        with open(path) as fh:
-            data = yaml.safe_load(fh) or {}
-    except yaml.YAMLError as exc:
-        raise UsageError(f"--scenario-yaml: not valid YAML ({path}): {str(exc).splitlines()[0]}") from None
+    try:  # UTF-8 only, no duplicate keys: the grid YAML's reader
+        data = parse_yaml(read_yaml_text(path, "scenario file"), path) or {}
+    except ConfigError as exc:
+        raise UsageError(f"--scenario-yaml: {exc}") from None
     if not isinstance(data, Mapping):
         raise UsageError(f"--scenario-yaml: expected a mapping of scenario fields, got {type(data).__name__}")
     if "scenario" in data:
@@ -80,16 +89,47 @@ def load_checkpoint_policy(path: str, scenario_overrides: Mapping[str, Any] | No
 
     try:
         algo = Algorithm.from_checkpoint(os.path.abspath(path))
-    except (ValueError, FileNotFoundError) as exc:  # RLlib's "not a valid checkpoint"
-        raise ConfigError(f"--policy: {path!r} is not a valid RLlib checkpoint: {str(exc).splitlines()[0]}") from None
+    except Exception as exc:  # RLlib raises many kinds for a directory that is not its checkpoint
+        first = (str(exc).strip().splitlines() or [""])[0]
+        raise ConfigError(
+            f"--policy: {path!r} is not a valid RLlib checkpoint: {type(exc).__name__}: {first}"
+        ) from None
     env_config = algo.config.env_config or {}
-    scenario = env_config.get("scenario", {})
-    scenario = scenario if isinstance(scenario, ScenarioConfig) else ScenarioConfig.from_dict(scenario)
-    if scenario_overrides:
-        scenario = scenario.replace(**dict(scenario_overrides))
+    trained = env_config.get("scenario", {})
+    trained = trained if isinstance(trained, ScenarioConfig) else ScenarioConfig.from_dict(trained)
+    scenario = trained.replace(**dict(scenario_overrides)) if scenario_overrides else trained
     entry = entry_for_algorithm(algo)
     entry.check_scenario(scenario)
-    return entry.greedy_policy(algo, scenario), scenario
+    problem = checkpoint_fit_problem(trained, scenario)
+    if problem:
+        raise ConfigError(f"--policy: the checkpoint at {path!r} {problem}")
+    try:
+        return entry.greedy_policy(algo, scenario), scenario
+    except ValueError as exc:  # the entry's own check of the trained module against the scenario
+        raise ConfigError(f"--policy: the checkpoint at {path!r} does not fit this scenario: {exc}") from None
+
+
+def checkpoint_fit_problem(trained: ScenarioConfig, scenario: ScenarioConfig) -> str | None:
+    """Why a policy trained on `trained` cannot act in `scenario`, or None.
+
+    A trained actor fixes the number of agents (UAVs), each agent's observation space and its
+    action space; every other scenario field (V within the same quota, the channel, the
+    rewards...) may change between training and evaluation (e.g. the paper's Fig. 3b)."""
+    from uavlora_rllib.envs.multi_agent import action_space, observation_space
+
+    def spaces(cfg: ScenarioConfig) -> tuple:
+        return cfg.n_uavs, observation_space(cfg).shape, action_space(cfg)
+
+    if spaces(trained) == spaces(scenario):
+        return None
+    differ = [f for f in scenario_field_names() if getattr(trained, f) != getattr(scenario, f)]
+    t_u, t_obs, t_act = spaces(trained)
+    u, obs, act = spaces(scenario)
+    return (
+        f"was trained for {t_u} UAVs with observations {t_obs} and actions {t_act}; this scenario has "
+        f"{u} UAVs, observations {obs} and actions {act} (scenario fields that differ: {', '.join(differ)}); "
+        "allowed: changes that keep n_uavs, the quota max_eds_per_uav, action_mode, sf_set, tp_dbm and bw_khz"
+    )
 
 
 def _resolve(args: argparse.Namespace):
@@ -104,6 +144,11 @@ def _resolve(args: argparse.Namespace):
         )
     if not os.path.isdir(args.policy):
         raise UsageError(f"--policy: checkpoint path {args.policy!r} is not a directory")
+    if not os.path.isfile(os.path.join(args.policy, "rllib_checkpoint.json")):
+        # (checked here: RLlib itself logs warnings and guesses before it gives up)
+        inner = sorted(d for d in os.listdir(args.policy) if d.startswith("checkpoint_"))
+        hint = f"; it holds checkpoints, the latest is {os.path.join(args.policy, inner[-1])}" if inner else ""
+        raise UsageError(f"--policy: {args.policy!r} is not an RLlib checkpoint (no rllib_checkpoint.json){hint}")
     if args.scenario_yaml:
         overrides = {**_load_yaml_scenario(args.scenario_yaml), **overrides}
     return load_checkpoint_policy(args.policy, overrides)
@@ -127,16 +172,73 @@ def json_summary(summary: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+class _Progress:
+    """Wraps a Policy and advances a tqdm bar by the episode-slots each act() plays (a batch
+    of run_episodes' scenarios per call; the last batch may hold padding scenarios)."""
+
+    def __init__(self, policy: Any, cfg: ScenarioConfig, episodes: int, bar: Any):
+        self._policy, self._episodes, self._bar = policy, episodes, bar
+        self._slot, self._batch_start, self._t = 0, 0, cfg.episode_len
+        self.name = getattr(policy, "name", "policy")
+
+    def reset(self, core: Any) -> None:
+        self._policy.reset(core)
+
+    def act(self, core: Any):
+        actions = self._policy.act(core)
+        real = min(core.n, self._episodes - self._batch_start)
+        self._bar.update(real)
+        self._slot += 1
+        if self._slot == self._t:  # the batch's episodes are done; run_episodes resets the next
+            self._slot, self._batch_start = 0, self._batch_start + core.n
+        return actions
+
+
+def run_with_progress(
+    policy: Any, cfg: ScenarioConfig, episodes: int, seed: int, kind: str, label: str, prefix: str = "", out: Any = None
+):
+    """evaluation.run_episodes, plus, when the run is estimated to take more than LONG_SECONDS
+    (baselines.policies.evaluation_seconds; `kind` a baseline name, or anything else for a
+    learned policy), one line with the estimate and a tqdm progress bar on `out` (stderr).
+    The bar only watches: the episodes, seeds and metrics are those of run_episodes. Usable
+    by any driver that evaluates (e.g. the baseline phase of tune: `kind` = the baseline)."""
     from uavlora_rllib.experiment.evaluation import run_episodes
 
+    estimate = evaluation_seconds(kind, cfg, episodes)
+    if estimate <= LONG_SECONDS:
+        return run_episodes(policy, cfg, episodes=episodes, seed=seed)
+    from tqdm import tqdm
+
+    out = out or sys.stderr
+    what = f"{episodes} episodes x {cfg.episode_len} slots, V={cfg.n_eds} U={cfg.n_uavs}"
+    if kind == "optimal":
+        what += f", {cfg.n_joint_actions}^{cfg.n_uavs} = {cfg.n_joint_actions**cfg.n_uavs:,} joint actions per slot"
+    print(f"{prefix}{label} on {what}: estimated {_duration(estimate)} on one core", file=out, flush=True)
+    with tqdm(total=episodes * cfg.episode_len, unit="slot", desc=label, file=out, dynamic_ncols=True) as bar:
+        return run_episodes(_Progress(policy, cfg, episodes, bar), cfg, episodes=episodes, seed=seed)
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 120:
+        return f"~{seconds:.0f} s"
+    if seconds < 7200:
+        return f"~{seconds / 60:.0f} min"
+    return f"~{seconds / 3600:.1f} h"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
         policy, cfg = _resolve(args)
+        kind = args.policy if args.policy in BASELINES else "learned"
+        label = args.policy if args.policy in BASELINES else "checkpoint"
+        result = run_with_progress(policy, cfg, args.episodes, args.seed, kind, label, prefix=f"{PROG}: ")
     except (UsageError, ConfigError) as exc:
-        print(f"evaluate: error: {' '.join(str(exc).split())}", file=sys.stderr)
-        return 2
-    result = run_episodes(policy, cfg, episodes=args.episodes, seed=args.seed)
+        return fail(exc, PROG)
+    except ActionError as exc:  # a policy whose actions do not fit the scenario's action space
+        return fail(f"--policy: its actions do not fit this scenario: {exc}", PROG)
+    except KeyboardInterrupt:
+        return fail("interrupted", PROG, code=130)
     summary = result.summary()
     if args.json:
         out = json_summary(summary)

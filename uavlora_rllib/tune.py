@@ -42,13 +42,15 @@ from ray import tune
 
 from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.cli_args import Parser, UsageError, positive_int
+from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in
 from uavlora_rllib.experiment.grid import (
     GridConfig,
     algorithm_overrides,
     TrialSpec,
     baseline_runs,
     hparams_dict,
+    check_local_resources,
+    check_storage,
     import_plugins,
     load_grid,
     run_name,
@@ -71,9 +73,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue the grid's Tune experiment")
     p.add_argument("--dry-run", action="store_true", help="print the trials and baseline runs, start nothing")
     p.add_argument("--address", default=None, help="Ray cluster address (default: start a local Ray)")
-    p.add_argument("--storage", default=None, help="Ray results directory (overrides the grid's storage)")
-    p.add_argument("--num-cpus", type=positive_int, default=None, help="CPUs of the local Ray (default: all)")
+    p.add_argument(
+        "--storage", type=_storage_arg, default=None, help="Ray results directory (overrides the grid's storage)"
+    )
+    p.add_argument("--num-cpus", type=int_in(1, 100_000), default=None, help="CPUs of the local Ray (default: all)")
     return p
+
+
+def _storage_arg(text: str) -> str:
+    try:
+        return check_storage(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 # --------------------------------------------------------------------------- paths
@@ -223,7 +234,7 @@ def _trial_dirname(trial) -> str:
 # --------------------------------------------------------------------------- phases
 def run_baselines(grid: GridConfig, tracker, out=None) -> None:
     from uavlora_rllib.baselines.policies import make_baseline
-    from uavlora_rllib.experiment.evaluation import run_episodes
+    from uavlora_rllib.evaluate import run_with_progress
     from uavlora_rllib.experiment.tracking import run_params
 
     out = out or sys.stdout
@@ -237,7 +248,8 @@ def run_baselines(grid: GridConfig, tracker, out=None) -> None:
 
         def evaluate(b=b):
             policy = make_baseline(b.baseline, b.scenario, seed=b.seed)
-            return run_episodes(policy, b.scenario, episodes, b.seed).summary()
+            # run_episodes, with an estimate and a progress bar on stderr when it is long (optimal)
+            return run_with_progress(policy, b.scenario, episodes, b.seed, b.baseline, f"baseline {b.name}").summary()
 
         tracker.log_baseline(b.baseline, b.name, b.seed, b.n_eds, b.n_uavs, params, evaluate, grid.stop.env_steps)
         print(f"baseline {b.name}: evaluated in {time.perf_counter() - t0:.1f} s", file=out, flush=True)
@@ -342,14 +354,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.grid is None:
             raise UsageError("grid: a grid YAML is required (or --list-hparams ALGO)")
         grid = load_grid(args.grid)
+        if not args.address:  # a local Ray: a trial that needs more CPUs than it has never starts
+            try:
+                check_local_resources(grid, args.num_cpus or os.cpu_count() or 1)
+            except ConfigError as exc:
+                raise ConfigError(f"{args.grid}: {exc}") from None
         specs = trials(grid)
         if args.dry_run:
             print(trial_table(grid, specs))
             return EXIT_OK
         return run_grid(grid, args.grid, args)
     except (UsageError, ConfigError) as exc:
-        print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)
-        return EXIT_USAGE
+        return fail(exc, code=EXIT_USAGE)
+    except ConnectionError as exc:  # ray.init(address=...) found no cluster there
+        return fail(f"--address: cannot connect to a Ray cluster at {args.address!r}: {exc}", code=EXIT_USAGE)
 
 
 if __name__ == "__main__":

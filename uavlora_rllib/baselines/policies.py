@@ -142,8 +142,9 @@ class AdrPolicy:
     the ADR rule once, and the new setting is used in this slot and kept for the next one
     (a one-slot idealisation of ADR's uplink history). State starts at SF12 / 14 dBm (the
     largest SF and TP of the scenario's sets) at every episode reset; BW is fixed at
-    `bw_khz` (default 125 kHz, LoRaWAN's usual uplink channel width; must be in the
-    scenario's BW set). Installation margin `margin_db` = 10 dB (Semtech's default).
+    `bw_khz` (default: 125 kHz, LoRaWAN's usual uplink channel width, or the scenario's
+    smallest BW when its set has no 125 kHz; an explicit value must be in the scenario's BW
+    set). Installation margin `margin_db` = 10 dB (Semtech's default).
 
     per_uav: one setting per UAV, adapted on the WORST (minimum) margin of the EDs it serves
     this slot, so that every served ED keeps the installation margin (the conservative choice
@@ -152,7 +153,9 @@ class AdrPolicy:
     placed into the ED's observation slot; unassociated EDs keep their setting.
     """
 
-    def __init__(self, cfg: ScenarioConfig, bw_khz: int = 125, margin_db: float = 10.0):
+    def __init__(self, cfg: ScenarioConfig, bw_khz: int | None = None, margin_db: float = 10.0):
+        if bw_khz is None:  # the BW sets are sorted ascending: [0] is the narrowest, closest to 125
+            bw_khz = 125 if 125 in cfg.bw_khz else cfg.bw_khz[0]
         if bw_khz not in cfg.bw_khz:
             raise ConfigError(f"adr.bw_khz: {bw_khz} is not in the scenario's BW set {list(cfg.bw_khz)}")
         self.name = "adr"
@@ -351,6 +354,29 @@ def _max_uavs(n_actions: int, max_candidates: int) -> int:
     while n_actions ** (u + 1) <= max_candidates:
         u += 1
     return u
+
+
+# ---------------------------------------------------------------- cost of an evaluation
+# Candidate-ED evaluations per second of greedy's and optimal's search on one core: measured
+# 0.6-2.6e6 on the project's shared 2-core machine (V = 10-40, N = 1-8 scenarios, U = 1-2);
+# an estimate only (the evaluate CLI's progress bar shows the real rate).
+SEARCH_RATE = 2e6
+# Everything else per scenario-slot (simulator step, observations, a cheap policy), per ED.
+STEP_SECONDS_PER_ED = 1e-6
+
+
+def evaluation_seconds(name: str, cfg: ScenarioConfig, episodes: int) -> float:
+    """Rough single-core wall-clock estimate of `episodes` episodes of baseline `name` on `cfg`.
+
+    optimal searches A^U joint actions per slot; greedy at least 2 rounds of U x A (one sweep
+    that moves and one that confirms; up to GREEDY_MAX_ROUNDS)."""
+    slots = episodes * cfg.episode_len
+    searched = 0
+    if name == "optimal":
+        searched = cfg.n_joint_actions**cfg.n_uavs
+    elif name == "greedy":
+        searched = 2 * cfg.n_uavs * cfg.n_joint_actions
+    return slots * cfg.n_eds * (searched / SEARCH_RATE + STEP_SECONDS_PER_ED)
 
 
 # ---------------------------------------------------------------- factory

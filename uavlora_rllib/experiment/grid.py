@@ -33,6 +33,12 @@ A plugin module registers entries with `registry.register(...)` and adds each na
 `registry.MODULES` (name -> its own module) so that workers can import it too.
 
 Relative paths (`storage`, a relative sqlite file) are relative to the working directory.
+
+Input is taken strictly (see config_errors.build): no bool or string for a number, no NaN or
+inf, seeds in [0, 2^32 - 1], the experiment name a safe identifier (it names a directory
+under `storage` and the MLflow experiment), a tracking URI with a scheme MLflow serves
+(TRACKING_SCHEMES), `storage` a directory that exists or can be created (or a URI of
+STORAGE_SCHEMES), no key twice in one mapping, UTF-8 text.
 """
 
 from __future__ import annotations
@@ -40,6 +46,10 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import itertools
+import math
+import os
+import re
+import urllib.parse
 from dataclasses import dataclass
 from typing import Annotated, Any, Mapping
 
@@ -53,11 +63,58 @@ from uavlora_rllib.sim.scenario import ScenarioConfig
 
 _STRICT = {"extra": "forbid", "frozen": True}
 PosInt = Annotated[int, Field(ge=1)]
+SEED_MAX = 2**32 - 1  # NumPy's legacy seeding and Ray/RLlib's seeding take 32-bit seeds
+Seed = Annotated[int, Field(ge=0, le=SEED_MAX)]
+
+# The experiment name is a directory under `storage` and an MLflow experiment name.
+EXPERIMENT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
+# URI schemes MLflow 3 serves as a tracking store (file stores are refused: mlflow 3 warns
+# they are going away, and a file store cannot be shared by a cluster's driver and UI).
+# SQLAlchemy URIs may name a driver: postgresql+psycopg2://...
+TRACKING_SCHEMES = ("sqlite", "postgresql", "mysql", "mssql", "http", "https", "databricks")
+# Ray Tune storage URIs (pyarrow file systems); anything else must be a local directory.
+STORAGE_SCHEMES = ("s3", "gs", "gcs", "hdfs", "abfs", "abfss", "file")
+
+
+def _writable_dir_problem(path: str) -> str | None:
+    """Why `path` cannot be (or become) a directory this process writes, or None."""
+    path = os.path.abspath(os.path.expanduser(path))
+    if os.path.exists(path):
+        if not os.path.isdir(path):
+            return f"{path} exists and is not a directory"
+        return None if os.access(path, os.W_OK | os.X_OK) else f"{path} is not writable"
+    parent = path
+    while not os.path.exists(parent):  # the nearest existing ancestor must be a writable directory
+        parent = os.path.dirname(parent)
+    if not os.path.isdir(parent):
+        return f"cannot create {path}: {parent} is not a directory"
+    if not os.access(parent, os.W_OK | os.X_OK):
+        return f"cannot create {path}: {parent} is not writable"
+    return None
+
+
+def check_storage(value: str) -> str:
+    """`storage` (or tune's --storage): a creatable local directory or a URI of STORAGE_SCHEMES."""
+    if "://" in value:
+        scheme = value.split("://", 1)[0].lower()
+        if scheme not in STORAGE_SCHEMES or not value.split("://", 1)[1].strip("/"):
+            raise ValueError(
+                f"must be a local directory or a URI <scheme>://<bucket/path> with scheme one of "
+                f"{list(STORAGE_SCHEMES)}, got {value!r}"
+            )
+        return value
+    if not value.strip() or "\n" in value or "\0" in value:
+        raise ValueError(f"must be a directory path, got {value!r}")
+    problem = _writable_dir_problem(value)
+    if problem:
+        raise ValueError(f"must be a directory that exists or can be created: {problem}")
+    return value
 
 
 @typed_dataclass(config=_STRICT)
 class StopConfig:
-    env_steps: int = Field(gt=0)  # env steps sampled per trial (num_env_steps_sampled_lifetime)
+    # env steps sampled per trial (num_env_steps_sampled_lifetime), [1, 1e12]
+    env_steps: int = Field(gt=0, le=10**12)
 
 
 @typed_dataclass(config=_STRICT)
@@ -67,17 +124,33 @@ class MlflowConfig:
     @field_validator("tracking_uri")
     @classmethod
     def _check_uri(cls, v: str) -> str:
-        if v.startswith("file:") or "://" not in v and not v.startswith("sqlite:"):
-            raise ValueError(
-                "must be a database or server URI such as sqlite:///mlflow.db or http://host:5000 "
-                "(mlflow 3 refuses file stores)"
-            )
+        allowed = (
+            f"must be a database or server URI with scheme one of {list(TRACKING_SCHEMES)}, such as "
+            "sqlite:///mlflow.db or http://host:5000 (mlflow 3 refuses file stores)"
+        )
+        scheme, sep, rest = v.partition(":")
+        if not sep or scheme.split("+", 1)[0].lower() not in TRACKING_SCHEMES or any(c in v for c in "\n\r\0"):
+            raise ValueError(f"{allowed}; got {v!r}")
+        scheme = scheme.split("+", 1)[0].lower()
+        if scheme in ("http", "https") and not urllib.parse.urlsplit(v).hostname:
+            raise ValueError(f"{allowed}; got {v!r} (no host)")
+        if scheme == "sqlite":
+            if not rest.startswith("///") or rest == "///":
+                raise ValueError(f"{allowed}; got {v!r} (a sqlite URI is sqlite:///relative.db or sqlite:////abs.db)")
+            db_file = rest[3:]
+            if db_file != ":memory:":
+                if os.path.isdir(db_file):
+                    raise ValueError(f"the sqlite file {db_file} is a directory; got {v!r}")
+                problem = _writable_dir_problem(os.path.dirname(os.path.abspath(db_file)))
+                if problem:
+                    raise ValueError(f"the sqlite file's directory is not usable ({problem}); got {v!r}")
         return v
 
 
 @typed_dataclass(config=_STRICT)
 class EvaluationConfig:
-    episodes: int = Field(10, ge=1)  # execution-phase episodes per trial and per baseline run
+    # execution-phase episodes per trial and per baseline run, [1, 1e6]
+    episodes: int = Field(10, ge=1, le=1_000_000)
 
 
 def _no_duplicates(v: list) -> list:
@@ -93,19 +166,42 @@ class GridConfig:
 
     experiment: str = Field(min_length=1)
     algorithms: dict[str, dict[str, Any] | None] = Field(min_length=1)
-    seeds: list[int] = Field(min_length=1)
+    seeds: list[Seed] = Field(min_length=1)
     n_eds: list[PosInt] = Field(min_length=1)
     n_uavs: list[PosInt] = Field(min_length=1)
     stop: StopConfig
     baselines: list[str] = dataclasses.field(default_factory=list)
     scenario: dict[str, Any] = dataclasses.field(default_factory=dict)
-    checkpoint_every: int = Field(10, ge=1)
+    checkpoint_every: int = Field(10, ge=1, le=10**9)
     resources: registry.Resources = dataclasses.field(default_factory=registry.Resources)
     mlflow: MlflowConfig = dataclasses.field(default_factory=MlflowConfig)
     evaluation: EvaluationConfig = dataclasses.field(default_factory=EvaluationConfig)
     storage: str = Field("./ray_results", min_length=1)
-    max_concurrent_trials: int | None = Field(None, ge=1)
+    max_concurrent_trials: int | None = Field(None, ge=1, le=100_000)
     plugins: list[str] = dataclasses.field(default_factory=list)
+
+    @field_validator("experiment")
+    @classmethod
+    def _safe_name(cls, v: str) -> str:
+        if not EXPERIMENT_NAME.fullmatch(v) or ".." in v:
+            raise ValueError(
+                "must be 1-64 characters from letters, digits, '_', '.', '-', starting with a letter or "
+                f"digit, without '..' (it names a directory under storage); got {v!r}"
+            )
+        return v
+
+    @field_validator("storage")
+    @classmethod
+    def _storage(cls, v: str) -> str:
+        return check_storage(v)
+
+    @field_validator("plugins")
+    @classmethod
+    def _module_names(cls, v: list[str]) -> list[str]:
+        for i, name in enumerate(v):
+            if not all(part.isidentifier() for part in name.split(".")):
+                raise ValueError(f"entry {i}: must be a dotted Python module name such as my_pkg.my_algo, got {name!r}")
+        return v
 
     @field_validator("seeds", "n_eds", "n_uavs", "baselines", "plugins")
     @classmethod
@@ -157,19 +253,58 @@ def run_name(algorithm: str, n_eds: int, n_uavs: int, seed: int) -> str:
 
 
 # --------------------------------------------------------------------------- loading
-def _read_yaml(path: str) -> Any:
+class UniqueKeyLoader(yaml.SafeLoader):
+    """yaml.SafeLoader that refuses a key given twice in one mapping (SafeLoader keeps the last
+    one silently, so `lr: 1e-3` ... `lr: 1e-2` would train with 1e-2 unnoticed)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen: dict[Any, Any] = {}
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":  # `<<: *anchor` merges, not a key
+                continue
+            key = self.construct_object(key_node, deep=True)
+            try:
+                first = seen.get(key)
+            except TypeError:  # an unhashable key: SafeLoader reports it below
+                continue
+            if first is not None:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"duplicate key {key!r} (first given on line {first.line + 1})", key_node.start_mark
+                )
+            seen[key] = key_node.start_mark
+        return super().construct_mapping(node, deep)
+
+
+def read_yaml_text(path: str, what: str) -> str:
+    """The text of a YAML file as UTF-8; ConfigError '<path>: ...' if unreadable or not UTF-8."""
     try:
-        with open(path) as fh:
-            text = fh.read()
+        with open(path, "rb") as fh:
+            raw = fh.read()
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the grid file: {exc.strerror or exc}") from None
+        raise ConfigError(f"{path}: cannot read the {what}: {exc.strerror or exc}") from None
     try:
-        return yaml.safe_load(text)
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"{path}: the {what} is not UTF-8 text (byte 0x{raw[exc.start]:02x} at offset {exc.start}); "
+            "save it as UTF-8"
+        ) from None
+
+
+def parse_yaml(text: str, path: str) -> Any:
+    """YAML text -> data (UniqueKeyLoader); ConfigError '<path>: line L, column C: ...'."""
+    try:
+        return yaml.load(text, Loader=UniqueKeyLoader)  # noqa: S506 (a SafeLoader subclass)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
         problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise ConfigError(f"{path}: {where}YAML syntax error: {problem}") from None
+        label = "YAML error" if isinstance(exc, yaml.constructor.ConstructorError) else "YAML syntax error"
+        raise ConfigError(f"{path}: {where}{label}: {problem}") from None
+
+
+def _read_yaml(path: str) -> Any:
+    return parse_yaml(read_yaml_text(path, "grid file"), path)
 
 
 def import_plugins(modules: list[str], prefix: str = "plugins") -> None:
@@ -179,6 +314,14 @@ def import_plugins(modules: list[str], prefix: str = "plugins") -> None:
             importlib.import_module(module)
         except ImportError as exc:
             raise ConfigError(f"{prefix}.{i}: cannot import module {module!r}: {exc}") from None
+        # A plugin is user code: whatever its import raises (a SyntaxError, any exception, even
+        # sys.exit, which would otherwise end the run silently) is a bad grid, not a crash.
+        except (Exception, SystemExit) as exc:
+            where = f" ({exc.filename}, line {exc.lineno})" if isinstance(exc, SyntaxError) else ""
+            detail = " ".join(str(exc).split()) or "(no message)"
+            raise ConfigError(
+                f"{prefix}.{i}: importing plugin module {module!r} failed: {type(exc).__name__}{where}: {detail}"
+            ) from None
 
 
 def algorithm_overrides(grid: GridConfig, name: str, entry: Any) -> dict[str, Any]:
@@ -232,6 +375,25 @@ def _validate(grid: GridConfig) -> None:
                 make_baseline(name, scenario, seed=0)
             except ConfigError as exc:
                 raise ConfigError(f"baselines.{i}: {name!r}{where}: {exc}") from None
+
+
+def check_local_resources(grid: GridConfig, available_cpus: float) -> None:
+    """Refuse a grid one of whose trials needs more CPUs than the local Ray has (Tune would
+    wait for them forever). On a cluster (--address) the cluster's size decides instead."""
+    r = grid.resources
+    try:
+        need = r.num_cpus_per_learner + r.num_env_runners * r.num_cpus_per_env_runner
+    except OverflowError:  # (Resources' counts have no upper bound of their own)
+        need = math.inf
+    if need <= available_cpus:
+        return
+    field = "resources.num_cpus_per_learner" if r.num_cpus_per_learner > available_cpus else "resources"
+    raise ConfigError(
+        f"{field}: one trial needs {need:g} CPUs (num_cpus_per_learner {r.num_cpus_per_learner:g} + "
+        f"num_env_runners {r.num_env_runners} x num_cpus_per_env_runner {r.num_cpus_per_env_runner:g}), "
+        f"but the local Ray has {available_cpus:g}; allowed: at most {available_cpus:g} in all "
+        "(or run on a cluster with --address)"
+    )
 
 
 def parse_grid(data: Any) -> GridConfig:

@@ -349,8 +349,17 @@ def sinr_cross_gain(
 ) -> np.ndarray:
     """Physical variant: interference at v's serving UAV u is sum_{v'} P_v' G_{u,v'} / sigma^2.
 
-    tx_power_w, serving_uav, sf_idx, associated: [..., V]; gains: [..., U, V].
+    tx_power_w, serving_uav, sf_idx, associated: [..., V]; gains: [..., U, V]. The leading
+    axes broadcast against each other (the baselines score candidate actions [C, N, V] against
+    the batch's gains [N, U, V] and association [N, V]); the index arrays are broadcast to the
+    common shape because take_along_axis needs as many axes in its indices as in its array.
     """
+    tx_power_w, sf_idx = np.asarray(tx_power_w), np.asarray(sf_idx)
+    associated, serving_uav = np.asarray(associated), np.asarray(serving_uav)
+    lead = np.broadcast_shapes(
+        tx_power_w.shape, sf_idx.shape, associated.shape, serving_uav.shape, gains.shape[:-2] + gains.shape[-1:]
+    )
+    sf_idx, associated, serving_uav = (np.broadcast_to(x, lead) for x in (sf_idx, associated, serving_uav))
     onehot = _same_sf_onehot(sf_idx, associated, n_sf)
     p_tx = np.where(associated, tx_power_w, 0.0)
     rx = gains * p_tx[..., None, :]  # [..., U, V] power each UAV receives from each ED

@@ -114,6 +114,11 @@ class QMIXHParams:
             raise ValueError(
                 f"batch_size_episodes ({self.batch_size_episodes}) must be <= buffer_size_episodes ({self.buffer_size_episodes})"
             )
+        if self.learning_starts_episodes > self.buffer_size_episodes:  # else the replay never fills enough to learn
+            raise ValueError(
+                f"learning_starts_episodes ({self.learning_starts_episodes}) must be <= buffer_size_episodes "
+                f"({self.buffer_size_episodes})"
+            )
         return self
 
     def check(self, scenario: ScenarioConfig, resources: registry.Resources, path: str) -> None:
