@@ -22,12 +22,12 @@ SHARED = "shared"
 
 @typed_dataclass(config={"extra": "forbid", "frozen": True})
 class StockPPOHparams:
-    lr: float = Field(3e-4, gt=0)
-    gamma: float = Field(0.99, gt=0, le=1)
-    train_batch_size: int = Field(200, ge=1)
-    minibatch_size: int = Field(100, ge=1)
-    num_epochs: int = Field(1, ge=1)
-    hidden: int = Field(32, ge=1)
+    lr: float = Field(3e-4, gt=0, description="Adam learning rate [1]")
+    gamma: float = Field(0.99, gt=0, le=1, description="discount factor [1]")
+    train_batch_size: int = Field(200, ge=1, description="env steps per training batch [env steps]")
+    minibatch_size: int = Field(100, ge=1, description="env steps per minibatch [env steps]")
+    num_epochs: int = Field(1, ge=1, description="passes over each batch [epochs]")
+    hidden: int = Field(32, ge=1, description="width of each hidden layer [units]")
 
 
 def _map_to_shared(agent_id, episode, **kwargs):
