@@ -199,3 +199,19 @@ def test_list_hparams_documents_every_field(name, capsys):
     assert "(no description)" not in text and text.count("default ") == len(fields)
     assert tune.main(["--list-hparams", "no_such_algo"]) == 2
     assert "--list-hparams: unknown algorithm 'no_such_algo'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", registry.available())
+def test_learning_rates_are_bounded(name):
+    """A learning rate of 1e300 (or any > 1) is refused at config load, naming the field, instead of
+    reaching Adam and turning the losses into NaN."""
+    import dataclasses
+
+    from uavlora_rllib.config_errors import ConfigError
+
+    entry = registry.get(name)
+    lr_fields = [f.name for f in dataclasses.fields(entry.hparams_cls) if f.name == "lr" or f.name.startswith("lr_")]
+    assert lr_fields, f"{name} has no learning-rate field"
+    for field in lr_fields:
+        with pytest.raises(ConfigError, match=f"algorithms.{name}.{field}"):
+            entry.hparams({field: 1e300})

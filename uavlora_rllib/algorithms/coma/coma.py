@@ -55,10 +55,11 @@ NAME = "coma"
 class COMAHParams:
     """COMA's hyperparameters; defaults from the paper's training table where it has them."""
 
-    lr_actor: float = Field(1e-4, gt=0, description="Adam step size of the actor [1/update] (paper: lr 1e-4)")
+    lr_actor: float = Field(1e-4, gt=0, le=1, description="Adam step size of the actor [1/update] (paper: lr 1e-4)")
     lr_critic: float = Field(
         5e-4,
         gt=0,
+        le=1,
         description="Adam step size of the critic [1/update] (decision: pymarl's COMA critic lr; the paper's "
         "1e-4 is the actor's, and the critic must track the policy within ~830 updates)",
     )

@@ -49,10 +49,10 @@ class MAPPOHParams:
     Defaults: the paper's training table (docs/model.md) where it gives one, else the decision
     in the field's description (measurements in BENCHMARKS.md)."""
 
-    lr: float = Field(1e-4, gt=0.0, description="Adam step size, actor and critic [1/update] (paper)")
+    lr: float = Field(1e-4, gt=0.0, le=1.0, description="Adam step size, actor and critic [1/update] (paper)")
     gamma: float = Field(0.99, ge=0.0, le=1.0, description="discount per slot [-] (paper)")
     lambda_: float = Field(0.95, ge=0.0, le=1.0, description="GAE lambda [-] (decision)")
-    clip_param: float = Field(0.2, gt=0.0, description="PPO ratio clip epsilon, per agent [-] (paper)")
+    clip_param: float = Field(0.2, gt=0.0, le=1.0, description="PPO ratio clip epsilon, per agent [-] (paper)")
     num_epochs: int = Field(15, ge=1, description="passes over each train batch [epochs] (paper)")
     batch_episodes: int = Field(
         16, ge=1, description="train batch [episodes]: 16 x episode_len env steps, each holding all U agents (paper)"

@@ -73,7 +73,7 @@ MIXERS = ("qmix", "vdn")
 class QMIXHParams:
     """QMIX/VDN hyperparameters (grid YAML `algorithms.qmix:` / `algorithms.vdn:`)."""
 
-    lr: float = Field(1e-4, gt=0, description="Adam step size, agent network and mixer [1/update] (paper)")
+    lr: float = Field(1e-4, gt=0, le=1, description="Adam step size, agent network and mixer [1/update] (paper)")
     gamma: float = Field(0.99, ge=0, le=1, description="discount per slot [-] (paper)")
     gru_hidden: int = Field(128, ge=1, description="GRU width of the agent network [units] (paper)")
     fc_hidden: int = Field(128, ge=1, description="width of the ReLU layer before the GRU [units] (decision)")
