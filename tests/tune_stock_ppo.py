@@ -22,7 +22,7 @@ SHARED = "shared"
 
 @typed_dataclass(config={"extra": "forbid", "frozen": True})
 class StockPPOHparams:
-    lr: float = Field(3e-4, gt=0, description="Adam learning rate [1]")
+    lr: float = Field(3e-4, gt=0, le=1, description="Adam learning rate [1]")
     gamma: float = Field(0.99, gt=0, le=1, description="discount factor [1]")
     train_batch_size: int = Field(200, ge=1, description="env steps per training batch [env steps]")
     minibatch_size: int = Field(100, ge=1, description="env steps per minibatch [env steps]")
