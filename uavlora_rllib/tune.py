@@ -42,6 +42,7 @@ from ray import tune
 
 from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.config_errors import ConfigError
+from uavlora_rllib.experiment import periodic_eval
 from uavlora_rllib.cli_args import Parser, UsageError, positive_int
 from uavlora_rllib.experiment.grid import (
     GridConfig,
@@ -122,6 +123,7 @@ def trial_config(spec: TrialSpec, grid: GridConfig) -> dict[str, Any]:
         "resources": dataclasses.asdict(grid.resources),
         "budget_env_steps": grid.stop.env_steps,
         "eval_episodes": grid.evaluation.episodes,
+        "eval_interval_env_steps": periodic_eval.resolve_interval(grid.evaluation.interval_env_steps, grid.stop.env_steps),
         "plugins": list(grid.plugins),
     }
 
@@ -145,6 +147,8 @@ class UavLoraTrainable(tune.Trainable):
         self.scenario = ScenarioConfig.from_dict(cfg["scenario"])
         hparams = self.entry.hparams(cfg["overrides"])
         algo_config = self.entry.build(self.scenario, hparams, resources, int(cfg["seed"]))
+        periodic_eval.attach(algo_config, periodic_eval.PeriodicEvalSettings(
+            self.scenario, int(cfg.get("eval_interval_env_steps", 0)), int(cfg["eval_episodes"]), int(cfg["seed"])))
         self.algo = algo_config.build_algo()
         self._last_steps: int | None = 0
 
@@ -155,6 +159,7 @@ class UavLoraTrainable(tune.Trainable):
         result = self.algo.train()
         dt = max(time.perf_counter() - t0, 1e-9)
         out = training_summary(result)
+        out.update(periodic_eval.metrics_from_result(result))  # the greedy-policy curve's points
         steps = out[ENV_STEPS]
         if self._last_steps is not None:
             sampled = steps - self._last_steps

@@ -229,7 +229,7 @@ def metrics_to_log(result: Mapping[str, Any]) -> tuple[dict[str, float], dict[st
             continue
         if key in TRAIN_METRICS or key.startswith(LEARNER_PREFIX):
             train[safe_name(key)] = x
-        elif key.startswith(EVAL_PREFIX):
+        elif key.startswith((EVAL_PREFIX, "eval_sampled/")):  # periodic_eval.EVAL_SAMPLED_PREFIX
             evals[safe_name(key)] = x
     return train, evals
 
