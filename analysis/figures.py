@@ -321,7 +321,7 @@ def fig2(org: Organised, algorithm: str | None, out_dir: str, seed: int):
                 break
             except Exception:  # noqa: BLE001 - try the next baseline
                 continue
-        who = f"run {record.run_id[:8]}" if record is not None else "no run"
+        who = f"run {record.run_id[:8]} ({why})" if record is not None else "no run"
         source = f"baseline '{policy.name}' on the scenario of {who} ({how})"
     core = BatchCore(cfg, 1)
     core.reset([EVAL_SEED_BASE + seed])
