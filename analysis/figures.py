@@ -138,7 +138,7 @@ def fig3a(eval_curves, return_curves, org: Organised, lk: dict, out_dir: str, sm
             ax_e.set_ylabel(r"EE$_{sys}$ per slot (bit/J)")
             notes.append(f"Fig. 3a: V={main[0]} U={main[1]} has neither an optimal nor a greedy baseline run; "
                          "the execution curves are in bit/J with no reference line.")
-        ax_e.set_title(f"(a) greedy policy, execution EE; {interval_text([c.n_seeds for c in ev.values()], '95% bootstrap band')}")
+        ax_e.set_title(f"(a) greedy policy, execution EE\n{interval_text([c.n_seeds for c in ev.values()], '95% bootstrap band')}")
         ax_e.legend(loc="best", frameon=False)
         note = overlap_note("Fig. 3a (a)", overlaps(drawn))
         if note:
@@ -153,7 +153,7 @@ def fig3a(eval_curves, return_curves, org: Organised, lk: dict, out_dir: str, sm
     if ret:
         drawn = _plot_curves(ax_r, ret, lk)
         ax_r.set_ylabel("training episode return")
-        ax_r.set_title(f"(b) sampled policy, training return ({smooth_txt}); "
+        ax_r.set_title(f"(b) sampled policy, training return ({smooth_txt})\n"
                        f"{interval_text([c.n_seeds for c in ret.values()], '95% bootstrap band')}")
         note = overlap_note("Fig. 3a (b)", overlaps(drawn))
         if note:
@@ -178,7 +178,7 @@ def fig3a(eval_curves, return_curves, org: Organised, lk: dict, out_dir: str, sm
             if r:
                 ax.axhline(1.0, color="black", linewidth=0.8, linestyle=(0, (2, 2)))
             ax.set_ylabel(f"EE / {r.name}" if r else "EE (bit/J)")
-            ax.set_title(f"{_scen_title(scen)}; {interval_text([c.n_seeds for c in eval_curves[scen].values()], '95% band')}",
+            ax.set_title(f"{_scen_title(scen)}\n{interval_text([c.n_seeds for c in eval_curves[scen].values()], '95% band')}",
                          fontsize=style.SMALL_PT)
         for ax in list(axes.flat)[len(scens) :]:
             ax.set_visible(False)
@@ -246,7 +246,7 @@ def fig_sweep(org: Organised, axis: str, lk: dict, out_dir: str, stem: str, labe
     ax.set_xticks(xs)
     ax.set_xlabel("number of EDs V" if axis == "n_eds" else "number of UAVs U")
     ax.set_ylabel(r"EE$_{sys}$ per slot (bit/J)")
-    ax.set_title(f"Execution phase, {sym[other]}={fixed}; {interval_text(ns, '95% t CI bars')}")
+    ax.set_title(f"Execution phase, {sym[other]}={fixed}\n{interval_text(ns, '95% t CI bars')}")
     fig.legend(loc="outside lower center", ncol=3, frameon=False)
     files = style.save(fig, os.path.join(out_dir, stem))
     note = overlap_note(label, overlaps(drawn))

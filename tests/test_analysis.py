@@ -324,3 +324,24 @@ def test_animate_writes_gif(tmp_path):
     assert frames.shape[0] == 6 and frames.ndim == 4  # reset frame + one per step
     assert animate.main(["--policy", "nonsense", "--out", str(tmp_path / "x.gif")]) == 2
     assert animate.main(["--policy", "random", "--steps", "151", "--out", str(tmp_path / "y.gif")]) == 2
+
+
+def test_animate_error_paths_one_line(tmp_path, capsys):
+    from analysis import animate
+
+    folder = tmp_path / "a.gif"
+    folder.mkdir()
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    cases = [
+        (["--policy", "greedy", "--out", str(folder)], "is a folder"),
+        (["--policy", "greedy", "--out", str(blocker / "x.gif")], "cannot create the folder"),
+        (["--policy", "greedy", "--out", str(tmp_path / "x.png")], "expected a .gif"),
+        (["--policy", str(tmp_path), "--out", str(tmp_path / "y.gif")], "not a valid RLlib checkpoint"),
+        (["--policy", "greedy", "--seed", "x", "--out", str(tmp_path / "z.gif")], "--seed"),
+    ]
+    for argv, needle in cases:
+        assert animate.main(argv) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and err.startswith("animate: error:") and needle in err, (argv, err)
+    assert not (tmp_path / "y.gif").exists() and not (tmp_path / "z.gif").exists()
