@@ -164,8 +164,10 @@ def fig3a(eval_curves, return_curves, org: Organised, lk: dict, out_dir: str, sm
         ax.title.set_fontsize(style.SMALL_PT)
     files = style.save(fig, os.path.join(out_dir, "fig3a"))
     ref_txt = f"share of the {ref.label} ({ref.mean:.6g} bit/J)" if ref else "bit/J (no reference baseline)"
-    caption = (f"{_scen_title(main)}: (a) execution EE per slot of the greedy policy during training, {ref_txt}; "
-               f"(b) training return of the exploring policy, which can rank the learners differently")
+    n_e = interval_text([c.n_seeds for c in ev.values()], "95% bootstrap band") if ev else "not drawn"
+    n_r = interval_text([c.n_seeds for c in ret.values()], "95% bootstrap band") if ret else "not drawn"
+    caption = (f"{_scen_title(main)}: (a) execution EE per slot of the greedy policy during training, {ref_txt} "
+               f"({n_e}); (b) training return of the exploring policy, which can rank the learners differently ({n_r})")
     scens = sorted(eval_curves)
     if len(scens) > 1:
         ncol = min(3, len(scens))
@@ -211,7 +213,7 @@ def write_curves_csv(curve_sets: dict[str, dict], org: Organised, path: str) -> 
 
 def fig_sweep(org: Organised, axis: str, lk: dict, out_dir: str, stem: str, label: str):
     """EE against `axis` ("n_eds" or "n_uavs") with the other fixed at its most common value.
-    Returns (files, notes)."""
+    Returns (files, notes, caption)."""
     import matplotlib.pyplot as plt
 
     other = "n_uavs" if axis == "n_eds" else "n_eds"
@@ -221,14 +223,14 @@ def fig_sweep(org: Organised, axis: str, lk: dict, out_dir: str, stem: str, labe
     fixed = pick_fixed(Counter(getattr(c, other) for c in pool for _ in c.runs), preferred)
     sym = {"n_eds": "V", "n_uavs": "U"}
     if fixed is None:
-        return [], [f"{label} skipped: no finished runs with eval metrics."]
+        return [], [f"{label} skipped: no finished runs with eval metrics."], ""
     at = [c for c in valid if getattr(c, other) == fixed]
     xs = sorted({getattr(c, axis) for c in at})
     if len(xs) < 2:
         return [], [
             f"{label} skipped: at {sym[other]}={fixed} the runs have a single {sym[axis]} value "
             f"({', '.join(map(str, xs))}), nothing to plot against (join more experiments with --experiment)."
-        ]
+        ], ""
     fig, ax = plt.subplots(figsize=(style.COLUMN_WIDTH_IN, 2.9), layout="constrained")
     algs = sorted({c.algorithm for c in at}, key=lambda a: (KINDS.index(org.kind_of(a)), a))
     drawn, ns = {}, []
@@ -246,11 +248,12 @@ def fig_sweep(org: Organised, axis: str, lk: dict, out_dir: str, stem: str, labe
     ax.set_xticks(xs)
     ax.set_xlabel("number of EDs V" if axis == "n_eds" else "number of UAVs U")
     ax.set_ylabel(r"EE$_{sys}$ per slot (bit/J)")
+    caption = f"{sym[other]}={fixed}; {interval_text(ns, '95% t CI bars')}"
     ax.set_title(f"Execution phase, {sym[other]}={fixed}\n{interval_text(ns, '95% t CI bars')}")
     fig.legend(loc="outside lower center", ncol=3, frameon=False)
     files = style.save(fig, os.path.join(out_dir, stem))
     note = overlap_note(label, overlaps(drawn))
-    return files, [note] if note else []
+    return files, [note] if note else [], caption
 
 
 def _scenario_for(record: RunRecord | None):

@@ -221,8 +221,9 @@ def _build_report(sources: list[Source], out_dir: str, args) -> dict[str, Any]:
         figures["fig3a"] = files
         write_curves_csv(curve_sets, org, os.path.join(out_dir, "fig3a_curves.csv"))
     bar.update(1)
+    captions = {"fig3a": cap3a}
     for axis, stem, label in (("n_eds", "fig3b", "Fig. 3b"), ("n_uavs", "fig3c", "Fig. 3c")):
-        files, snotes = fig_sweep(org, axis, lk, out_dir, stem, label)
+        files, snotes, captions[stem] = fig_sweep(org, axis, lk, out_dir, stem, label)
         if files:
             figures[stem] = files
         notes += snotes
@@ -263,9 +264,9 @@ def _build_report(sources: list[Source], out_dir: str, args) -> dict[str, Any]:
             lines.append(f"- {CAPTIONS[key]}: not drawn (see Notes).")
             continue
         png = os.path.basename(figures[key][0])
-        extra = ""
+        extra = f" {captions[key]}." if captions.get(key) else ""
         if key == "fig3a":
-            extra = f" {cap3a}. Data: [fig3a_curves.csv](fig3a_curves.csv)."
+            extra += " Data: [fig3a_curves.csv](fig3a_curves.csv)."
             if len(figures[key]) > 2:
                 extra += " All scenarios: [fig3a_all.png](fig3a_all.png) ([svg](fig3a_all.svg))."
         if key == "fig2" and fig2_desc:

@@ -128,6 +128,8 @@ def test_coincident_series_named_and_titles_state_n(stores):
     # V=10 cells have 3 seeds, V=20 cells 1: the title says so, and that bars exist only for n >= 2
     assert "n=1-3 seeds; 95% t CI bars where n&gt;=2" in svg or "n=1-3 seeds; 95% t CI bars where n>=2" in svg
     assert "95% t CI)" not in svg
+    caption = text.split("### Fig. 3b")[1].split("###")[0]  # the caption in report.md says it too
+    assert "U=2; mean over n=1-3 seeds; 95% t CI bars where n>=2" in caption
     from analysis.figures import interval_text, looks
 
     assert interval_text([1, 1], "95% t CI") == "n=1 seed: no interval"
