@@ -133,6 +133,7 @@ def fig3a(eval_curves, return_curves, org: Organised, lk: dict, out_dir: str, sm
         drawn = _plot_curves(ax_e, ev, lk, ref.mean if ref else 1.0)
         if ref:
             ax_e.axhline(1.0, color="black", linewidth=0.8, linestyle=(0, (2, 2)), label=f"{ref.label} = 1")
+            ax_e.set_ylim(top=max(ax_e.get_ylim()[1], 1.08))  # the reference line off the frame
             ax_e.set_ylabel(f"EE per slot / {ref.name}")
         else:
             ax_e.set_ylabel(r"EE$_{sys}$ per slot (bit/J)")
