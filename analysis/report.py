@@ -392,7 +392,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         result = build_report(sources, out_dir, args)
         logged = ""
         if not args.no_log and len(sources) == 1:
-            run_id = log_summary(sources[0].client, sources[0].experiment, result["summaries"][0], out_dir, result)
+            try:
+                run_id = log_summary(sources[0].client, sources[0].experiment, result["summaries"][0], out_dir, result)
+            except Exception as exc:  # noqa: BLE001 - e.g. a read-only store: the files are written already
+                raise ReportError(f"the report is in {out_dir}, but logging it to MLflow failed "
+                                  f"({type(exc).__name__}: {str(exc).strip().splitlines()[0] if str(exc).strip() else ''}); "
+                                  "rerun with --no-log to skip logging") from None
             logged = f"; logged to summary run {run_id}"
     except ReportError as exc:
         print(f"report: error: {' '.join(str(exc).split())}", file=sys.stderr)
@@ -400,6 +405,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as exc:  # the output folder filled up or vanished while writing
         print(f"report: error: cannot write the report: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("report: interrupted; the output folder may hold a partial report", file=sys.stderr)
+        return 130
     figs = ", ".join(sorted(result["figures"])) or "none"
     print(f"report: {result['report']} ({result['n_runs']} runs from {len(sources)} experiment(s), figures: {figs}, "
           f"{len(result['warnings'])} warning(s)){logged}")

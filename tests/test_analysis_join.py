@@ -219,6 +219,21 @@ def test_fig2_best_learner_or_flag(stores):
     assert "vdn at V=10, U=2, chosen with --fig2-algorithm" in fig2
 
 
+def test_logging_failure_is_one_line(stores, tmp_path, capsys, monkeypatch):
+    from mlflow.exceptions import MlflowException
+
+    def fail(*a, **k):
+        raise MlflowException("attempt to write a readonly database\nmore detail")
+
+    monkeypatch.setattr(report, "log_summary", fail)
+    out = tmp_path / "r"
+    assert report.main(["--experiment", "sweep_V10", "--tracking-uri", stores["a"], "--out", str(out), "--no-fig2",
+                        "--points", "5"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "readonly database" in err and "--no-log" in err
+    assert (out / "report.md").is_file()  # the files were written before logging failed
+
+
 def test_error_paths_one_line_exit_2(stores, tmp_path, capsys):
     a = stores["a"]
     a_file = tmp_path / "a_file"
