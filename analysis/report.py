@@ -187,60 +187,17 @@ def _build_report(sources: list[Source], out_dir: str, args) -> dict[str, Any]:
     notes: list[str] = []
     if reference is None:
         notes.append(f"No training runs of the reference algorithm {args.reference!r}: no improvement table.")
-    n_train = sum(1 for r in records if r.kind == "train")
-    bar = progress(2 * n_train + 6, "report")
-
-    rows = ee_table(org, reference)
-    write_csv(os.path.join(out_dir, "table_ee.csv"), TABLE_EE_COLUMNS, rows)
-    imp_rows = improvement_table(org, reference)
-    write_csv(os.path.join(out_dir, "table_improvement.csv"), TABLE_IMP_COLUMNS, imp_rows)
-    p_rows = paper_rows(org)
-    write_csv(os.path.join(out_dir, "table_paper.csv"), PAPER_COLUMNS, p_rows)
-    md = {"table_ee.md": ee_table_md(rows, reference), "table_improvement.md": improvement_md(imp_rows, reference or args.reference),
-          "table_paper.md": paper_md(p_rows)}
-    for name, text in md.items():
-        with open(os.path.join(out_dir, name), "w") as fh:
-            fh.write(text + "\n")
+    bar = progress(2 * sum(1 for r in records if r.kind == "train") + 4, "report")
+    tables = write_tables(org, reference, args.reference, out_dir)
     bar.update(1)
 
     def counted(record, key):
         bar.update(1)
         return history(record, key)
 
-    figures: dict[str, list[str]] = {}
-    curve_sets = {}
-    for metric in CURVE_METRICS:
-        # the execution curve needs 2+ points (a lone point is the final evaluation, no curve)
-        smooth = args.smooth if metric == RETURN_METRIC else 0.0
-        curve_sets[metric], cnotes = curves(counted, org, metric, smooth, args.points, 2 if metric == EVAL_CURVE else 1)
-        notes += cnotes
-    lk = looks(org.algorithms() + [a for cs in curve_sets.values() for s in cs.values() for a in s])
-    files, n3a, cap3a = fig3a(curve_sets[EVAL_CURVE], curve_sets[RETURN_METRIC], org, lk, out_dir, args.smooth)
-    notes += n3a
-    if files:
-        figures["fig3a"] = files
-        write_curves_csv(curve_sets, org, os.path.join(out_dir, "fig3a_curves.csv"))
-    bar.update(1)
-    captions = {"fig3a": cap3a}
-    for axis, stem, label in (("n_eds", "fig3b", "Fig. 3b"), ("n_uavs", "fig3c", "Fig. 3c")):
-        files, snotes, captions[stem] = fig_sweep(org, axis, lk, out_dir, stem, label)
-        if files:
-            figures[stem] = files
-        notes += snotes
-        bar.update(1)
-    fig2_desc = None
-    if args.no_fig2:
-        notes.append("Fig. 2 skipped (--no-fig2).")
-    else:
-        try:
-            files, fig2_desc, n2 = fig2(org, args.fig2_algorithm, out_dir, args.fig2_seed)
-            figures["fig2"] = files
-            notes += n2
-        except ReportError:
-            raise
-        except Exception as exc:  # noqa: BLE001 - the report must not die on the simulator
-            notes.append(f"Fig. 2 skipped: {type(exc).__name__}: {' '.join(str(exc).split())[:300]}")
-    bar.update(1)
+    figures, captions, fig_notes = draw_figures(org, counted, out_dir, args)
+    notes += fig_notes
+    bar.update(2)
     marl, mnotes = marl_eval_data(org, history)
     write_marl_eval(os.path.join(out_dir, MARL_EVAL_FILE), marl)
     notes += mnotes
@@ -248,7 +205,66 @@ def _build_report(sources: list[Source], out_dir: str, args) -> dict[str, Any]:
         notes.append(f"{len(sources)} experiments joined; the outputs are not logged to MLflow (no single experiment owns them).")
     bar.update(1)
     bar.close()
+    report_path = os.path.join(out_dir, "report.md")
+    with open(report_path, "w") as fh:
+        fh.write(report_markdown(sources, records, org, notes, figures, captions, tables, reference, args))
+    return {"report": report_path, "figures": figures, "warnings": org.warnings, "notes": notes,
+            "summaries": summaries, "rows": tables["rows"], "improvements": tables["improvements"],
+            "paper": tables["paper"], "n_runs": len(records)}
 
+
+def write_tables(org, reference: str | None, requested: str, out_dir: str) -> dict[str, Any]:
+    """table_ee, table_improvement and table_paper as CSV and Markdown; their rows and Markdown."""
+    rows, imp_rows, p_rows = ee_table(org, reference), improvement_table(org, reference), paper_rows(org)
+    write_csv(os.path.join(out_dir, "table_ee.csv"), TABLE_EE_COLUMNS, rows)
+    write_csv(os.path.join(out_dir, "table_improvement.csv"), TABLE_IMP_COLUMNS, imp_rows)
+    write_csv(os.path.join(out_dir, "table_paper.csv"), PAPER_COLUMNS, p_rows)
+    md = {"table_ee.md": ee_table_md(rows, reference), "table_improvement.md": improvement_md(imp_rows, reference or requested),
+          "table_paper.md": paper_md(p_rows)}
+    for name, text in md.items():
+        with open(os.path.join(out_dir, name), "w") as fh:
+            fh.write(text + "\n")
+    return {"rows": rows, "improvements": imp_rows, "paper": p_rows, "md": md}
+
+
+def draw_figures(org, history, out_dir: str, args) -> tuple[dict[str, list[str]], dict[str, str], list[str]]:
+    """Fig. 3a (and its CSV), 3b, 3c and 2: ({key: files}, {key: caption}, notes)."""
+    notes: list[str] = []
+    figures: dict[str, list[str]] = {}
+    curve_sets = {}
+    for metric in CURVE_METRICS:
+        # the execution curve needs 2+ points (a lone point is the final evaluation, no curve)
+        smooth = args.smooth if metric == RETURN_METRIC else 0.0
+        curve_sets[metric], cnotes = curves(history, org, metric, smooth, args.points, 2 if metric == EVAL_CURVE else 1)
+        notes += cnotes
+    lk = looks(org.algorithms() + [a for cs in curve_sets.values() for s in cs.values() for a in s])
+    files, n3a, cap3a = fig3a(curve_sets[EVAL_CURVE], curve_sets[RETURN_METRIC], org, lk, out_dir, args.smooth)
+    notes += n3a
+    if files:
+        figures["fig3a"] = files
+        write_curves_csv(curve_sets, org, os.path.join(out_dir, "fig3a_curves.csv"))
+    captions = {"fig3a": cap3a}
+    for axis, stem, label in (("n_eds", "fig3b", "Fig. 3b"), ("n_uavs", "fig3c", "Fig. 3c")):
+        files, snotes, captions[stem] = fig_sweep(org, axis, lk, out_dir, stem, label)
+        if files:
+            figures[stem] = files
+        notes += snotes
+    if args.no_fig2:
+        notes.append("Fig. 2 skipped (--no-fig2).")
+        return figures, captions, notes
+    try:
+        figures["fig2"], captions["fig2"], n2 = fig2(org, args.fig2_algorithm, out_dir, args.fig2_seed)
+        captions["fig2"] = f"Source: {captions['fig2']}"
+        notes += n2
+    except ReportError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - the report must not die on the simulator
+        notes.append(f"Fig. 2 skipped: {type(exc).__name__}: {' '.join(str(exc).split())[:300]}")
+    return figures, captions, notes
+
+
+def report_markdown(sources, records, org, notes, figures, captions, tables, reference, args) -> str:
+    """report.md: source, warnings, notes, figures with captions, tables, statistics."""
     title = ", ".join(f"`{s.name}`" for s in sources)
     lines = [f"# Report: experiment{'s' if len(sources) > 1 else ''} {title}", "",
              f"Generated {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())} by `python -m analysis.report`.",
@@ -269,9 +285,8 @@ def _build_report(sources: list[Source], out_dir: str, args) -> dict[str, Any]:
             extra += " Data: [fig3a_curves.csv](fig3a_curves.csv)."
             if len(figures[key]) > 2:
                 extra += " All scenarios: [fig3a_all.png](fig3a_all.png) ([svg](fig3a_all.svg))."
-        if key == "fig2" and fig2_desc:
-            extra = f" Source: {fig2_desc}."
         lines += [f"### {CAPTIONS[key]}", "", f"![{key}]({png}) ([svg]({key}.svg)).{extra}", ""]
+    md = tables["md"]
     lines += ["", "## Execution-phase EE per scenario and algorithm", "",
               f"CSV: [table_ee.csv](table_ee.csv). `(!)`: fewer than {MIN_SEEDS} seeds.", "", md["table_ee.md"], "",
               f"## Improvement of {reference or args.reference}", "",
@@ -285,12 +300,7 @@ def _build_report(sources: list[Source], out_dir: str, args) -> dict[str, Any]:
               "## Statistics", "",
               STATS_TEXT.format(ref=reference or args.reference, smooth=args.smooth, points=args.points,
                                 boot=stats.BOOTSTRAP_RESAMPLES), ""]
-    report_path = os.path.join(out_dir, "report.md")
-    with open(report_path, "w") as fh:
-        fh.write("\n".join(lines))
-    return {"report": report_path, "figures": figures, "warnings": org.warnings, "notes": notes,
-            "summaries": summaries, "rows": rows, "improvements": imp_rows, "paper": p_rows,
-            "n_runs": len(records)}
+    return "\n".join(lines)
 
 
 def _local_path(uri: str) -> str | None:

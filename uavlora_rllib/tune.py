@@ -42,7 +42,6 @@ from ray import tune
 
 from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.experiment import periodic_eval
 from uavlora_rllib.cli_args import Parser, UsageError, positive_int
 from uavlora_rllib.experiment.grid import (
     GridConfig,
@@ -112,6 +111,8 @@ def trial_table(grid: GridConfig, specs: list[TrialSpec]) -> str:
 # --------------------------------------------------------------------------- the trainable
 def trial_config(spec: TrialSpec, grid: GridConfig) -> dict[str, Any]:
     """What one trial needs (and what its MLflow run records), plain data only."""
+    from uavlora_rllib.experiment import periodic_eval  # imports RLlib: not at module import
+
     return {
         "algorithm": spec.algorithm,
         "seed": spec.seed,
@@ -137,6 +138,7 @@ class UavLoraTrainable(tune.Trainable):
         from uavlora_rllib.sim.scenario import ScenarioConfig
 
         import uavlora_rllib.envs.multi_agent  # noqa: F401  (registers the "uavlora" env)
+        from uavlora_rllib.experiment import periodic_eval
 
         cfg = config.get("trial", config)
         self.cfg = cfg
@@ -153,6 +155,7 @@ class UavLoraTrainable(tune.Trainable):
         self._last_steps: int | None = 0
 
     def step(self) -> dict:
+        from uavlora_rllib.experiment import periodic_eval
         from uavlora_rllib.experiment.tracking import ENV_STEPS, _lookup, _number, training_summary
 
         t0 = time.perf_counter()
