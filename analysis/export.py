@@ -26,6 +26,12 @@ steps; experiment/periodic_eval.py); absolute_metrics is the final execution-pha
 episode, so every list holds ONE value, that mean. Learners (kind=train) only: baselines have
 no training steps. Metrics: ee_sys_mean (bit/J per slot), ee_sys_episode_sum, success_rate,
 and "return" (the greedy policy's undiscounted episode return, eval/episode_return).
+
+Checked against marl-eval itself: the PyPI package (id-marl-eval 0.0.4) does not install on
+Python 3.11 here (its pinned pandas fails to build), so the tests check the structure above
+precisely; a report's file was also run once through marl-eval's own loader from its repository
+(DiagnoseData.check_data: every check True; data_process_pipeline and create_matrices_for_rliable:
+[runs x tasks] and [runs x tasks x steps] matrices per algorithm).
 """
 
 from __future__ import annotations

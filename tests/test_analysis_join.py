@@ -256,3 +256,17 @@ def test_error_paths_one_line_exit_2(stores, tmp_path, capsys):
                            "--out", str(a_file)], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert proc.stderr.strip().count("\n") == 0 and "is a file" in proc.stderr
+
+
+def test_cells_joining_different_budgets_warn():
+    from analysis.data import organise
+    from analysis.runs import RunRecord
+
+    def rec(i, budget, exp):
+        return RunRecord(run_id=f"r{i}", run_name="", status="FINISHED", start_time=i, kind="train", algorithm="mappo",
+                         seed=str(i), n_eds=10, n_uavs=2, params={"stop.env_steps": budget, "scenario.episode_len": "150"},
+                         metrics={"eval/ee_sys_mean": 1.0}, experiment=exp)
+
+    org = organise([rec(0, "1000", "a"), rec(1, "1000", "a"), rec(2, "2000", "b")])
+    assert any("differ in stop.env_steps (1000 / 2000)" in w for w in org.warnings), org.warnings
+    assert not any("differ" in w for w in organise([rec(0, "1000", "a"), rec(1, "1000", "b")]).warnings)
