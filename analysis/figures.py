@@ -180,6 +180,7 @@ def fig3a(eval_curves, return_curves, org: Organised, lk: dict, out_dir: str, sm
             _plot_curves(ax, eval_curves[scen], lk, r.mean if r else 1.0)
             if r:
                 ax.axhline(1.0, color="black", linewidth=0.8, linestyle=(0, (2, 2)))
+                ax.set_ylim(top=max(ax.get_ylim()[1], 1.08))
             ax.set_ylabel(f"EE / {r.name}" if r else "EE (bit/J)")
             ax.set_title(f"{_scen_title(scen)}\n{interval_text([c.n_seeds for c in eval_curves[scen].values()], '95% band')}",
                          fontsize=style.SMALL_PT)
