@@ -8,7 +8,9 @@ PettingZoo env (`UavLoraParallelEnv(render_mode="rgb_array")`), the policy actin
 env's batch core, and writes K + 1 frames: the env's render after reset, then after every
 step. A baseline runs on the default scenario with --n-eds/--n-uavs applied; a checkpoint
 runs on its own training scenario with those overrides (uavlora_rllib.evaluate).
-Bad input: one error line, exit code 2.
+Every expected failure (bad flag, unknown policy, a checkpoint that does not fit the scenario,
+--out a folder or not writable) prints one error line on stderr, exit code 2. A progress bar
+shows the slots played (on a terminal only).
 """
 
 from __future__ import annotations
@@ -52,18 +54,38 @@ def resolve_policy(policy: str, n_eds: int | None, n_uavs: int | None, seed: int
         )
     from uavlora_rllib.evaluate import load_checkpoint_policy
 
-    return load_checkpoint_policy(policy, overrides)
+    try:
+        return load_checkpoint_policy(policy, overrides)
+    except ValueError as exc:  # the trained network does not fit the scenario (shapes, action mode)
+        raise UsageError(f"--policy: checkpoint {policy!r} does not fit the scenario: {exc}") from None
+
+
+def check_out(path: str) -> None:
+    """UsageError unless `path` can become a GIF file (not a folder, its folder creatable)."""
+    if not path.lower().endswith(".gif"):
+        raise UsageError(f"--out: expected a .gif file name, got {path!r}")
+    if os.path.isdir(path):
+        raise UsageError(f"--out: {path!r} is a folder; expected a .gif file name")
+    folder = os.path.dirname(os.path.abspath(path))
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError as exc:
+        raise UsageError(f"--out: cannot create the folder {folder!r}: {exc.strerror or exc}") from None
+    if not os.access(folder, os.W_OK):
+        raise UsageError(f"--out: cannot write to the folder {folder!r}: permission denied")
 
 
 def record_frames(policy, cfg, seed: int, steps: int) -> list[np.ndarray]:
     """Render after reset and after each of `steps` steps: steps + 1 uint8 frames [H, W, 3]."""
+    from tqdm import tqdm
+
     from uavlora_rllib.envs.multi_agent import UavLoraParallelEnv
 
     env = UavLoraParallelEnv(cfg, render_mode="rgb_array")
     env.reset(seed=seed)
     policy.reset(env.core)
     frames = [env.render()]
-    for _ in range(steps):
+    for _ in tqdm(range(steps), desc="animate", unit="slot", disable=None, leave=False):
         acts = np.asarray(policy.act(env.core))[0]
         env.step({a: acts[i] for i, a in enumerate(env.possible_agents)})
         frames.append(env.render())
@@ -74,8 +96,6 @@ def record_frames(policy, cfg, seed: int, steps: int) -> list[np.ndarray]:
 def write_gif(frames: Sequence[np.ndarray], path: str, fps: int) -> None:
     import imageio.v3 as iio
 
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
     iio.imwrite(path, np.stack(frames), extension=".gif", duration=1000.0 / fps, loop=0)
 
 
@@ -84,8 +104,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     try:
         args = build_parser().parse_args(argv)
-        if not args.out.lower().endswith(".gif"):
-            raise UsageError(f"--out: expected a .gif file name, got {args.out!r}")
+        check_out(args.out)
         policy, cfg = resolve_policy(args.policy, args.n_eds, args.n_uavs, args.seed)
         steps = cfg.episode_len if args.steps is None else args.steps
         if steps > cfg.episode_len:
@@ -94,7 +113,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"animate: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
     frames = record_frames(policy, cfg, args.seed, steps)
-    write_gif(frames, args.out, args.fps)
+    try:
+        write_gif(frames, args.out, args.fps)
+    except OSError as exc:  # e.g. the disk filled up
+        print(f"animate: error: --out: cannot write {args.out!r}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
     print(f"animate: {args.out} ({len(frames)} frames, policy {getattr(policy, 'name', args.policy)}, "
           f"V={cfg.n_eds} U={cfg.n_uavs}, seed {args.seed})")
     return 0

@@ -1,4 +1,8 @@
-"""Reading an experiment's runs from MLflow (MlflowClient only; never Ray's result folders).
+"""Reading experiments' runs from MLflow (MlflowClient only; never Ray's result folders).
+
+One report may join several experiments from several tracking URIs (`resolve_sources`): a
+sweep split over experiments, or over clusters with their own MLflow stores. Every RunRecord
+names the experiment and URI it came from.
 
 The schema is the Tune callback's (README / issue 6): tags kind, algorithm, seed, n_eds,
 n_uavs, git_commit, grid_file, trial_id, checkpoint, budget_env_steps; params
@@ -10,6 +14,7 @@ are left out.
 from __future__ import annotations
 
 import ast
+import fnmatch
 import json
 import logging
 import math
@@ -40,13 +45,16 @@ class RunRecord:
     tags: dict[str, str] = field(default_factory=dict)
     params: dict[str, str] = field(default_factory=dict)
     metrics: dict[str, float] = field(default_factory=dict)
+    experiment: str = ""  # the MLflow experiment it was read from
+    source: int = 0  # index of its Source (experiment + tracking URI) in the report's list
 
     @property
     def label(self) -> str:
         """Short human description for warnings."""
         name = f" ({self.run_name})" if self.run_name else ""
+        where = f" [{self.experiment}]" if self.experiment else ""
         return (
-            f"run {self.run_id[:8]}{name}: kind={self.kind} algorithm={self.algorithm} seed={self.seed} "
+            f"run {self.run_id[:8]}{name}{where}: kind={self.kind} algorithm={self.algorithm} seed={self.seed} "
             f"V={self.n_eds} U={self.n_uavs} status={self.status}"
         )
 
@@ -118,15 +126,6 @@ def connect(tracking_uri: str):
     return client
 
 
-def find_experiment(client, name: str, tracking_uri: str):
-    exp = client.get_experiment_by_name(name)
-    if exp is None or getattr(exp, "lifecycle_stage", "active") != "active":
-        names = sorted(e.name for e in client.search_experiments())
-        listing = ", ".join(repr(n) for n in names) if names else "(none)"
-        raise ReportError(f"experiment {name!r} not found at {tracking_uri}; existing experiments: {listing}")
-    return exp
-
-
 def _as_int(text: Any) -> int | None:
     if text is None:
         return None
@@ -134,6 +133,45 @@ def _as_int(text: Any) -> int | None:
         return int(float(str(text)))
     except ValueError:
         return None
+
+
+@dataclass(frozen=True)
+class Source:
+    """One experiment at one tracking URI, and the client that reads it."""
+
+    tracking_uri: str
+    experiment: Any  # mlflow.entities.Experiment
+    client: Any = field(compare=False, repr=False)
+
+    @property
+    def name(self) -> str:
+        return self.experiment.name
+
+
+def resolve_sources(tracking_uris: list[str], patterns: list[str]) -> list[Source]:
+    """Every active experiment, at any of the URIs, whose name equals one of the patterns or
+    matches it as a shell glob (fnmatch: *, ?, [...]); each (URI, experiment) once, in the
+    order given. ReportError when a URI is unreachable or a pattern matches nothing anywhere."""
+    clients = {uri: connect(uri) for uri in dict.fromkeys(tracking_uris)}
+    listing = {uri: [e for e in c.search_experiments() if getattr(e, "lifecycle_stage", "active") == "active"]
+               for uri, c in clients.items()}
+    out: list[Source] = []
+    seen: set[tuple[str, str]] = set()
+    for pattern in patterns:
+        hits = 0
+        for uri, exps in listing.items():
+            for exp in sorted(exps, key=lambda e: e.name):
+                if exp.name == pattern or fnmatch.fnmatchcase(exp.name, pattern):
+                    hits += 1
+                    if (uri, exp.experiment_id) not in seen:
+                        seen.add((uri, exp.experiment_id))
+                        out.append(Source(uri, exp, clients[uri]))
+        if hits == 0:
+            names = sorted({e.name for exps in listing.values() for e in exps})
+            where = ", ".join(listing)
+            existing = ", ".join(repr(n) for n in names) if names else "(none)"
+            raise ReportError(f"--experiment: {pattern!r} not found at {where}; existing experiments: {existing}")
+    return out
 
 
 def _record(run) -> RunRecord:
@@ -158,7 +196,7 @@ def _record(run) -> RunRecord:
     )
 
 
-def load_runs(client, experiment_id: str) -> tuple[list[RunRecord], list[Any]]:
+def load_runs(client, experiment_id: str, experiment: str = "", source: int = 0) -> tuple[list[RunRecord], list[Any]]:
     """All active runs of the experiment as RunRecords (summary runs excluded), and the
     summary runs themselves (raw MLflow Run objects, newest first)."""
     records: list[RunRecord] = []
@@ -170,7 +208,9 @@ def load_runs(client, experiment_id: str) -> tuple[list[RunRecord], list[Any]]:
             if run.data.tags.get("kind") == SUMMARY_KIND:
                 summaries.append(run)
             else:
-                records.append(_record(run))
+                rec = _record(run)
+                rec.experiment, rec.source = experiment, source
+                records.append(rec)
         token = getattr(page, "token", None)
         if not token:
             break

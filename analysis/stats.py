@@ -9,6 +9,10 @@ Across seeds (one value per training seed, e.g. a run's ``eval/ee_sys_mean``):
 * ``iqm``: interquartile mean, ``scipy.stats.trim_mean(x, 0.25)`` (cuts int(0.25 n) values
   at each end, so for n <= 3 it equals the mean).
 * ``improvement_pct``: the paper's relative gain, 100 * (a - b) / b, on the seed means.
+* ``ratio_ci95``: 95% Fieller interval of mean(a) / mean(b) for two independent sets of seeds
+  (the paper table's CI of an improvement is 100 (ratio - 1) over that interval); Student t
+  with min(n_a, n_b) - 1 degrees of freedom (conservative), unbounded when mean(b) is not
+  significantly different from 0.
 
 Training curves (Fig. 3a):
 
@@ -81,6 +85,27 @@ def improvement_pct(a: float, b: float) -> float:
     if not (math.isfinite(a) and math.isfinite(b)) or b == 0:
         return math.nan
     return 100.0 * (a - b) / b
+
+
+def ratio_ci95(a: Sequence[float], b: Sequence[float]) -> tuple[float, float]:
+    """95% Fieller interval of mean(a) / mean(b), independent samples (see the module docstring).
+
+    The set of rho with (mean_a - rho mean_b)^2 <= t^2 (var_a + rho^2 var_b), var_x = s_x^2 / n_x:
+    a bounded interval when mean_b^2 > t^2 var_b, else (-inf, inf). NaN, NaN below 2 values a side.
+    """
+    x, y = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    if x.size < 2 or y.size < 2:
+        return math.nan, math.nan
+    t = float(_st.t.ppf(0.975, min(x.size, y.size) - 1))
+    ma, mb = float(x.mean()), float(y.mean())
+    va, vb = float(x.var(ddof=1)) / x.size, float(y.var(ddof=1)) / y.size
+    quad = mb * mb - t * t * vb  # coefficient of rho^2
+    if quad <= 0:
+        return -math.inf, math.inf
+    # the roots of quad rho^2 - 2 ma mb rho + (ma^2 - t^2 va): the discriminant (ma mb)^2 -
+    # quad (ma^2 - t^2 va) simplifies to t^2 (va quad + vb ma^2), never negative here
+    half = t * math.sqrt(va * quad + vb * ma * ma)
+    return (ma * mb - half) / quad, (ma * mb + half) / quad
 
 
 def ema(values: Sequence[float], weight: float) -> np.ndarray:

@@ -45,6 +45,9 @@ _SPARE = (
     "#9c9ede",
 )
 MARKERS = ("o", "s", "^", "D", "v", "P", "X", "<", ">", "h", "*", "p")
+# Distinct dash patterns: with distinct markers, two series on the same points stay visible
+# (issue 16: IPPO's line sat exactly under MAPPO's and appeared only in the legend).
+LINE_STYLES = ("-", "--", ":", "-.", (0, (5, 1, 1, 1, 1, 1)), (0, (1, 2)), (0, (8, 2)), (0, (3, 1, 1, 1)))
 
 
 def _base(name: str) -> str:
@@ -70,6 +73,16 @@ def colour_map(names) -> dict[str, str]:
 
 def marker_map(names) -> dict[str, str]:
     return {n: MARKERS[i % len(MARKERS)] for i, n in enumerate(sorted(set(names)))}
+
+
+def line_style_map(names) -> dict[str, object]:
+    """name -> a dash pattern, distinct for up to len(LINE_STYLES) names (sorted order)."""
+    return {n: LINE_STYLES[i % len(LINE_STYLES)] for i, n in enumerate(sorted(set(names)))}
+
+
+def hollow(index: int) -> bool:
+    """Every second series gets hollow markers, so a marker drawn on top of another shows both."""
+    return index % 2 == 1
 
 
 def context():

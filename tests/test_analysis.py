@@ -7,6 +7,8 @@ Store (sqlite in tmp_path), scenarios S1 = (V=10, U=2) and S2 = (V=20, U=2):
             hyper_mix (a "new" algorithm) S1 -> 88/90/92 (second best in S1)
   baselines optimal 200 (S1) / 190 (S2), greedy 150 / 140 (3 seeds each), random 10/20/30 (S1), 5 (S2, 1 seed)
 Training curves (train runs, step = env steps 0..10000): value = seed_offset + slope * step.
+Execution curves (the periodic greedy evaluation, train runs with eval): eval/ee_sys_mean at env
+steps 0, 2500, 5000, 7500 = EE * (0.5 + 0.5 step / 10000), and the final evaluation EE at 10000.
 """
 
 from __future__ import annotations
@@ -50,6 +52,11 @@ BASE = {
 SLOPE = {"mappo": 0.01, "vdn": 0.005, "hyper_mix": 0.002}
 STEPS = np.arange(0, 10_001, 500)
 EPISODE_LEN = 8
+EVAL_STEPS = (0, 2500, 5000, 7500)
+
+
+def ramp(step: float) -> float:
+    return 0.5 + 0.5 * step / 10_000
 
 
 def _make_run(client, exp_id, tmp_path, kind, alg, scen, seed, ee, status="FINISHED", curve_upto=None):
@@ -81,13 +88,16 @@ def _make_run(client, exp_id, tmp_path, kind, alg, scen, seed, ee, status="FINIS
         params.append(Param("stop.env_steps", "10000"))
     now = int(time.time() * 1000)
     metrics = []
+    final = int(STEPS[-1]) if kind == "train" else 0
     if ee is not None:
         metrics += [
-            Metric("eval/ee_sys_mean", ee, now, 0),
-            Metric("eval/ee_sys_episode_sum", ee * EPISODE_LEN, now, 0),
-            Metric("eval/success_rate", 0.9, now, 0),
-            Metric("eval/episodes", 10, now, 0),
+            Metric("eval/ee_sys_mean", ee, now, final),
+            Metric("eval/ee_sys_episode_sum", ee * EPISODE_LEN, now, final),
+            Metric("eval/success_rate", 0.9, now, final),
+            Metric("eval/episodes", 10, now, final),
         ]
+        if kind == "train":
+            metrics += [Metric("eval/ee_sys_mean", ee * ramp(s), now, s) for s in EVAL_STEPS]
     if kind == "train":
         off = float(SEEDS.index(seed)) if seed in SEEDS else 3.0
         upto = STEPS if curve_upto is None else STEPS[STEPS <= curve_upto]
@@ -163,9 +173,10 @@ def test_ee_table_means_ci_iqm(store):
 
 def test_improvements_and_share_of_optimum(store):
     rows = _rows(store["out"] / "table_ee.csv")
-    assert float(_cell(rows, "mappo", S1)["share_of_optimum"]) == pytest.approx(110.0 / 200.0)
-    assert float(_cell(rows, "mappo", S2)["share_of_optimum"]) == pytest.approx(95.0 / 190.0)
-    assert float(_cell(rows, "optimal", S1)["share_of_optimum"]) == pytest.approx(1.0)
+    assert float(_cell(rows, "mappo", S1)["share_of_reference"]) == pytest.approx(110.0 / 200.0)
+    assert float(_cell(rows, "mappo", S2)["share_of_reference"]) == pytest.approx(95.0 / 190.0)
+    assert float(_cell(rows, "optimal", S1)["share_of_reference"]) == pytest.approx(1.0)
+    assert {r["reference_baseline"] for r in rows} == {"optimal"}  # the optimum wins over greedy
     assert float(_cell(rows, "vdn", S1)["reference_improvement_pct"]) == pytest.approx(100 * 25 / 85)
     imp = _rows(store["out"] / "table_improvement.csv")
     by = {(int(r["n_eds"]), r["other"]): r for r in imp}
@@ -200,7 +211,8 @@ def test_figures_and_curves(store):
     assert "greedy" in text.split("### Fig. 2")[1].split("###")[0]  # no checkpoint: baseline fallback
     # curves: no smoothing; mappo S1 has 4 FINISHED runs with curves (seed offsets 0/1/2 and 3 for
     # the seed-99 run without eval: training happened) -> mean = 1.5 + slope * step
-    curves = [r for r in _rows(out / "fig3a_curves.csv") if r["algorithm"] == "mappo" and r["n_eds"] == "10"]
+    curves = [r for r in _rows(out / "fig3a_curves.csv")
+              if r["algorithm"] == "mappo" and r["n_eds"] == "10" and r["metric"] == "episode_return_mean"]
     assert len(curves) == 21 and float(curves[-1]["env_steps"]) == 10_000 and curves[0]["n_seeds"] == "4"
     for r in curves:
         x, m = float(r["env_steps"]), float(r["mean"])
@@ -208,8 +220,17 @@ def test_figures_and_curves(store):
         assert float(r["ci95_low"]) <= m <= float(r["ci95_high"])
         assert float(r["ci95_low"]) >= 0.0 + SLOPE["mappo"] * x - 1e-9  # within the seeds' range
         assert float(r["ci95_high"]) <= 3.0 + SLOPE["mappo"] * x + 1e-9
+    # the execution curve: raw EE per slot in the CSV, the reference named beside it
+    ev = [r for r in _rows(out / "fig3a_curves.csv")
+          if r["algorithm"] == "mappo" and r["n_eds"] == "10" and r["metric"] == "eval/ee_sys_mean"]
+    assert len(ev) == 21 and ev[0]["n_seeds"] == "3"  # the seed-99 run has no eval history
+    for r in ev:
+        assert float(r["mean"]) == pytest.approx(110.0 * ramp(float(r["env_steps"])), rel=1e-9)
+        assert r["reference"] == "optimal" and float(r["reference_ee"]) == 200.0
+    assert "greedy policy" in text and "share of the per-slot optimum" in text
     # the FAILED vdn run's short curve is left out: the S2 grid spans the full budget
-    vdn2 = [r for r in _rows(out / "fig3a_curves.csv") if r["algorithm"] == "vdn" and r["n_eds"] == "20"]
+    vdn2 = [r for r in _rows(out / "fig3a_curves.csv")
+            if r["algorithm"] == "vdn" and r["n_eds"] == "20" and r["metric"] == "episode_return_mean"]
     assert float(vdn2[-1]["env_steps"]) == 10_000 and vdn2[0]["n_seeds"] == "2"
 
 
@@ -303,3 +324,24 @@ def test_animate_writes_gif(tmp_path):
     assert frames.shape[0] == 6 and frames.ndim == 4  # reset frame + one per step
     assert animate.main(["--policy", "nonsense", "--out", str(tmp_path / "x.gif")]) == 2
     assert animate.main(["--policy", "random", "--steps", "151", "--out", str(tmp_path / "y.gif")]) == 2
+
+
+def test_animate_error_paths_one_line(tmp_path, capsys):
+    from analysis import animate
+
+    folder = tmp_path / "a.gif"
+    folder.mkdir()
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    cases = [
+        (["--policy", "greedy", "--out", str(folder)], "is a folder"),
+        (["--policy", "greedy", "--out", str(blocker / "x.gif")], "cannot create the folder"),
+        (["--policy", "greedy", "--out", str(tmp_path / "x.png")], "expected a .gif"),
+        (["--policy", str(tmp_path), "--out", str(tmp_path / "y.gif")], "not a valid RLlib checkpoint"),
+        (["--policy", "greedy", "--seed", "x", "--out", str(tmp_path / "z.gif")], "--seed"),
+    ]
+    for argv, needle in cases:
+        assert animate.main(argv) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and err.startswith("animate: error:") and needle in err, (argv, err)
+    assert not (tmp_path / "y.gif").exists() and not (tmp_path / "z.gif").exists()

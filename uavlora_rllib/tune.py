@@ -129,6 +129,8 @@ def trial_table(grid: GridConfig, specs: list[TrialSpec]) -> str:
 # --------------------------------------------------------------------------- the trainable
 def trial_config(spec: TrialSpec, grid: GridConfig) -> dict[str, Any]:
     """What one trial needs (and what its MLflow run records), plain data only."""
+    from uavlora_rllib.experiment import periodic_eval  # imports RLlib: not at module import
+
     return {
         "algorithm": spec.algorithm,
         "seed": spec.seed,
@@ -140,6 +142,7 @@ def trial_config(spec: TrialSpec, grid: GridConfig) -> dict[str, Any]:
         "resources": dataclasses.asdict(grid.resources),
         "budget_env_steps": grid.stop.env_steps,
         "eval_episodes": grid.evaluation.episodes,
+        "eval_interval_env_steps": periodic_eval.resolve_interval(grid.evaluation.interval_env_steps, grid.stop.env_steps),
         "plugins": list(grid.plugins),
     }
 
@@ -153,6 +156,7 @@ class UavLoraTrainable(tune.Trainable):
         from uavlora_rllib.sim.scenario import ScenarioConfig
 
         import uavlora_rllib.envs.multi_agent  # noqa: F401  (registers the "uavlora" env)
+        from uavlora_rllib.experiment import periodic_eval
 
         cfg = config.get("trial", config)
         self.cfg = cfg
@@ -163,16 +167,20 @@ class UavLoraTrainable(tune.Trainable):
         self.scenario = ScenarioConfig.from_dict(cfg["scenario"])
         hparams = self.entry.hparams(cfg["overrides"])
         algo_config = self.entry.build(self.scenario, hparams, resources, int(cfg["seed"]))
+        periodic_eval.attach(algo_config, periodic_eval.PeriodicEvalSettings(
+            self.scenario, int(cfg.get("eval_interval_env_steps", 0)), int(cfg["eval_episodes"]), int(cfg["seed"])))
         self.algo = algo_config.build_algo()
         self._last_steps: int | None = 0
 
     def step(self) -> dict:
+        from uavlora_rllib.experiment import periodic_eval
         from uavlora_rllib.experiment.tracking import ENV_STEPS, _lookup, _number, training_summary
 
         t0 = time.perf_counter()
         result = self.algo.train()
         dt = max(time.perf_counter() - t0, 1e-9)
         out = training_summary(result)
+        out.update(periodic_eval.metrics_from_result(result))  # the greedy-policy curve's points
         steps = out[ENV_STEPS]
         if self._last_steps is not None:
             sampled = steps - self._last_steps

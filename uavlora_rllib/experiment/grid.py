@@ -22,7 +22,8 @@ Schema (see tune_configs/smoke.yaml for a complete example)::
     checkpoint_every: 10         # training iterations between checkpoints
     resources: {num_env_runners: 1, ...}   # registry.Resources, per trial
     mlflow: {tracking_uri: "sqlite:///mlflow.db"}
-    evaluation: {episodes: 10}   # execution-phase episodes per trial / baseline run
+    evaluation: {episodes: 10}   # execution-phase episodes per trial / baseline run;
+                                 # interval_env_steps: greedy-policy curve (null: budget/20, 0: off)
     storage: ./ray_results       # Ray Tune storage (a shared path on a cluster)
     max_concurrent_trials: null  # optional cap
     plugins: []                  # optional: modules to import that register more algorithms
@@ -151,6 +152,9 @@ class MlflowConfig:
 class EvaluationConfig:
     # execution-phase episodes per trial and per baseline run, [1, 1e6]
     episodes: int = Field(10, ge=1, le=1_000_000)
+    # env steps between evaluations of the greedy policy during training (learning curves,
+    # experiment/periodic_eval.py); null: stop.env_steps / 20; 0: none
+    interval_env_steps: int | None = Field(None, ge=0)
 
 
 def _no_duplicates(v: list) -> list:

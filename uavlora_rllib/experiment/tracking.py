@@ -14,7 +14,10 @@ The analysis step reads exactly this schema:
   and every numeric learner stat as ``learner/<stat>`` (one policy module) or
   ``learner/<module>/<stat>`` (several), the all-modules stats as ``learner/all_modules/<stat>``.
 * execution-phase evaluation (end of a trial, and baseline runs): ``eval/<k>`` and
-  ``eval/<k>_ci95`` for k in `evaluation.EPISODE_METRICS`, and ``eval/episodes``.
+  ``eval/<k>_ci95`` for k in `evaluation.EPISODE_METRICS`, and ``eval/episodes``; train runs
+  also log them during training, step = env steps (experiment/periodic_eval.py), so the final
+  evaluation is the last point of each series; ``eval_sampled/<k>`` likewise for algorithms
+  with a sampled policy.
 
 One run per trial, even across ``--resume``: the run is found again by its ``trial_id`` tag
 (Tune keeps trial ids when it restores an experiment), reopened (status RUNNING) and
@@ -229,7 +232,7 @@ def metrics_to_log(result: Mapping[str, Any]) -> tuple[dict[str, float], dict[st
             continue
         if key in TRAIN_METRICS or key.startswith(LEARNER_PREFIX):
             train[safe_name(key)] = x
-        elif key.startswith(EVAL_PREFIX):
+        elif key.startswith((EVAL_PREFIX, "eval_sampled/")):  # periodic_eval.EVAL_SAMPLED_PREFIX
             evals[safe_name(key)] = x
     return train, evals
 

@@ -1,0 +1,262 @@
+"""The report's data: runs grouped into cells (V, U, algorithm), the reference of each scenario,
+and the curves of Fig. 3a. No drawing and no file writing here.
+
+A cell holds one value per seed: the newest FINISHED run with execution metrics of that seed.
+Runs may come from several experiments (analysis.runs.resolve_sources); cells join them, and a
+warning names any cell whose runs differ in budget, episode count or scenario parameters, since
+averaging those would mix different experiments.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter, defaultdict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from analysis import stats
+from analysis.runs import EE_KEY, RunRecord, metric_history
+
+PAPER_SCENARIO = (10, 2)  # Fig. 2 and Fig. 3a: V = 10 EDs, U = 2 UAVs
+PAPER_FIXED_U = 2  # Fig. 3b
+PAPER_FIXED_V = 60  # Fig. 3c
+MIN_SEEDS = 3  # below this a cell's statistics are flagged as weak
+KINDS = ("train", "baseline")
+OPTIMAL, GREEDY = "optimal", "greedy"
+REFERENCE_BASELINES = (OPTIMAL, GREEDY)  # the "share of reference" denominator, first present wins
+RETURN_METRIC = "episode_return_mean"  # training return of the sampled (exploring) policy
+# params whose values must agree inside a cell (n_eds / n_uavs are the cell's key already)
+_IDENTITY_PARAMS = ("stop.env_steps", "eval.episodes")
+
+
+@dataclass
+class Cell:
+    """All runs of one (V, U, algorithm): the valid ones (FINISHED with eval metrics), the rest."""
+
+    n_eds: int
+    n_uavs: int
+    algorithm: str
+    kind: str
+    runs: list[RunRecord] = field(default_factory=list)
+    unfinished: list[RunRecord] = field(default_factory=list)
+    no_eval: list[RunRecord] = field(default_factory=list)
+    duplicates: list[RunRecord] = field(default_factory=list)
+
+    @property
+    def key(self) -> tuple[int, int, str]:
+        return (self.n_eds, self.n_uavs, self.algorithm)
+
+    @property
+    def scenario(self) -> tuple[int, int]:
+        return (self.n_eds, self.n_uavs)
+
+    def values(self, metric: str = EE_KEY) -> np.ndarray:
+        return np.array([r.metrics.get(metric, math.nan) for r in self.runs], dtype=float)
+
+    def summary(self, metric: str = EE_KEY) -> stats.SeedSummary:
+        v = self.values(metric)
+        return stats.summarize(v[np.isfinite(v)])
+
+    def mean_of(self, metric: str) -> float:
+        v = self.values(metric)
+        v = v[np.isfinite(v)]
+        return float(v.mean()) if v.size else math.nan
+
+    @property
+    def seeds(self) -> list[str]:
+        return [str(r.seed) for r in self.runs]
+
+
+@dataclass(frozen=True)
+class Reference:
+    """The denominator of "share of reference" in one scenario."""
+
+    name: str  # "optimal" or "greedy"
+    mean: float  # its seed-mean execution EE
+
+    @property
+    def label(self) -> str:
+        return "per-slot optimum" if self.name == OPTIMAL else "greedy baseline"
+
+
+@dataclass
+class Organised:
+    cells: dict[tuple[int, int, str], Cell]
+    warnings: list[str]
+    records: list[RunRecord]
+
+    def scenarios(self) -> list[tuple[int, int]]:
+        return sorted({(c.n_eds, c.n_uavs) for c in self.cells.values()})
+
+    def cells_of(self, scenario: tuple[int, int]) -> list[Cell]:
+        return [c for c in self.cells.values() if (c.n_eds, c.n_uavs) == scenario]
+
+    def algorithms(self, kind: str | None = None) -> list[str]:
+        return sorted({c.algorithm for c in self.cells.values() if kind is None or c.kind == kind})
+
+    def kind_of(self, algorithm: str) -> str:
+        return next((c.kind for c in self.cells.values() if c.algorithm == algorithm), "train")
+
+    def reference(self, scenario: tuple[int, int]) -> Reference | None:
+        """The optimum where the scenario has `optimal` baseline runs, else the greedy baseline,
+        else None."""
+        for name in REFERENCE_BASELINES:
+            cell = self.cells.get((*scenario, name))
+            if cell is not None and cell.kind == "baseline" and cell.runs:
+                m = cell.summary().mean
+                if math.isfinite(m) and m > 0:
+                    return Reference(name, m)
+        return None
+
+    def find_train(self, name: str) -> str | None:
+        """The learner called `name` (case-insensitive), or None."""
+        return next((a for a in self.algorithms("train") if a.lower() == name.lower()), None)
+
+
+def organise(records: list[RunRecord]) -> Organised:
+    warnings: list[str] = []
+    train_names = {r.algorithm for r in records if r.kind == "train" and r.algorithm}
+    cells: dict[tuple[int, int, str], Cell] = {}
+    for r in records:
+        if r.kind not in KINDS:
+            warnings.append(f"{r.label}: unknown kind {r.kind!r} (expected train or baseline); skipped")
+            continue
+        if not r.algorithm:
+            warnings.append(f"{r.label}: no 'algorithm' tag; skipped")
+            continue
+        if r.scenario_key is None:
+            warnings.append(f"{r.label}: no n_eds / n_uavs tag or scenario param; skipped")
+            continue
+        name = r.algorithm
+        if r.kind == "baseline" and name in train_names:
+            name = f"{name} (baseline)"  # a baseline named like a learner must not join its cell
+        key = (r.n_eds, r.n_uavs, name)
+        cell = cells.get(key)
+        if cell is None:
+            cell = cells[key] = Cell(r.n_eds, r.n_uavs, name, r.kind)
+        if r.status != "FINISHED":
+            cell.unfinished.append(r)
+        elif not r.has_eval:
+            cell.no_eval.append(r)
+        else:
+            cell.runs.append(r)
+    for cell in cells.values():
+        # one run per seed: the newest FINISHED one (records are sorted by start time)
+        by_seed: dict[str, RunRecord] = {}
+        for r in cell.runs:
+            seed = str(r.seed) if r.seed is not None else r.run_id
+            if seed in by_seed:
+                cell.duplicates.append(by_seed[seed])
+            by_seed[seed] = r
+        cell.runs = sorted(by_seed.values(), key=lambda r: str(r.seed))
+    for key in sorted(cells):
+        cell = cells[key]
+        where = f"V={cell.n_eds} U={cell.n_uavs} {cell.algorithm} ({cell.kind})"
+        if len(cell.runs) < MIN_SEEDS:
+            seeds = ", ".join(cell.seeds) or "none"
+            warnings.append(
+                f"{where}: only {len(cell.runs)} seed(s) with eval metrics (seeds: {seeds}); "
+                f"fewer than {MIN_SEEDS}, statistics are weak"
+            )
+        for r in cell.unfinished:
+            warnings.append(f"{where}: unfinished run left out: {r.label}")
+        for r in cell.no_eval:
+            warnings.append(f"{where}: run without eval metrics ({EE_KEY}) left out: {r.label}")
+        for r in cell.duplicates:
+            warnings.append(f"{where}: seed {r.seed} has several finished runs; the newest is used, left out: {r.label}")
+        mixed = _mixed_params(cell.runs)
+        if mixed:
+            warnings.append(f"{where}: its runs differ in {mixed}; they are averaged together (check the joined experiments)")
+    return Organised(cells, warnings, records)
+
+
+def _mixed_params(runs: list[RunRecord]) -> str:
+    """'param (values), ...' for identity params (budget, episodes, scenario.*) that differ."""
+    keys = set(_IDENTITY_PARAMS)
+    for r in runs:
+        keys.update(k for k in r.params if k.startswith("scenario.") and k not in ("scenario.n_eds", "scenario.n_uavs"))
+    parts = []
+    for k in sorted(keys):
+        vals = sorted({r.params.get(k, "<unset>") for r in runs})
+        if len(vals) > 1:
+            parts.append(f"{k} ({' / '.join(vals)})")
+    return ", ".join(parts)
+
+
+def pick_fixed(counter: Counter, preferred: int) -> int | None:
+    """The most common value (the paper's where it ties for most common)."""
+    if not counter:
+        return None
+    top = max(counter.values())
+    best = sorted(k for k, v in counter.items() if v == top)
+    return preferred if preferred in best else best[0]
+
+
+# ---------------------------------------------------------------- curves (Fig. 3a)
+@dataclass
+class Curve:
+    """One algorithm's curve in one scenario: mean over seeds on a common env-step grid, with a
+    95% percentile-bootstrap band over seeds (lo = hi = mean for one seed)."""
+
+    steps: np.ndarray
+    mean: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    n_seeds: int
+
+
+EVAL_CURVE = EE_KEY  # the greedy policy's execution EE per slot, logged during training
+CURVE_METRICS = (EVAL_CURVE, RETURN_METRIC)
+
+
+def curves(history, org: Organised, metric: str, smooth: float, points: int, min_points: int = 1):
+    """{scenario: {algorithm: Curve}} of `metric`'s history (x = env steps) over the train runs,
+    and notes. `history(record, key)` -> (steps, values). FINISHED runs only, unless an
+    algorithm has none (then all its runs). Runs with fewer than `min_points` logged points are
+    left out (the execution curve needs the periodic evaluation: one point is the final one)."""
+    notes: list[str] = []
+    out: dict[tuple[int, int], dict[str, Curve]] = {}
+    groups: dict[tuple[int, int, str], list[RunRecord]] = defaultdict(list)
+    for r in org.records:
+        if r.kind == "train" and r.algorithm and r.scenario_key is not None:
+            groups[(r.n_eds, r.n_uavs, r.algorithm)].append(r)
+    for (v, u, alg), runs in sorted(groups.items()):
+        finished = [r for r in runs if r.status == "FINISHED"]
+        use = finished or runs
+        if not finished:
+            notes.append(f"V={v} U={u} {alg}: no FINISHED run; its {metric} curve uses unfinished runs")
+        series = []
+        for r in use:
+            steps, vals = history(r, metric)
+            if len(steps) >= min_points:
+                series.append((np.asarray(steps), stats.ema(vals, smooth)))
+        if not series:
+            continue
+        grid = stats.common_grid([(s[0], s[-1]) for s, _ in series], points)
+        if grid.size == 0:
+            notes.append(f"V={v} U={u} {alg}: the seeds' env-step ranges of {metric} do not overlap; no curve")
+            continue
+        y = stats.interpolate(series, grid)
+        mean, lo, hi = stats.bootstrap_ci95(y)
+        out.setdefault((v, u), {})[alg] = Curve(grid, mean, lo, hi, len(series))
+    return out, notes
+
+
+def mlflow_history(sources):
+    """history(record, key) reading each record's own tracking store."""
+
+    def history(record: RunRecord, key: str):
+        return metric_history(sources[record.source].client, record.run_id, key)
+
+    return history
+
+
+def main_scenario(available: dict) -> tuple[tuple[int, int] | None, str | None]:
+    """The paper's scenario if it has curves, else the one with the most seeds; and a note."""
+    if not available:
+        return None, None
+    if PAPER_SCENARIO in available:
+        return PAPER_SCENARIO, None
+    main = max(available, key=lambda s: (sum(c.n_seeds for c in available[s].values()), -s[0], -s[1]))
+    return main, f"the paper's scenario V=10, U=2 has no curves; drawn for V={main[0]}, U={main[1]}"

@@ -1,0 +1,219 @@
+"""The report's tables: execution-phase EE per cell, the reference algorithm's improvements,
+as rows (for CSV) and as Markdown. Statistics come from analysis.stats; cells from analysis.data.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections import defaultdict
+from typing import Any, Sequence
+
+from analysis import stats
+from analysis.data import KINDS, MIN_SEEDS, Cell, Organised
+
+TABLE_EE_COLUMNS = (
+    "n_eds",
+    "n_uavs",
+    "algorithm",
+    "kind",
+    "n_seeds",
+    "seeds",
+    "ee_mean",
+    "ee_ci95_low",
+    "ee_ci95_high",
+    "ee_iqm",
+    "ee_std",
+    "ee_episode_sum_mean",
+    "success_rate_mean",
+    "reference_baseline",  # "optimal" where the scenario has it, else "greedy", else empty
+    "share_of_reference",  # ee_mean / the reference's seed-mean EE
+    "reference_improvement_pct",
+    "n_unfinished",
+    "n_without_eval",
+)
+TABLE_IMP_COLUMNS = (
+    "n_eds",
+    "n_uavs",
+    "reference",
+    "other",
+    "other_kind",
+    "ee_reference",
+    "ee_other",
+    "improvement_pct",
+    "is_second_best",
+)
+
+
+def fmt(x: Any, spec: str = ".6g") -> str:
+    """A number for Markdown; n/a for None, NaN and inf."""
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "n/a"
+    return format(x, spec)
+
+
+def order(cells: list[Cell]) -> list[Cell]:
+    """Learners before baselines, each by descending seed-mean EE, then by name."""
+
+    def key(c: Cell):
+        m = c.summary().mean
+        return (KINDS.index(c.kind), -(m if math.isfinite(m) else -math.inf), c.algorithm)
+
+    return sorted(cells, key=key)
+
+
+def ee_table(org: Organised, reference: str | None) -> list[dict[str, Any]]:
+    rows = []
+    for scen in org.scenarios():
+        ref_base = org.reference(scen)
+        ref = org.cells.get((*scen, reference)) if reference else None
+        ref_mean = ref.summary().mean if ref is not None else math.nan
+        for c in order(org.cells_of(scen)):
+            s = c.summary()
+            rows.append(
+                {
+                    "n_eds": c.n_eds,
+                    "n_uavs": c.n_uavs,
+                    "algorithm": c.algorithm,
+                    "kind": c.kind,
+                    "n_seeds": s.n,
+                    "seeds": " ".join(c.seeds),
+                    "ee_mean": s.mean,
+                    "ee_ci95_low": s.ci_low,
+                    "ee_ci95_high": s.ci_high,
+                    "ee_iqm": s.iqm,
+                    "ee_std": s.std,
+                    "ee_episode_sum_mean": c.mean_of("eval/ee_sys_episode_sum"),
+                    "success_rate_mean": c.mean_of("eval/success_rate"),
+                    "reference_baseline": ref_base.name if ref_base else "",
+                    "share_of_reference": s.mean / ref_base.mean if ref_base else math.nan,
+                    "reference_improvement_pct": (
+                        stats.improvement_pct(ref_mean, s.mean) if c.algorithm != reference else math.nan
+                    ),
+                    "n_unfinished": len(c.unfinished),
+                    "n_without_eval": len(c.no_eval),
+                }
+            )
+    return rows
+
+
+def improvement_table(org: Organised, reference: str | None) -> list[dict[str, Any]]:
+    """The reference's improvement over every other algorithm of each scenario; the second best
+    is the best OTHER LEARNING algorithm (kind=train) by seed-mean EE, as in the paper."""
+    rows: list[dict[str, Any]] = []
+    if reference is None:
+        return rows
+    for scen in org.scenarios():
+        ref = org.cells.get((*scen, reference))
+        if ref is None or not ref.runs:
+            continue
+        ref_mean = ref.summary().mean
+        others = [c for c in org.cells_of(scen) if c.algorithm != reference and c.runs]
+        learners = [c for c in others if c.kind == "train"]
+        second = max(learners, key=lambda c: c.summary().mean).algorithm if learners else None
+        for c in order(others):
+            m = c.summary().mean
+            rows.append(
+                {
+                    "n_eds": scen[0],
+                    "n_uavs": scen[1],
+                    "reference": reference,
+                    "other": c.algorithm,
+                    "other_kind": c.kind,
+                    "ee_reference": ref_mean,
+                    "ee_other": m,
+                    "improvement_pct": stats.improvement_pct(ref_mean, m),
+                    "is_second_best": c.algorithm == second,
+                }
+            )
+    return rows
+
+
+def write_csv(path: str, columns: Sequence[str], rows: list[dict[str, Any]]) -> None:
+    """Rows as CSV; NaN and inf as empty cells."""
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(columns))
+        w.writeheader()
+        for row in rows:
+            w.writerow({k: ("" if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()})
+
+
+def md_table(header: Sequence[str], rows: list[Sequence[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def ee_table_md(rows: list[dict[str, Any]], reference: str | None) -> str:
+    ref = reference or "reference"
+    header = [
+        "V",
+        "U",
+        "algorithm",
+        "kind",
+        "seeds",
+        "EE mean (bit/J)",
+        "95% CI (t)",
+        "IQM",
+        "success rate",
+        "share of reference",
+        f"{ref} over this (%)",
+        "left out",
+    ]
+    body = []
+    for r in rows:
+        ci = f"[{fmt(r['ee_ci95_low'])}, {fmt(r['ee_ci95_high'])}]" if math.isfinite(r["ee_ci95_low"]) else "n/a (n < 2)"
+        left = []
+        if r["n_unfinished"]:
+            left.append(f"{r['n_unfinished']} unfinished")
+        if r["n_without_eval"]:
+            left.append(f"{r['n_without_eval']} without eval")
+        share = fmt(r["share_of_reference"], ".3f")
+        if r["reference_baseline"]:
+            share += f" of {r['reference_baseline']}"
+        body.append(
+            [
+                str(r["n_eds"]),
+                str(r["n_uavs"]),
+                r["algorithm"],
+                r["kind"],
+                str(r["n_seeds"]) + (" (!)" if r["n_seeds"] < MIN_SEEDS else ""),
+                fmt(r["ee_mean"]),
+                ci,
+                fmt(r["ee_iqm"]),
+                fmt(r["success_rate_mean"], ".3f"),
+                share,
+                fmt(r["reference_improvement_pct"], "+.2f"),
+                ", ".join(left) or "-",
+            ]
+        )
+    return md_table(header, body)
+
+
+def improvement_md(rows: list[dict[str, Any]], reference: str | None) -> str:
+    if not rows:
+        return (
+            f"_No improvement table: it needs FINISHED runs with eval metrics of {reference or 'the reference'} "
+            "and of at least one other algorithm in the same scenario._"
+        )
+    by_scen: dict[tuple[int, int], list[dict[str, Any]]] = defaultdict(list)
+    for r in rows:
+        by_scen[(r["n_eds"], r["n_uavs"])].append(r)
+    others = sorted({r["other"] for r in rows})
+    header = ["V", "U", f"{reference} EE", "second best", "over second best (%)"] + [f"over {o} (%)" for o in others]
+    body = []
+    for scen in sorted(by_scen):
+        rs = by_scen[scen]
+        second = next((r for r in rs if r["is_second_best"]), None)
+        imp = {r["other"]: r["improvement_pct"] for r in rs}
+        body.append(
+            [
+                str(scen[0]),
+                str(scen[1]),
+                fmt(rs[0]["ee_reference"]),
+                second["other"] if second else "n/a",
+                fmt(second["improvement_pct"], "+.2f") if second else "n/a",
+            ]
+            + [fmt(imp.get(o, math.nan), "+.2f") for o in others]
+        )
+    return md_table(header, body)
