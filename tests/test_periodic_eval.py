@@ -83,7 +83,7 @@ def test_attach_keeps_the_algorithms_callbacks():
 @pytest.mark.slow
 def test_points_equal_an_independent_evaluation(tmp_path, monkeypatch):
     """Real MAPPO, every iteration evaluated: each point is the greedy policy of that iteration on
-    the fixed evaluation episodes; the sampled-policy hook logs eval_sampled/* when present."""
+    the fixed evaluation episodes, and eval_sampled/* is the seeded sampled policy on the same episodes."""
     import ray
 
     from uavlora_rllib.algorithms.common import registry
@@ -103,9 +103,6 @@ def test_points_equal_an_independent_evaluation(tmp_path, monkeypatch):
                         "fc_hidden": 8, "critic_hidden": 8, "max_seq_len": 10})
     cfg = entry.build(SCEN, hp, registry.Resources(num_env_runners=0, num_envs_per_env_runner=2), 0)
     pe.attach(cfg, pe.PeriodicEvalSettings(SCEN, 20, 3, 5))  # 20 env steps = every iteration
-    # a sampled policy hook (here: the greedy one again, so the two prefixes must agree)
-    hooked = SimpleNamespace(greedy_policy=entry.greedy_policy, sampled_policy=entry.greedy_policy)
-    monkeypatch.setattr(registry, "entry_for_algorithm", lambda algo: hooked)
     algo = cfg.build_algo()
     try:
         for _ in range(2):
@@ -114,8 +111,10 @@ def test_points_equal_an_independent_evaluation(tmp_path, monkeypatch):
             want = eval_metrics(run_episodes(entry.greedy_policy(algo, SCEN), SCEN, 3, 5).summary())
             assert {k: got[k] for k in want} == pytest.approx(want, rel=1e-12)
             assert got["eval/episodes"] == 3.0
+            sampled = entry.policy(algo, SCEN, explore=True, seed=5)
+            want_s = eval_metrics(run_episodes(sampled, SCEN, 3, 5).summary())
             assert {k[len("eval_sampled/"):]: v for k, v in got.items() if k.startswith("eval_sampled/")} == \
-                pytest.approx({k[len("eval/"):]: v for k, v in want.items()}, rel=1e-12)
+                pytest.approx({k[len("eval/"):]: v for k, v in want_s.items()}, rel=1e-12)
     finally:
         algo.stop()
         if started:

@@ -14,9 +14,11 @@ trainable passes them on (`metrics_from_result`) and the MLflow callback logs th
 iteration's env-step count, so ``eval/ee_sys_mean`` is one series whose last point is the
 final evaluation (same episodes, same seeds). The report's Fig. 3a draws these series.
 
-Sampled policy: a registry entry that provides ``sampled_policy(algo, scenario)`` (the
-stochastic policy, explore=True; `SAMPLED_POLICY_HOOK`) is evaluated on the same episodes and
-logged as ``eval_sampled/<k>``. Entries without it log nothing under that prefix.
+The sampled policy (the registry entry's ``policy(..., explore=True)``: actions drawn from the
+actor's distribution, or QMIX/VDN's final epsilon-greedy) is evaluated on the same episodes,
+with its own action stream seeded by the evaluation seed, and logged as ``eval_sampled/<k>``:
+the gap between the two curves shows how much greedy execution loses (or gains) against the
+policy that was trained.
 """
 
 from __future__ import annotations
@@ -33,7 +35,6 @@ from uavlora_rllib.sim.scenario import ScenarioConfig
 
 EVAL_PREFIX = "eval/"
 EVAL_SAMPLED_PREFIX = "eval_sampled/"
-SAMPLED_POLICY_HOOK = "sampled_policy"  # optional AlgorithmEntry attribute, same signature as greedy_policy
 DEFAULT_CURVE_POINTS = 20  # evaluation.interval_env_steps unset: about this many points per run
 
 
@@ -96,13 +97,10 @@ def evaluate_policies(algorithm, s: PeriodicEvalSettings) -> dict[str, float]:
     from uavlora_rllib.experiment.tracking import eval_metrics
 
     entry = registry.entry_for_algorithm(algorithm)
-    policies = {EVAL_PREFIX: entry.greedy_policy}
-    sampled = getattr(entry, SAMPLED_POLICY_HOOK, None)
-    if sampled is not None:
-        policies[EVAL_SAMPLED_PREFIX] = sampled
     out: dict[str, float] = {}
-    for prefix, make in policies.items():
-        summary = run_episodes(make(algorithm, s.scenario), s.scenario, s.episodes, s.seed).summary()
+    for prefix, explore in ((EVAL_PREFIX, False), (EVAL_SAMPLED_PREFIX, True)):
+        policy = entry.policy(algorithm, s.scenario, explore=explore, seed=s.seed)
+        summary = run_episodes(policy, s.scenario, s.episodes, s.seed).summary()
         out.update({prefix + k[len(EVAL_PREFIX) :]: v for k, v in eval_metrics(summary).items()})
     return out
 
