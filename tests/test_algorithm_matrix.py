@@ -98,18 +98,26 @@ def test_train_checkpoint_restore_evaluate(ray_session, tmp_path, capsys, name, 
     finally:
         algo.stop()
 
+    from uavlora_rllib.experiment.evaluation import run_episodes
+
     restored = Algorithm.from_checkpoint(path)
     try:
         assert registry.entry_for_algorithm(restored) is entry
         np.testing.assert_array_equal(_actions(entry.greedy_policy(restored, scenario), scenario), greedy)
+        want = {
+            execution: run_episodes(entry.policy(restored, scenario, explore=execution == "sampled", seed=3),
+                                    scenario, episodes=2, seed=3).summary()["ee_sys_mean"]
+            for execution in ("greedy", "sampled")
+        }
     finally:
         restored.stop()
 
-    capsys.readouterr()
-    assert evaluate.main(["--policy", path, "--episodes", "2", "--json"]) == 0
-    captured = capsys.readouterr()
-    out = json.loads(captured.out.strip().splitlines()[-1])
-    assert out["episodes"] == 2 and out["ee_sys_mean"] > 0
+    for execution in ("greedy", "sampled"):  # the CLI's two execution modes are the registry's policies
+        capsys.readouterr()
+        argv = ["--policy", path, "--episodes", "2", "--seed", "3", "--execution", execution, "--json"]
+        assert evaluate.main(argv) == 0
+        out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+        assert out["episodes"] == 2 and out["ee_sys_mean"] == pytest.approx(want[execution], rel=1e-12)
 
 
 def test_sampled_execution_differs_from_greedy():

@@ -59,6 +59,8 @@ def test_table_in_process(capsys, tmp_path):
         (["--policy", "fixed", "--seed", str(2**32)], "--seed: must be an integer in [0, 4294967295]"),
         (["--policy", "fixed", "--seed", "1.5"], "--seed: expected an integer"),
         (["--policy", "fixed", "--episodes", "0"], "--episodes: must be an integer in [1, 1000000], got 0"),
+        (["--policy", "fixed", "--execution", "sampled"], "--execution: 'sampled' applies to a checkpoint"),
+        (["--policy", "fixed", "--execution", "argmax"], "--execution"),
     ],
 )
 def test_bad_args_exit_2_with_field_name(capsys, argv, field):

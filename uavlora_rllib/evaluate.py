@@ -2,10 +2,12 @@
 
     python -m uavlora_rllib.evaluate --policy {random,fixed,adr,greedy,optimal|CHECKPOINT_DIR}
         [--n-eds V] [--n-uavs U] [--episodes K] [--seed S] [--json]
-        [--scenario-yaml FILE] [--objective ee|reward]
+        [--scenario-yaml FILE] [--objective ee|reward] [--execution greedy|sampled]
 
 Prints the paper's execution metrics (evaluation.run_episodes), each as the mean over
-episodes with its 95% CI half-width; `--json` prints one JSON object instead. Bad input
+episodes with its 95% CI half-width; `--json` prints one JSON object instead. A checkpoint
+runs greedy (argmax per UAV: the paper's execution phase) or, with `--execution sampled`, with
+actions drawn from its trained distribution (seeded by --seed). Bad input
 (a flag, the scenario YAML, a checkpoint that cannot be restored or that was trained for a
 scenario whose observation or action spaces differ from this one) gives one line on stderr
 and exit code 2, before anything runs. An evaluation estimated to take more than
@@ -57,6 +59,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--scenario-yaml", default=None, help="YAML file of scenario fields (or with a 'scenario:' key)")
     p.add_argument("--objective", choices=OBJECTIVES, default="ee", help="greedy/optimal objective (default ee)")
+    p.add_argument(
+        "--execution",
+        choices=("greedy", "sampled"),
+        default="greedy",
+        help="a checkpoint's actions: greedy (argmax, the paper's execution phase; default) or sampled "
+        "from its policy (seeded by --seed)",
+    )
     return p
 
 
@@ -76,12 +85,15 @@ def _load_yaml_scenario(path: str) -> dict[str, Any]:
     return dict(data)
 
 
-def load_checkpoint_policy(path: str, scenario_overrides: Mapping[str, Any] | None = None):
+def load_checkpoint_policy(
+    path: str, scenario_overrides: Mapping[str, Any] | None = None, explore: bool = False, seed: int = 0
+):
     """Restore an RLlib checkpoint of this project and return (policy, scenario).
 
     The scenario is the algorithm's env_config["scenario"] with `scenario_overrides` (scenario
     field -> value, e.g. {"n_eds": 40}) applied; the policy is the registry entry's
-    decentralised greedy policy for that scenario (evaluation.Policy).
+    decentralised greedy policy for that scenario (evaluation.Policy), or with explore=True its
+    sampled one (actions drawn from the trained distribution, seeded by `seed`).
     """
     from ray.rllib.algorithms.algorithm import Algorithm
 
@@ -104,7 +116,7 @@ def load_checkpoint_policy(path: str, scenario_overrides: Mapping[str, Any] | No
     if problem:
         raise ConfigError(f"--policy: the checkpoint at {path!r} {problem}")
     try:
-        return entry.greedy_policy(algo, scenario), scenario
+        return entry.policy(algo, scenario, explore=explore, seed=seed), scenario
     except ValueError as exc:  # the entry's own check of the trained module against the scenario
         raise ConfigError(f"--policy: the checkpoint at {path!r} does not fit this scenario: {exc}") from None
 
@@ -135,6 +147,8 @@ def checkpoint_fit_problem(trained: ScenarioConfig, scenario: ScenarioConfig) ->
 def _resolve(args: argparse.Namespace):
     overrides = {k: v for k, v in (("n_eds", args.n_eds), ("n_uavs", args.n_uavs)) if v is not None}
     if args.policy in BASELINES:
+        if args.execution != "greedy":
+            raise UsageError(f"--execution: {args.execution!r} applies to a checkpoint; baselines have one execution mode")
         base = _load_yaml_scenario(args.scenario_yaml) if args.scenario_yaml else {}
         cfg = ScenarioConfig.from_dict({**base, **overrides})
         return make_baseline(args.policy, cfg, seed=args.seed, objective=args.objective), cfg
@@ -151,7 +165,7 @@ def _resolve(args: argparse.Namespace):
         raise UsageError(f"--policy: {args.policy!r} is not an RLlib checkpoint (no rllib_checkpoint.json){hint}")
     if args.scenario_yaml:
         overrides = {**_load_yaml_scenario(args.scenario_yaml), **overrides}
-    return load_checkpoint_policy(args.policy, overrides)
+    return load_checkpoint_policy(args.policy, overrides, explore=args.execution == "sampled", seed=args.seed)
 
 
 def format_table(name: str, cfg: ScenarioConfig, summary: Mapping[str, Any]) -> str:
@@ -231,7 +245,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = build_parser().parse_args(argv)
         policy, cfg = _resolve(args)
         kind = args.policy if args.policy in BASELINES else "learned"
-        label = args.policy if args.policy in BASELINES else "checkpoint"
+        label = args.policy if args.policy in BASELINES else f"checkpoint ({args.execution})"
         result = run_with_progress(policy, cfg, args.episodes, args.seed, kind, label, prefix=f"{PROG}: ")
     except (UsageError, ConfigError) as exc:
         return fail(exc, PROG)
