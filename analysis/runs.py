@@ -25,6 +25,7 @@ from typing import Any
 SUMMARY_KIND = "summary"
 EVAL_PREFIX = "eval/"
 EE_KEY = "eval/ee_sys_mean"
+SAMPLED_EE_KEY = "eval_sampled/ee_sys_mean"  # execution with actions drawn from the trained policy
 
 
 class ReportError(Exception):

@@ -11,6 +11,7 @@ from typing import Any, Sequence
 
 from analysis import stats
 from analysis.data import KINDS, MIN_SEEDS, Cell, Organised
+from analysis.runs import SAMPLED_EE_KEY
 
 TABLE_EE_COLUMNS = (
     "n_eds",
@@ -25,6 +26,8 @@ TABLE_EE_COLUMNS = (
     "ee_iqm",
     "ee_std",
     "ee_episode_sum_mean",
+    "sampled_ee_mean",
+    "sampled_share_of_reference",
     "success_rate_mean",
     "reference_baseline",  # "optimal" where the scenario has it, else "greedy", else empty
     "share_of_reference",  # ee_mean / the reference's seed-mean EE
@@ -85,6 +88,11 @@ def ee_table(org: Organised, reference: str | None) -> list[dict[str, Any]]:
                     "ee_std": s.std,
                     "ee_episode_sum_mean": c.mean_of("eval/ee_sys_episode_sum"),
                     "success_rate_mean": c.mean_of("eval/success_rate"),
+                    # the same episodes played with actions drawn from the trained policy (learners only)
+                    "sampled_ee_mean": c.mean_of(SAMPLED_EE_KEY),
+                    "sampled_share_of_reference": (
+                        c.mean_of(SAMPLED_EE_KEY) / ref_base.mean if ref_base else math.nan
+                    ),
                     "reference_baseline": ref_base.name if ref_base else "",
                     "share_of_reference": s.mean / ref_base.mean if ref_base else math.nan,
                     "reference_improvement_pct": (
@@ -157,6 +165,8 @@ def ee_table_md(rows: list[dict[str, Any]], reference: str | None) -> str:
         "IQM",
         "success rate",
         "share of reference",
+        "sampled EE mean (bit/J)",
+        "sampled share",
         f"{ref} over this (%)",
         "left out",
     ]
@@ -183,6 +193,8 @@ def ee_table_md(rows: list[dict[str, Any]], reference: str | None) -> str:
                 fmt(r["ee_iqm"]),
                 fmt(r["success_rate_mean"], ".3f"),
                 share,
+                fmt(r["sampled_ee_mean"]) if math.isfinite(r["sampled_ee_mean"]) else "-",
+                fmt(r["sampled_share_of_reference"], ".3f") if math.isfinite(r["sampled_share_of_reference"]) else "-",
                 fmt(r["reference_improvement_pct"], "+.2f"),
                 ", ".join(left) or "-",
             ]

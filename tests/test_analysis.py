@@ -98,6 +98,7 @@ def _make_run(client, exp_id, tmp_path, kind, alg, scen, seed, ee, status="FINIS
         ]
         if kind == "train":
             metrics += [Metric("eval/ee_sys_mean", ee * ramp(s), now, s) for s in EVAL_STEPS]
+            metrics.append(Metric("eval_sampled/ee_sys_mean", SAMPLED_FACTOR * ee, now, final))
     if kind == "train":
         off = float(SEEDS.index(seed)) if seed in SEEDS else 3.0
         upto = STEPS if curve_upto is None else STEPS[STEPS <= curve_upto]
@@ -139,6 +140,9 @@ def _cell(rows, alg, scen):
     return hits[0]
 
 
+SAMPLED_FACTOR = 0.8  # the synthetic learners' sampled execution EE, relative to their greedy EE
+
+
 def _t_half(x):
     x = np.asarray(x, float)
     return st.t.ppf(0.975, len(x) - 1) * x.std(ddof=1) / math.sqrt(len(x))
@@ -168,6 +172,13 @@ def test_ee_table_means_ci_iqm(store):
     assert float(m1["success_rate_mean"]) == pytest.approx(0.9)
     assert float(m1["ee_episode_sum_mean"]) == pytest.approx(110.0 * EPISODE_LEN)
     assert int(_cell(rows, "vdn", S2)["n_unfinished"]) == 1
+    # the sampled execution sits beside the greedy one, for learners only
+    assert float(m1["sampled_ee_mean"]) == pytest.approx(SAMPLED_FACTOR * 110.0)
+    if m1["reference_baseline"]:
+        ref = float(m1["ee_mean"]) / float(m1["share_of_reference"])
+        assert float(m1["sampled_share_of_reference"]) == pytest.approx(SAMPLED_FACTOR * 110.0 / ref)
+    for alg, scen in BASE:
+        assert _cell(rows, alg, scen)["sampled_ee_mean"] in ("", "nan")
     assert int(m1["n_without_eval"]) == 1
 
 
