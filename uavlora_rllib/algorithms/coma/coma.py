@@ -46,7 +46,7 @@ from uavlora_rllib.algorithms.coma.coma_module import COMAActor, COMATorchRLModu
 from uavlora_rllib.algorithms.common.recurrent_policy import RecurrentPolicy, argmax_actions
 from uavlora_rllib.algorithms.common.registry import AlgorithmEntry, Resources, register
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.sim.core import obs_dim, state_dim
+from uavlora_rllib.sim.observation import obs_dim, state_dim
 from uavlora_rllib.sim.scenario import ScenarioConfig
 from uavlora_rllib.envs.team import sample_through_team_env
 

@@ -37,7 +37,7 @@ from uavlora_rllib.algorithms.mappo.mappo_module import MAPPOTorchRLModule
 from uavlora_rllib.algorithms.common.recurrent_policy import RecurrentPolicy
 from uavlora_rllib.algorithms.common.registry import AlgorithmEntry, Resources, register
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.sim.core import state_dim
+from uavlora_rllib.sim.observation import state_dim
 from uavlora_rllib.sim.scenario import ScenarioConfig
 from uavlora_rllib.envs.team import sample_through_team_env, team_action_space, team_observation_space
 

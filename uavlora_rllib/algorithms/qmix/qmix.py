@@ -58,7 +58,7 @@ from uavlora_rllib.algorithms.qmix.qmix_learner import QMIXTorchLearner
 from uavlora_rllib.algorithms.qmix.qmix_module import AgentQNet, QMixModule, linear_epsilon
 from uavlora_rllib.algorithms.qmix.qmix_replay import EpisodeReplay
 from uavlora_rllib.algorithms.common.recurrent_policy import RecurrentPolicy, argmax_actions
-from uavlora_rllib.sim.core import obs_dim, state_dim
+from uavlora_rllib.sim.observation import obs_dim, state_dim
 from uavlora_rllib.envs.multi_agent import STATE_KEY, scenario_from
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
