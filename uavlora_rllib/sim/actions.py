@@ -69,36 +69,31 @@ class ActionDecoder:
         self.n = n_envs
         env_idx = np.arange(n_envs)
         self._env_idx_col = env_idx[:, None]
-        self._act_base = (env_idx * cfg.n_uavs)[:, None]  # flat index of (e, 0) in an [N, U] array
+        self.act_base = (env_idx * cfg.n_uavs)[:, None]  # flat index of (e, 0) in an [N, U] array
         self._n_joint = cfg.n_joint_actions
+        self._per_uav_shape = (n_envs, cfg.n_uavs)
         self._per_device_highs = np.array([cfg.n_sf, cfg.n_tp] * cfg.quota + [cfg.n_bw])
         # per_uav action index -> (sf_idx, tp_idx, bw_idx), one row per joint action
-        self._decode = np.stack(decode_joint_action(np.arange(cfg.n_joint_actions), cfg), axis=-1).astype(np.int64)
+        self.joint_table = np.stack(decode_joint_action(np.arange(cfg.n_joint_actions), cfg), axis=-1).astype(np.int64)
         # per_uav action index -> its SF index and (P_W, W_Hz, rho_thr), for per_uav_values
-        sf_a, tp_a, bw_a = self._decode.T
+        sf_a, tp_a, bw_a = self.joint_table.T
         self._action_values = (sf_a.copy(), *physics.allocation_values(sf_a, tp_a, bw_a, tables))
-        # per_uav action index -> the allocation its UAV's EDs share, for physics.slot_metrics_shared
-        self._action_alloc = physics.SharedAllocationTable(sf_a, tp_a, bw_a, tables)
 
     def check_per_uav(self, actions: np.ndarray) -> np.ndarray:
         """per_uav actions [N, U] as an array, checked (ActionError otherwise)."""
         actions = np.asarray(actions)
-        check_range(actions, (self.n, self.cfg.n_uavs), self._n_joint)
+        check_range(actions, self._per_uav_shape, self._n_joint)
         return actions
-
-    def serving_flat(self, links: Links) -> np.ndarray:
-        """The flat index of each ED's serving UAV in an [N, U] array, [N, V]."""
-        return links.serving_idx + self._act_base
 
     def allocations(self, actions: np.ndarray, links: Links) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per-ED (sf_idx, tp_idx, bw_idx) [N, V] implied by the agents' actions this slot."""
         cfg = self.cfg
         actions = np.asarray(actions)
         if cfg.action_mode == "per_uav":
-            check_range(actions, (self.n, cfg.n_uavs), self._n_joint)
-            idx = self.serving_flat(links)
+            check_range(actions, self._per_uav_shape, self._n_joint)
+            idx = links.serving_idx + self.act_base  # flat index of each ED's serving UAV in [N, U]
             if idx.size <= PER_UAV_GATHER_MIN:  # small: one lookup in the decoding table
-                alloc = self._decode[actions.reshape(-1).take(idx)]  # [N, V, 3]
+                alloc = self.joint_table[actions.reshape(-1).take(idx)]  # [N, V, 3]
                 return alloc[..., 0], alloc[..., 1], alloc[..., 2]
             sf, tp, bw = decode_joint_action(actions, cfg)  # [N, U] each, then 3 contiguous gathers
             return sf.reshape(-1).take(idx), tp.reshape(-1).take(idx), bw.reshape(-1).take(idx)
@@ -115,13 +110,9 @@ class ActionDecoder:
         and (actions, flat serving-UAV index), from which previous_allocation gets the TP and
         BW indices when it is asked."""
         actions = self.check_per_uav(actions)
-        idx = self.serving_flat(links)
+        idx = links.serving_idx + self.act_base  # flat index of each ED's serving UAV in [N, U]
         sf, *values = (table.take(actions).reshape(-1).take(idx) for table in self._action_values)
         return sf, tuple(values), (actions.copy(), idx)  # (a copy: the caller may reuse its array)
-
-    def shared_allocation(self, actions: np.ndarray) -> physics.SharedAllocation:
-        """The allocation each UAV's EDs share, [N, U] values, from checked per_uav actions."""
-        return self._action_alloc.take(actions)
 
     def previous_allocation(self, parts: tuple) -> np.ndarray:
         """[N, V, 3] (sf_idx, tp_idx, bw_idx) from what the scoring kept of a slot: (sf, tp, bw,

@@ -164,7 +164,7 @@ class BatchCore:
         block_xy = np.concatenate(xs + xs[-1:] * (self._lookahead - m), axis=1)  # [2, lookahead, V]
         links = self._ahead_links(block_xy)
         obs = self._ahead_observer.observe(links, block_xy)
-        self._block = list(zip(links.rows(m), (obs[k : k + 1] for k in range(m)), states))
+        self._block = [(row, obs[k : k + 1], state) for k, (row, state) in enumerate(zip(links.rows(m), states))]
 
     # ------------------------------------------------------------------ actions
     def allocations(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

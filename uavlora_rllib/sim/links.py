@@ -60,13 +60,16 @@ class Links:
         channels left out). The lookahead computes a block of slots as a batch and plays it
         back one row per slot."""
         every = self.associated[:m].all(axis=-1).tolist()
-        return [
-            Links(
-                self.serving[r], self.associated[r], every[k], self.serving_idx[r], self.g_serving[r],
-                self.g_db_serving[r], self.d_h_serving[r], self.slot_of_ed[r], self.counts[r],
-            )  # fmt: skip
-            for k, r in ((k, slice(k, k + 1)) for k in range(m))
-        ]
+        rows = []
+        for k in range(m):
+            r = slice(k, k + 1)
+            rows.append(
+                Links(
+                    self.serving[r], self.associated[r], every[k], self.serving_idx[r], self.g_serving[r],
+                    self.g_db_serving[r], self.d_h_serving[r], self.slot_of_ed[r], self.counts[r],
+                )  # fmt: skip
+            )
+        return rows
 
 
 def pair_channels(ed_xy: np.ndarray, uav_xy: np.ndarray, cfg: ScenarioConfig) -> tuple[np.ndarray, ...]:
