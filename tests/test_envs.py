@@ -484,7 +484,7 @@ def test_nearest_path_equals_the_all_pairs_path(fields):
     """The default path (channel at the nearest UAV only) against the path that computes every
     pair's channel and runs greedy_association on it: the same trajectory, bit for bit."""
     cfg = make_cfg(**fields)
-    fast, full = BatchCore(cfg, 3), BatchCore(cfg, 3, links=AllPairLinks)
+    fast, full = BatchCore(cfg, 3), BatchCore(cfg, 3, link_stage=AllPairLinks)
     assert isinstance(fast.link_stage, NearestLinks)
     rng = np.random.default_rng(4)
     assert np.array_equal(fast.reset(8), full.reset(8))

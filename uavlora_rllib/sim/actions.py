@@ -70,8 +70,8 @@ class ActionDecoder:
         env_idx = np.arange(n_envs)
         self._env_idx_col = env_idx[:, None]
         self.act_base = (env_idx * cfg.n_uavs)[:, None]  # flat index of (e, 0) in an [N, U] array
-        self._n_joint = cfg.n_joint_actions
-        self._per_uav_shape = (n_envs, cfg.n_uavs)
+        self.n_joint = cfg.n_joint_actions
+        self.per_uav_shape = (n_envs, cfg.n_uavs)
         self._per_device_highs = np.array([cfg.n_sf, cfg.n_tp] * cfg.quota + [cfg.n_bw])
         # per_uav action index -> (sf_idx, tp_idx, bw_idx), one row per joint action
         self.joint_table = np.stack(decode_joint_action(np.arange(cfg.n_joint_actions), cfg), axis=-1).astype(np.int64)
@@ -82,7 +82,7 @@ class ActionDecoder:
     def check_per_uav(self, actions: np.ndarray) -> np.ndarray:
         """per_uav actions [N, U] as an array, checked (ActionError otherwise)."""
         actions = np.asarray(actions)
-        check_range(actions, self._per_uav_shape, self._n_joint)
+        check_range(actions, self.per_uav_shape, self.n_joint)
         return actions
 
     def allocations(self, actions: np.ndarray, links: Links) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -90,7 +90,7 @@ class ActionDecoder:
         cfg = self.cfg
         actions = np.asarray(actions)
         if cfg.action_mode == "per_uav":
-            check_range(actions, self._per_uav_shape, self._n_joint)
+            check_range(actions, self.per_uav_shape, self.n_joint)
             idx = links.serving_idx + self.act_base  # flat index of each ED's serving UAV in [N, U]
             if idx.size <= PER_UAV_GATHER_MIN:  # small: one lookup in the decoding table
                 alloc = self.joint_table[actions.reshape(-1).take(idx)]  # [N, V, 3]

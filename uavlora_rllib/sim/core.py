@@ -29,7 +29,7 @@ import numpy as np
 
 from uavlora_rllib.sim import physics
 from uavlora_rllib.sim.actions import ActionDecoder
-from uavlora_rllib.sim.links import Links, link_stage, pair_channels
+from uavlora_rllib.sim.links import Links, LinkStage, default_link_stage, pair_channels
 from uavlora_rllib.sim.mobility import GaussMarkovMobility
 from uavlora_rllib.sim.observation import Observer, obs_dim, state_dim
 from uavlora_rllib.sim.scenario import ScenarioConfig
@@ -47,13 +47,17 @@ class StepResult:
 class BatchCore:
     """N independent copies of the scenario, stepped together.
 
-    `links`: the link stage's factory (cfg, n) -> stage (sim.links; by default the fastest exact
-    one for the scenario). The current slot: `links` (sim.links.Links), `obs`, `t`; the ED
+    `link_stage`: the link stage's factory, (cfg, n) -> stage (sim.links; by default the fastest
+    exact one for the scenario). The current slot: `links` (sim.links.Links), `obs`, `t`; the ED
     state through `ed_xy`, `ed_vel`, `ed_mean_vel` (views: writing into `ed_xy` moves the EDs,
     then `observe()` re-derives the slot)."""
 
     def __init__(
-        self, cfg: ScenarioConfig, n_envs: int = 1, lookahead: int = 0, links: Callable[..., Callable] = link_stage
+        self,
+        cfg: ScenarioConfig,
+        n_envs: int = 1,
+        lookahead: int = 0,
+        link_stage: Callable[[ScenarioConfig, int], LinkStage] = default_link_stage,
     ):
         if n_envs < 1:
             raise ValueError(f"n_envs: must be >= 1, got {n_envs}")
@@ -69,7 +73,7 @@ class BatchCore:
         self.t = np.zeros(n_envs, dtype=np.int64)
         # the stages
         self.mobility = GaussMarkovMobility(cfg, n_envs)
-        self.link_stage = links(cfg, n_envs)
+        self.link_stage = link_stage(cfg, n_envs)
         self.observer = Observer(cfg, n_envs)
         self.decoder = ActionDecoder(cfg, n_envs, self.tables)
         self.scorer = SlotScorer(cfg, self.decoder, self.tables)
@@ -82,12 +86,13 @@ class BatchCore:
         self._seed_source = np.random.SeedSequence()
         self._ready = False
         # Lookahead (single scenario): stages 3 and 4 for the next `lookahead` slots at once,
-        # with their own stages whose batch axis is time; _block holds them, one entry per slot.
+        # with their own stages whose batch axis is time: _block = (links, whether all EDs are
+        # associated, observations, mobility states), each entry k being slot k of the block.
         self._lookahead = lookahead
         if lookahead:
-            self._ahead_links = links(cfg, lookahead)
+            self._ahead_links = link_stage(cfg, lookahead)
             self._ahead_observer = Observer(cfg, lookahead)
-        self._block: list | None = None
+        self._block: tuple | None = None
         self._block_k = 0
 
     # ------------------------------------------------------------------ reset
@@ -135,11 +140,13 @@ class BatchCore:
             self.observe()
             return
         self._block_k += 1
-        if self._block is None or self._block_k == len(self._block):
+        if self._block is None or self._block_k == len(self._block[3]):
             self._compute_block()
             self._block_k = 0
+        k, (links, every, obs, states) = self._block_k, self._block
+        self.links, self.obs = links.row(k, every[k]), obs[k : k + 1]
         mob = self.mobility
-        self.links, self.obs, (mob.xy, mob.vel, mob.mvel) = self._block[self._block_k]
+        mob.xy, mob.vel, mob.mvel = states[k]
 
     def observe(self) -> None:
         """Link and observe the current slot from the ED positions (reset and step do; call it
@@ -164,7 +171,7 @@ class BatchCore:
         block_xy = np.concatenate(xs + xs[-1:] * (self._lookahead - m), axis=1)  # [2, lookahead, V]
         links = self._ahead_links(block_xy)
         obs = self._ahead_observer.observe(links, block_xy)
-        self._block = [(row, obs[k : k + 1], state) for k, (row, state) in enumerate(zip(links.rows(m), states))]
+        self._block = (links, links.associated[:m].all(axis=-1).tolist(), obs, states)
 
     # ------------------------------------------------------------------ actions
     def allocations(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -3,7 +3,7 @@
 A link stage maps the ED positions of N scenarios to `Links`: which UAV serves each ED (the
 association of docs/model.md), the channel of that link (d_h, G, G in dB), and each served
 ED's rank by gain among its UAV's EDs (its row in the UAV's observation and, in per_device
-mode, its part of the UAV's action). Two stages compute the same thing:
+mode, its part of the UAV's action). Two stages:
 
 - `NearestLinks`: greedy association with the paper's SINR and a gain strictly decreasing in
   d_h (the defaults). Every ED's max-gain UAV is then its nearest one, so the channel is
@@ -12,8 +12,8 @@ mode, its part of the UAV's action). Two stages compute the same thing:
 - `AllPairLinks`: every pair's channel each slot, as the optimal association, the cross-gain
   SINR or a non-monotone channel need it.
 
-`link_stage(cfg, n)` picks one; tests run both on the same scenarios and require the same
-trajectories bit for bit.
+`default_link_stage(cfg, n)` picks NearestLinks wherever it is exact. Where both apply they give
+the same trajectories bit for bit (tested).
 """
 
 from __future__ import annotations
@@ -55,21 +55,15 @@ class Links:
         self.g_serving, self.g_db_serving, self.d_h_serving = g_serving, g_db_serving, d_h_serving
         self.slot_of_ed, self.counts, self.pairs = slot_of_ed, counts, pairs
 
-    def rows(self, m: int) -> list["Links"]:
-        """The links of each of the first m scenarios alone, as batches of one (views; the pair
-        channels left out). The lookahead computes a block of slots as a batch and plays it
-        back one row per slot."""
-        every = self.associated[:m].all(axis=-1).tolist()
-        rows = []
-        for k in range(m):
-            r = slice(k, k + 1)
-            rows.append(
-                Links(
-                    self.serving[r], self.associated[r], every[k], self.serving_idx[r], self.g_serving[r],
-                    self.g_db_serving[r], self.d_h_serving[r], self.slot_of_ed[r], self.counts[r],
-                )  # fmt: skip
-            )
-        return rows
+    def row(self, k: int, all_associated: bool) -> "Links":
+        """The links of scenario k alone, as a batch of one (views; the pair channels left out;
+        `all_associated`: whether scenario k's EDs all are, known to the caller). The lookahead
+        computes a block of slots as a batch and plays it back one row per slot."""
+        r = slice(k, k + 1)
+        return Links(
+            self.serving[r], self.associated[r], all_associated, self.serving_idx[r], self.g_serving[r],
+            self.g_db_serving[r], self.d_h_serving[r], self.slot_of_ed[r], self.counts[r],
+        )  # fmt: skip
 
 
 def pair_channels(ed_xy: np.ndarray, uav_xy: np.ndarray, cfg: ScenarioConfig) -> tuple[np.ndarray, ...]:
@@ -79,8 +73,10 @@ def pair_channels(ed_xy: np.ndarray, uav_xy: np.ndarray, cfg: ScenarioConfig) ->
     return np.sqrt(d2, out=d2), gains, gain_db
 
 
-class _LinkStage:
-    """What both link stages share: the scenario, the batch size, and the slot ranking."""
+class LinkStage:
+    """A link stage for N scenarios: called with the ED positions, returns the slot's Links.
+    Holds what the stages share: the scenario, the batch size, and the slot ranking (`_rank`).
+    A new stage (another channel or association model) subclasses it and sets `all_pairs`."""
 
     all_pairs = False  # whether Links.pairs is computed (else the pair channels are left to callers)
 
@@ -126,7 +122,7 @@ class _LinkStage:
         return slot_of_ed, counts[:, :u]
 
 
-class NearestLinks(_LinkStage):
+class NearestLinks(LinkStage):
     """Greedy association from each ED's nearest UAV; channel at the serving UAV only."""
 
     def __init__(self, cfg: ScenarioConfig, n_envs: int):
@@ -168,7 +164,7 @@ class NearestLinks(_LinkStage):
         return Links(serving, associated, all_associated, serving_idx, g_serving, g_db_serving, d_h, slot_of_ed, counts)
 
 
-class AllPairLinks(_LinkStage):
+class AllPairLinks(LinkStage):
     """The configured association on the channel of every UAV-ED pair."""
 
     all_pairs = True
@@ -199,7 +195,7 @@ class AllPairLinks(_LinkStage):
         )  # fmt: skip
 
 
-def link_stage(cfg: ScenarioConfig, n_envs: int) -> _LinkStage:
+def default_link_stage(cfg: ScenarioConfig, n_envs: int) -> LinkStage:
     """NearestLinks where it is exact (greedy association, the paper's interference, a gain
     strictly decreasing in d_h), AllPairLinks otherwise."""
     nearest = (

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from uavlora_rllib.sim import physics
-from uavlora_rllib.sim.actions import PER_UAV_GATHER_MIN, ActionDecoder
+from uavlora_rllib.sim.actions import PER_UAV_GATHER_MIN, ActionDecoder, check_range
 from uavlora_rllib.sim.links import Links
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
@@ -56,8 +56,10 @@ class SlotScorer:
     ) -> tuple[dict[str, np.ndarray], tuple]:
         """physics.slot_metrics_shared on each UAV's allocation; the per-ED allocations are
         decoded only if asked (previous_allocation)."""
-        actions = self.decoder.check_per_uav(actions)
-        idx = links.serving_idx + self.decoder.act_base  # flat index of each ED's serving UAV in [N, U]
+        decoder = self.decoder
+        actions = np.asarray(actions)
+        check_range(actions, decoder.per_uav_shape, decoder.n_joint)  # (decoder.check_per_uav, one call less)
+        idx = links.serving_idx + decoder.act_base  # flat index of each ED's serving UAV in [N, U]
         metrics = physics.slot_metrics_shared(
             links.g_serving, links.g_db_serving, idx, links.associated, links.counts, self._alloc_table.take(actions),
             self.cfg, self.tables,
