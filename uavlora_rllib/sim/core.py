@@ -125,6 +125,8 @@ class BatchCore:
 
     # ------------------------------------------------------------------ step
     def step(self, actions: np.ndarray) -> StepResult:
+        """Play the current slot with `actions` ([N, U] per_uav, [N, U, 2 quota + 1] per_device;
+        ActionError outside the space) and move on to the next one."""
         if not self._ready:
             raise RuntimeError("call reset() before step()")
         gains = self.gains if self._score_needs_gains else None
