@@ -128,7 +128,7 @@ def test_sampled_execution_differs_from_greedy():
     from uavlora_rllib.algorithms.common.policy import ModulePolicy
     from uavlora_rllib.algorithms.mappo.mappo_module import MAPPOTorchRLModule
     from uavlora_rllib.envs.team import team_action_space, team_observation_space
-    from uavlora_rllib.sim.core import state_dim
+    from uavlora_rllib.sim.observation import state_dim
 
     torch.manual_seed(0)
     module = RLModuleSpec(

@@ -13,7 +13,8 @@ from uavlora_rllib.baselines.policies import (
     make_baseline,
 )
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.sim.core import BatchCore, decode_joint_action, encode_joint_action
+from uavlora_rllib.sim.actions import decode_joint_action, encode_joint_action
+from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.experiment.evaluation import run_episodes
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
@@ -23,7 +24,7 @@ PAPER = ScenarioConfig()
 def slot_ee(core: BatchCore, actions: np.ndarray, key: str = "ee_sys") -> np.ndarray:
     """Objective of `actions` in the core's current slot, without stepping it."""
     sf, tp, bw = core.allocations(actions)
-    m = physics.slot_metrics(core.gains, core._serving_idx, core.associated, sf, tp, bw, core.cfg, core.tables)
+    m = physics.slot_metrics(core.gains, core.links.serving_idx, core.associated, sf, tp, bw, core.cfg, core.tables)
     return m[key]
 
 
@@ -152,7 +153,7 @@ def _one_ed_core(distance_m: float, cfg: ScenarioConfig) -> BatchCore:
     core = BatchCore(cfg, n_envs=1)
     core.reset(0)
     core.ed_xy[0, 0] = core.uav_xy[0] + np.array([distance_m, 0.0])
-    core._observe()
+    core.observe()
     return core
 
 
@@ -184,7 +185,7 @@ def test_adr_per_uav_uses_worst_margin_and_per_device_runs():
     core.reset(0)
     core.ed_xy[0, 0] = core.uav_xy[0]  # strong ED
     core.ed_xy[0, 1] = core.uav_xy[0] + np.array([450.0, 0.0])  # weak ED
-    core._observe()
+    core.observe()
     adr = AdrPolicy(cfg)
     adr.reset(core)
     adr.act(core)

@@ -84,7 +84,7 @@ def _module(inference_only: bool, n_agents=3, obs_dim=7, n_actions=4, state_dim=
 
 
 def test_factor_onehot_matches_the_simulators_decoding():
-    from uavlora_rllib.sim.core import decode_joint_action
+    from uavlora_rllib.sim.actions import decode_joint_action
 
     cfg = ScenarioConfig()
     a = np.arange(cfg.n_joint_actions)

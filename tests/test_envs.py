@@ -16,7 +16,10 @@ from ray.rllib.utils.pre_checks.env import check_multiagent_environments
 from conftest import make_cfg, random_actions, reference_greedy, run_core
 from uavlora_rllib.sim import physics
 from uavlora_rllib.sim.association import UNASSOCIATED
-from uavlora_rllib.sim.core import ActionError, BatchCore, decode_joint_action, encode_joint_action, obs_dim, state_dim
+from uavlora_rllib.sim.actions import ActionError, decode_joint_action, encode_joint_action
+from uavlora_rllib.sim.core import BatchCore
+from uavlora_rllib.sim.links import AllPairLinks, NearestLinks
+from uavlora_rllib.sim.observation import obs_dim, state_dim
 from uavlora_rllib.envs.multi_agent import UavLoraMultiAgentEnv, UavLoraParallelEnv, state_space
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
@@ -481,9 +484,8 @@ def test_nearest_path_equals_the_all_pairs_path(fields):
     """The default path (channel at the nearest UAV only) against the path that computes every
     pair's channel and runs greedy_association on it: the same trajectory, bit for bit."""
     cfg = make_cfg(**fields)
-    fast, full = BatchCore(cfg, 3), BatchCore(cfg, 3)
-    assert fast._nearest
-    full._nearest = False
+    fast, full = BatchCore(cfg, 3), BatchCore(cfg, 3, link_stage=AllPairLinks)
+    assert isinstance(fast.link_stage, NearestLinks)
     rng = np.random.default_rng(4)
     assert np.array_equal(fast.reset(8), full.reset(8))
     for _ in range(40):
@@ -536,12 +538,12 @@ def test_step_scores_the_gains_the_core_exposes(action_mode):
     for _ in range(10):
         a = random_actions(cfg, 4, rng)
         sf, tp, bw = core.allocations(a)
-        want = physics.slot_metrics(core.gains, core._serving_idx, core.associated, sf, tp, bw, cfg, core.tables)
+        want = physics.slot_metrics(core.gains, core.links.serving_idx, core.associated, sf, tp, bw, cfg, core.tables)
         if action_mode == "per_uav":
-            g = physics.at_serving(core.gains, core._serving_idx)
-            g_db = physics.at_serving(core.gain_db, core._serving_idx)
-            flat = core._serving_idx + np.arange(4)[:, None] * cfg.n_uavs
-            counts = physics.group_count(np.where(core.associated, core._serving_idx, cfg.n_uavs), cfg.n_uavs + 1)
+            g = physics.at_serving(core.gains, core.links.serving_idx)
+            g_db = physics.at_serving(core.gain_db, core.links.serving_idx)
+            flat = core.links.serving_idx + np.arange(4)[:, None] * cfg.n_uavs
+            counts = physics.group_count(np.where(core.associated, core.links.serving_idx, cfg.n_uavs), cfg.n_uavs + 1)
             alloc = physics.shared_allocation(*decode_joint_action(a, cfg), core.tables)
             shared = physics.slot_metrics_shared(
                 g, g_db, flat, core.associated, counts[:, :-1], alloc, cfg, core.tables
@@ -567,7 +569,7 @@ def test_slot_is_the_rank_by_gain_ties_by_ed_id(n_eds, n_uavs):
     xy = core.ed_xy  # a view: writing moves the EDs
     xy[1, 1::2] = xy[1, 0::2]  # scenario 1: pairs of EDs at the same place
     xy[2] = xy[2, 0]  # scenario 2: all at one place
-    core._observe()
+    core.observe()
     g, serving = core.g_serving, core.serving
     for i in range(core.n):
         for v in range(n_eds):
@@ -577,4 +579,4 @@ def test_slot_is_the_rank_by_gain_ties_by_ed_id(n_eds, n_uavs):
                 continue
             ahead = [w for w in range(n_eds) if serving[i, w] == u and (g[i, w], -w) > (g[i, v], -v)]
             assert core.slot_of_ed[i, v] == len(ahead)
-        np.testing.assert_array_equal(core._counts[i], np.bincount(serving[i][serving[i] >= 0], minlength=n_uavs))
+        np.testing.assert_array_equal(core.links.counts[i], np.bincount(serving[i][serving[i] >= 0], minlength=n_uavs))

@@ -112,7 +112,7 @@ def test_bad_scenario_yaml_is_one_line(capsys, tmp_path, content, message):
 
 
 def test_actions_outside_the_space_are_one_line(capsys, monkeypatch):
-    """A policy whose actions do not fit the scenario (core.ActionError) is an input error."""
+    """A policy whose actions do not fit the scenario (sim.actions.ActionError) is an input error."""
     import uavlora_rllib.evaluate as evaluate_cli
     from uavlora_rllib.sim.scenario import ScenarioConfig
 

@@ -214,7 +214,8 @@ def test_mean_velocity_never_redrawn_with_probability_zero():
 def test_mean_velocity_redraw_rate_and_law():
     """v-bar is re-drawn with probability mean_resample_prob per ED and step, independently
     (SPEC.md), uniform on [-v_max, v_max]^2. Its new values are drawn only where a re-draw test
-    fires (core._find_redraws), across refills of 32 steps: 100 steps span 4 refills.
+    fires (sim.mobility.GaussMarkovMobility._find_redraws), across refills of 32 steps: 100 steps
+    span 4 refills.
     Counted: a re-draw changes v-bar (a uniform double equal to the old value has prob. 0)."""
     p, v_max = 0.2, 4.0
     cfg = make_cfg(n_eds=20, mobility={"mean_resample_prob": p, "v_max_mps": v_max})
@@ -236,13 +237,13 @@ def test_mean_velocity_redraw_rate_and_law():
 
 
 def test_noise_is_standard_normal_pairs():
-    """core.gaussian_pairs (Box-Muller in float32, the noise w of Eq. (gm)): N(0, 1) marginals
+    """mobility.gaussian_pairs (Box-Muller in float32, the noise w of Eq. (gm)): N(0, 1) marginals
     (Kolmogorov-Smirnov on 4M draws), x and y uncorrelated and independent of each other's
     magnitude (Box-Muller's pair), the 24-bit tail bound, and the exact formula at hand-picked
     uniforms. Measured: KS p = 0.38 (seed 1), |corr| < 2e-4."""
     from scipy import stats
 
-    from uavlora_rllib.sim.core import gaussian_pairs
+    from uavlora_rllib.sim.mobility import gaussian_pairs
 
     rng = np.random.Generator(np.random.SFC64(1))
     u = rng.random((200_000, 2, 10), dtype=np.float32)
@@ -264,7 +265,7 @@ def test_batch_noise_law_per_axis():
     cfg = make_cfg(n_eds=50)
     core = BatchCore(cfg, 64)
     core.reset(3)
-    w = core._gauss / core._noise_scale  # [N, 2, chunk, V]
+    w = core.mobility.gauss / core.mobility.noise_scale  # [N, 2, chunk, V]
     for axis in range(2):
         a = w[:, axis].ravel()  # 102,400 draws: the standard error of the variance is ~0.0044
         assert abs(a.mean()) < 0.02 and abs(a.var() - 1.0) < 0.02

@@ -25,7 +25,8 @@ from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.envs.multi_agent import STATE_KEY, UavLoraMultiAgentEnv, UavLoraParallelEnv
 from uavlora_rllib.experiment.evaluation import run_episodes
 from uavlora_rllib.sim import physics
-from uavlora_rllib.sim.core import BatchCore, decode_joint_action
+from uavlora_rllib.sim.actions import decode_joint_action
+from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
 from conftest import random_actions
@@ -108,9 +109,9 @@ def test_cross_gain_scores_candidates_like_one_at_a_time(rate_model):
 
     def score(joint):
         shape = joint.shape[:-1] + (cfg.n_eds,)
-        ed_action = np.take_along_axis(joint, np.broadcast_to(core._serving_idx, shape), axis=-1)
+        ed_action = np.take_along_axis(joint, np.broadcast_to(core.links.serving_idx, shape), axis=-1)
         sf, tp, bw = decode_joint_action(ed_action, cfg)
-        return physics.slot_metrics(core.gains, core._serving_idx, core.associated, sf, tp, bw, cfg, core.tables)
+        return physics.slot_metrics(core.gains, core.links.serving_idx, core.associated, sf, tp, bw, cfg, core.tables)
 
     together = score(cand)
     for c in range(len(cand)):
@@ -135,7 +136,7 @@ def test_optimal_beats_every_candidate_with_cross_gain():
         ee = []
         for a in [a_opt] + tries:
             sf, tp, bw = core.allocations(a)
-            m = physics.slot_metrics(core.gains, core._serving_idx, core.associated, sf, tp, bw, cfg, core.tables)
+            m = physics.slot_metrics(core.gains, core.links.serving_idx, core.associated, sf, tp, bw, cfg, core.tables)
             ee.append(m["ee_sys"])
         assert all((ee[0] >= other * (1 - 1e-12)).all() for other in ee[1:])
         core.step(a_opt)

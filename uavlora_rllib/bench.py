@@ -32,7 +32,8 @@ from typing import Callable  # noqa: E402
 import numpy as np  # noqa: E402
 
 from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in  # noqa: E402
-from uavlora_rllib.sim.core import NOISE_CHUNK, BatchCore  # noqa: E402
+from uavlora_rllib.sim.core import BatchCore  # noqa: E402
+from uavlora_rllib.sim.mobility import NOISE_CHUNK  # noqa: E402
 from uavlora_rllib.sim.scenario import ScenarioConfig  # noqa: E402
 
 SCENARIOS = ((10, 2), (100, 8))

@@ -28,7 +28,7 @@ from uavlora_rllib.baselines.policies import BASELINES, OBJECTIVES, evaluation_s
 from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in, positive_int, seed
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.experiment.grid import parse_yaml, read_yaml_text
-from uavlora_rllib.sim.core import ActionError
+from uavlora_rllib.sim.actions import ActionError
 from uavlora_rllib.sim.scenario import ScenarioConfig, scenario_field_names
 
 PROG = "evaluate"

@@ -33,7 +33,8 @@ import numpy as np
 
 from uavlora_rllib.sim import physics
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.sim.core import BatchCore, decode_joint_action, encode_joint_action, per_device_action_len
+from uavlora_rllib.sim.actions import decode_joint_action, encode_joint_action, per_device_action_len
+from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
 BASELINES = ("random", "fixed", "adr", "greedy", "optimal")
@@ -63,7 +64,7 @@ def _require_per_uav(cfg: ScenarioConfig, name: str) -> None:
 
 def _serving_gain(core: BatchCore) -> np.ndarray:
     """G between each ED and its serving UAV [N, V] (any value where unassociated)."""
-    return np.take_along_axis(core.gains, core._serving_idx[:, None, :], axis=1)[:, 0, :]
+    return np.take_along_axis(core.gains, core.links.serving_idx[:, None, :], axis=1)[:, 0, :]
 
 
 def _snr_db(core: BatchCore, tp_idx: np.ndarray, g_serving: np.ndarray) -> np.ndarray:
@@ -180,7 +181,7 @@ class AdrPolicy:
         cfg = self.cfg
         assoc = core.associated
         if cfg.action_mode == "per_uav":
-            sidx = core._serving_idx
+            sidx = core.links.serving_idx
             sf_ed = np.take_along_axis(self._sf, sidx, axis=1)
             tp_ed = np.take_along_axis(self._tp, sidx, axis=1)
             m = self._margins_per_ed(core, sf_ed, tp_ed)  # [N, V]
@@ -229,7 +230,7 @@ class _SlotSearch:
         snr_db = _snr_db(core, self._tp_a[:, None, None], _serving_gain(core)[None])  # [A, N, V]
         thr = core.tables.threshold_db[self._sf_a, self._bw_a][:, None, None]
         bad = (snr_db < thr) & core.associated[None]  # [A, N, V]
-        mine = core._serving_idx[:, None, :] == np.arange(u)[None, :, None]  # [N, U, V]
+        mine = core.links.serving_idx[:, None, :] == np.arange(u)[None, :, None]  # [N, U, V]
         n_bad = np.einsum("anv,nuv->nua", bad.astype(np.int64), mine.astype(np.int64))
         return n_bad == n_bad.min(axis=-1, keepdims=True)
 
@@ -242,9 +243,9 @@ class _SlotSearch:
         for objective "reward".
         """
         shape = joint.shape[:-1] + (self.cfg.n_eds,)
-        ed_action = np.take_along_axis(joint, np.broadcast_to(core._serving_idx, shape), axis=-1)
+        ed_action = np.take_along_axis(joint, np.broadcast_to(core.links.serving_idx, shape), axis=-1)
         sf, tp, bw = decode_joint_action(ed_action, self.cfg)
-        m = physics.slot_metrics(core.gains, core._serving_idx, core.associated, sf, tp, bw, self.cfg, core.tables)
+        m = physics.slot_metrics(core.gains, core.links.serving_idx, core.associated, sf, tp, bw, self.cfg, core.tables)
         primary = np.where(allowed, m[self._metric], -np.inf)
         return primary, m["reward" if self._metric == "ee_sys" else "ee_sys"]
 

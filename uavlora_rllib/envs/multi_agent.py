@@ -16,7 +16,9 @@ from pettingzoo import ParallelEnv
 from ray.rllib.env.multi_agent_env import MultiAgentEnv
 from ray.tune.registry import register_env
 
-from uavlora_rllib.sim.core import ActionError, BatchCore, obs_dim, per_device_action_len, state_dim
+from uavlora_rllib.sim.actions import ActionError, per_device_action_len
+from uavlora_rllib.sim.core import BatchCore
+from uavlora_rllib.sim.observation import obs_dim, state_dim
 from uavlora_rllib.sim.render import association_rgb
 from uavlora_rllib.sim.scenario import ScenarioConfig
 

@@ -23,7 +23,8 @@ import gymnasium as gym
 import numpy as np
 from ray.tune.registry import register_env
 
-from uavlora_rllib.sim.core import BatchCore, per_device_action_len
+from uavlora_rllib.sim.actions import per_device_action_len
+from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.envs.multi_agent import STATE_KEY, observation_space, scenario_from, state_space
 from uavlora_rllib.sim.scenario import ScenarioConfig
 

@@ -26,14 +26,6 @@ _LN10_OVER_10 = np.log(10.0) / 10.0
 
 
 # ---------------------------------------------------------------- gathers
-def take_last(arr: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """np.take_along_axis(arr, idx, axis=-1); for 2-D operands with the same number of rows,
-    the same gather as one fancy index (without take_along_axis's Python-level set-up)."""
-    if arr.ndim == 2 and idx.ndim == 2 and arr.shape[0] == idx.shape[0]:
-        return arr[np.arange(arr.shape[0])[:, None], idx]
-    return np.take_along_axis(arr, idx, axis=-1)
-
-
 def at_serving(per_uav: np.ndarray, serving_uav: np.ndarray) -> np.ndarray:
     """per_uav [..., U, V] at each ED's serving UAV serving_uav [..., V] -> [..., V]."""
     if per_uav.ndim == 3 and serving_uav.ndim == 2 and per_uav.shape[0] == serving_uav.shape[0]:
@@ -239,12 +231,6 @@ def horizontal_distance_sq(ed_xy: np.ndarray, uav_xy: np.ndarray) -> np.ndarray:
     dy *= dy
     dx += dy
     return dx
-
-
-def horizontal_distance(ed_xy: np.ndarray, uav_xy: np.ndarray) -> np.ndarray:
-    """d_h between every UAV and every ED: ed_xy [..., V, 2], uav_xy [U, 2] -> [..., U, V]."""
-    d2 = horizontal_distance_sq(ed_xy, uav_xy)
-    return np.sqrt(d2, out=d2)
 
 
 def horizontal_distance_sq_to(ed_xy: np.ndarray, uav_xy: np.ndarray, uav_idx: np.ndarray) -> np.ndarray:

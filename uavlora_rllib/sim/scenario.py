@@ -198,10 +198,6 @@ class ScenarioConfig:
         return build(cls, data, prefix)
 
 
-def scenario_field_names() -> list[str]:
-    return [f.name for f in dataclasses.fields(ScenarioConfig)]
-
-
 def flatten(cfg: ScenarioConfig, prefix: str = "scenario") -> dict[str, Any]:
     """Dotted key -> scalar, for MLflow params and trial tables."""
     out: dict[str, Any] = {}

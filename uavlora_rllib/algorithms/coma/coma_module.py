@@ -69,7 +69,7 @@ def other_actions_onehot(actions: torch.Tensor, n_actions: int) -> torch.Tensor:
 def factor_onehot(actions: torch.Tensor, factors: tuple[int, ...]) -> torch.Tensor:
     """[..., U] joint indices -> [..., U, sum(factors)]: one-hot of each factor of the index
     (mixed radix, last factor fastest; for per_uav (n_sf, n_tp, n_bw) this is the SF, TP and
-    BW of core.decode_joint_action)."""
+    BW of actions.decode_joint_action)."""
     parts, rest = [], actions.long()
     for size in reversed(factors):
         parts.append(nn.functional.one_hot(rest % size, size).to(torch.float32))

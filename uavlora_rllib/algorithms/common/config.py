@@ -23,7 +23,7 @@ import dataclasses
 from typing import Any, ClassVar
 
 from uavlora_rllib.algorithms.common.metrics import log_episode_metrics
-from uavlora_rllib.sim.core import obs_dim, state_dim
+from uavlora_rllib.sim.observation import obs_dim, state_dim
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
 

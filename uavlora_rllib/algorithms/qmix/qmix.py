@@ -63,7 +63,7 @@ from uavlora_rllib.algorithms.qmix.qmix_learner import QMIXTorchLearner
 from uavlora_rllib.algorithms.qmix.qmix_module import QMixModule, linear_epsilon
 from uavlora_rllib.algorithms.qmix.qmix_replay import EpisodeReplay
 from uavlora_rllib.envs.multi_agent import scenario_from
-from uavlora_rllib.sim.core import obs_dim, state_dim
+from uavlora_rllib.sim.observation import obs_dim, state_dim
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
 MIXERS = ("qmix", "vdn")
