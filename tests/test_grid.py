@@ -125,7 +125,7 @@ BAD = [
     ("bad_plugin", {"plugins": ["no_such_module_xyz"]}, r"plugins\.0: cannot import module 'no_such_module_xyz'"),
     ("yaml_syntax", "experiment: g\nalgorithms: {stock_ppo: null\nseeds: [0]\n", r"line 3, column \d+: YAML syntax error"),
     # strict numbers: no bool or string for a number, no NaN or inf (issue 15)
-    ("bool_for_float", {"algorithms": {"stock_ppo": {"lr": True}}}, r"algorithms\.stock_ppo\.lr: expected a number in \(0, inf\), got True \(bool\)"),
+    ("bool_for_float", {"algorithms": {"stock_ppo": {"lr": True}}}, r"algorithms\.stock_ppo\.lr: expected a number in \(0, 1\], got True \(bool\)"),
     ("inf_for_float", {"algorithms": {"stock_ppo": {"lr": float("inf")}}}, r"algorithms\.stock_ppo\.lr: expected a finite number"),
     ("string_for_int", {"checkpoint_every": "5"}, r"checkpoint_every: expected an integer in \[1, 1e\+09\], got '5' \(str\)"),
     ("bool_seed", {"seeds": [True]}, r"seeds\.0: expected an integer in \[0, 4\.29497e\+09\], got True"),

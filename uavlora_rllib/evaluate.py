@@ -18,6 +18,7 @@ prints its estimate first and shows a progress bar on stderr.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -29,7 +30,7 @@ from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in, positive_in
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.experiment.grid import parse_yaml, read_yaml_text
 from uavlora_rllib.sim.actions import ActionError
-from uavlora_rllib.sim.scenario import ScenarioConfig, scenario_field_names
+from uavlora_rllib.sim.scenario import ScenarioConfig
 
 PROG = "evaluate"
 MAX_EPISODES = 1_000_000
@@ -134,7 +135,7 @@ def checkpoint_fit_problem(trained: ScenarioConfig, scenario: ScenarioConfig) ->
 
     if spaces(trained) == spaces(scenario):
         return None
-    differ = [f for f in scenario_field_names() if getattr(trained, f) != getattr(scenario, f)]
+    differ = [f.name for f in dataclasses.fields(ScenarioConfig) if getattr(trained, f.name) != getattr(scenario, f.name)]
     t_u, t_obs, t_act = spaces(trained)
     u, obs, act = spaces(scenario)
     return (
