@@ -52,7 +52,7 @@ def run_core(cfg: ScenarioConfig, n: int, seed, actions: list[np.ndarray]) -> di
 
 
 def reference_greedy(g: np.ndarray, d: np.ndarray, r_comm: float, quota: int) -> list[int]:
-    """SPEC.md, one scenario, plain Python: EDs in descending order of their best in-range gain
+    """docs/model.md#association, one scenario, plain Python: EDs in descending order of their best in-range gain
     (ties: lower ED index first); each takes its max-gain in-range UAV with free quota (ties:
     lower UAV index); none left -> unassociated."""
     n_uavs, n_eds = g.shape

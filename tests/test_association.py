@@ -1,5 +1,5 @@
 """ED-UAV association (Eq. association): greedy against a naive sequential reference written
-(conftest.reference_greedy) in SPEC.md's order, optimal against brute force, and the constraints both must keep."""
+(conftest.reference_greedy) in docs/model.md#association's order, optimal against brute force, and the constraints both must keep."""
 
 from __future__ import annotations
 

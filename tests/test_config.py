@@ -1,4 +1,4 @@
-"""Scenario defaults (SPEC.md's table) and bad input: every boundary raises ConfigError or
+"""Scenario defaults (docs/model.md#scenario) and bad input: every boundary raises ConfigError or
 ActionError (both ValueError) with a message that names the offending field or agent."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Gauss-Markov ED mobility, Eq. (gm), with SPEC.md's decisions (speed clip, v-bar re-draw,
+"""Gauss-Markov ED mobility, Eq. (gm), with docs/model.md#mobility's decisions (speed clip, v-bar re-draw,
 mirror reflection): exact recursion, bounds, and the statistics of the process.
 
 Statistics are pooled over many independent scenarios of one BatchCore (scenario i seeded
@@ -213,7 +213,7 @@ def test_mean_velocity_never_redrawn_with_probability_zero():
 
 def test_mean_velocity_redraw_rate_and_law():
     """v-bar is re-drawn with probability mean_resample_prob per ED and step, independently
-    (SPEC.md), uniform on [-v_max, v_max]^2. Its new values are drawn only where a re-draw test
+    (docs/model.md#mobility), uniform on [-v_max, v_max]^2. Its new values are drawn only where a re-draw test
     fires (sim.mobility.GaussMarkovMobility._find_redraws), across refills of 32 steps: 100 steps
     span 4 refills.
     Counted: a re-draw changes v-bar (a uniform double equal to the old value has prob. 0)."""

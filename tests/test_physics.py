@@ -1,7 +1,7 @@
 """Every equation of the system model against numbers worked out by hand from the paper.
 
 The expected values are computed in the tests themselves with the `math` module, step by
-step from the formulas in the paper (and SPEC.md's decisions), never by calling the function
+step from the formulas in the paper (and docs/model.md#decisions), never by calling the function
 under test; a few results are also pinned as literals so that a shared mistake in both the
 code and the hand arithmetic cannot pass unnoticed.
 """
@@ -27,7 +27,7 @@ def dbm(p_dbm: float) -> float:
 
 
 def hand_hover_w() -> float:
-    """Eq. (hover) with Gong et al.'s parameter set (SPEC.md), written out term by term."""
+    """Eq. (hover) with Gong et al.'s parameter set (docs/model.md#hover-power), written out term by term."""
     n_rotors = 4
     w_r = 20.0 / 4  # N per rotor
     rho, s, area, c_t, delta, k = 1.168, 0.045, 0.214, 0.001195, 0.011, 0.11
@@ -71,7 +71,7 @@ def test_horizontal_distance_by_hand():
 def test_path_loss_right_under_the_uav_by_hand():
     h, f, c, a, b = 90.0, 868e6, 3e8, 4.88, 0.43
     d_h = 0.0
-    d3 = math.sqrt(d_h**2 + h**2)  # 3-D distance (SPEC.md) = 90 m
+    d3 = math.sqrt(d_h**2 + h**2)  # 3-D distance (docs/model.md#channel) = 90 m
     assert d3 == 90.0
     fspl = 20 * math.log10(4 * math.pi * f * d3 / c)  # 4 pi 868e6 90 / 3e8 = 3272.28 -> 70.2970 dB
     assert fspl == pytest.approx(70.2970, abs=1e-4)

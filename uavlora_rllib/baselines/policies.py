@@ -5,7 +5,7 @@ Every baseline implements `evaluation.Policy`: `reset(core)` after `core.reset()
 runs over EDs or scenarios; `greedy` loops over the U agents inside a coordinate-ascent round
 (see `GreedyPolicy`), and `optimal` loops over chunks of the joint-action space.
 
-Objectives of `greedy` and `optimal` (SPEC.md "What the optimum is"):
+Objectives of `greedy` and `optimal` (docs/model.md#per-slot-optimum):
 
 * ``objective="ee"`` (default): maximise EE_sys[t] subject to the paper's SNR constraint (h),
   rho_{a_v,v}[t] >= rho_thr(SF_v, W_v) for every associated ED. In per_uav mode an ED's SNR
@@ -23,7 +23,7 @@ use, only on which EDs share one, so many joint actions tie exactly; among them 
 tie-break picks those with the best success rate and margins instead of the lowest index.
 
 Because actions change neither the mobility nor the association, the per-slot maximum is the
-exact optimum of the whole episode (SPEC.md); `optimal` computes it exhaustively over the
+exact optimum of the whole episode (docs/model.md#per-slot-optimum); `optimal` computes it exhaustively over the
 joint per_uav action (90^U candidates) and `greedy` approximates it.
 """
 

@@ -3,7 +3,7 @@
 Centralised-training algorithms (a mixer, a joint critic, a centralised value function)
 need every agent's observation and action and the global state at the same time step.
 The team view gives them exactly that without RLlib's agent grouping (which has known bugs
-on 2.60, see RLLIB_NOTES.md): observation [U, obs_dim] (row u is agent u's LOCAL
+on 2.60, see docs/model.md#environments): observation [U, obs_dim] (row u is agent u's LOCAL
 observation; decentralised actors read only their own row), action MultiDiscrete of U
 entries (per_uav) or [U, 2 Lambda + 1] (per_device), the shared reward, and the global state
 under info["state"].

@@ -1,4 +1,4 @@
-"""The execution phase (SPEC.md): run a policy on fresh episodes and summarise the paper's metrics.
+"""The execution phase (docs/model.md#execution-phase): run a policy on fresh episodes and summarise the paper's metrics.
 
 One interface serves every policy, learned or not: a `Policy` sees the batch core (its
 observations, global state and, for oracle baselines, the true channel) and returns the

@@ -3,7 +3,7 @@
 Both functions take channel gains [N, U, V] and horizontal distances [N, U, V] and return
 `serving` [N, V] (UAV index, or -1 when the ED is unassociated this slot).
 
-greedy (the paper's channel-aware matching, SPEC.md order): EDs are taken in descending
+greedy (the paper's channel-aware matching, docs/model.md#association order): EDs are taken in descending
 order of their best in-range gain; each takes its max-gain in-range UAV with free quota.
 That is a serial dictatorship with one common priority order over the EDs, and with a
 common priority order the ED-proposing deferred-acceptance algorithm yields exactly the
@@ -203,7 +203,7 @@ def nearest_uav(ed_xy: np.ndarray, uav_xy: np.ndarray) -> np.ndarray:
 
 
 def nearest_uav_on_line(ed_x: np.ndarray, spacing: float, n_uavs: int) -> np.ndarray:
-    """`nearest_uav` for UAVs at x_i = (i + 0.5) spacing on one horizontal line (SPEC.md's
+    """`nearest_uav` for UAVs at x_i = (i + 0.5) spacing on one horizontal line (docs/model.md#scenario
     layout), from the ED x coordinates alone: UAV i is nearest for x in (i s, (i + 1) s], the
     lower index on the boundary tie, i.e. i = ceil(x / s) - 1 clipped to [0, U - 1]. O(V)."""
     i = np.divide(ed_x, spacing)

@@ -3,7 +3,7 @@
 Every function broadcasts over leading batch dimensions. The simulator core, the
 environments, the baselines and the analysis all call these functions; no equation is
 written anywhere else. Equation labels refer to the paper's LaTeX source
-(``shared/paper/uav-lora-mappo-vtc2026.tex``); where SPEC.md decides something the paper
+(``shared/paper/uav-lora-mappo-vtc2026.tex``); where docs/model.md#decisions decides something the paper
 leaves open, the docstring says so.
 """
 
@@ -140,7 +140,7 @@ def los_probability(theta_deg: np.ndarray | float, cfg: ScenarioConfig) -> np.nd
 def path_loss_db(d_h: np.ndarray | float, cfg: ScenarioConfig) -> np.ndarray:
     """Eq. (a2g_pl): mean G2A path loss in dB at horizontal distance d_h (m).
 
-    SPEC.md: the free-space term uses the 3-D distance sqrt(d_h^2 + h^2) (the paper writes
+    docs/model.md#channel: the free-space term uses the 3-D distance sqrt(d_h^2 + h^2) (the paper writes
     d_h there, which diverges under the UAV).
     """
     d_h = np.asarray(d_h, dtype=np.float64)
@@ -240,7 +240,7 @@ def horizontal_distance_sq_to(ed_xy: np.ndarray, uav_xy: np.ndarray, uav_idx: np
     that function's entry [..., uav_idx[v], v] bit for bit)."""
     dx = np.subtract(ed_xy[..., 0], uav_xy[:, 0].take(uav_idx))
     y = uav_xy[:, 1]
-    # UAVs on one horizontal line (SPEC.md's layout): the same y for all, no gather needed
+    # UAVs on one horizontal line (docs/model.md#scenario layout): the same y for all, no gather needed
     dy = np.subtract(ed_xy[..., 1], y[0] if (y == y[0]).all() else y.take(uav_idx))
     dx *= dx
     dy *= dy
@@ -249,7 +249,7 @@ def horizontal_distance_sq_to(ed_xy: np.ndarray, uav_xy: np.ndarray, uav_idx: np
 
 
 def uav_positions(cfg: ScenarioConfig) -> np.ndarray:
-    """SPEC.md: UAVs evenly along the horizontal mid-line, x_i = (i + 0.5) L / U, y = L / 2."""
+    """docs/model.md#scenario: UAVs evenly along the horizontal mid-line, x_i = (i + 0.5) L / U, y = L / 2."""
     i = np.arange(cfg.n_uavs, dtype=np.float64)
     return np.stack([(i + 0.5) * cfg.area_m / cfg.n_uavs, np.full(cfg.n_uavs, cfg.area_m / 2.0)], axis=-1)
 
@@ -367,7 +367,7 @@ def rate_bps(
     coding_rate: int = 1,
     out: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Eq. (shannon): R = W log2(1 + SINR), or the LoRa PHY bit rate (SPEC.md extension):
+    """Eq. (shannon): R = W log2(1 + SINR), or the LoRa PHY bit rate (extension, docs/model.md#rate):
     R = SF W / 2^SF * 4 / (4 + CR), delivered only when SINR_dB >= rho_thr(SF, W).
     `out`: an array of the result's shape for the Shannon rate to be written into."""
     if model == "shannon":
@@ -421,7 +421,7 @@ def success_rate(
 
 
 def margin_score(snr_db: np.ndarray, threshold_db: np.ndarray, associated: np.ndarray) -> np.ndarray:
-    """beta[t] (SPEC.md): mean over associated EDs of m = SNR_dB - rho_thr scored as
+    """beta[t] (docs/model.md#metrics-and-reward): mean over associated EDs of m = SNR_dB - rho_thr scored as
     min(m, 20) / 20 for m >= 0 and max(m / 2, -10) for m < 0; 0 when no ED is associated.
     (Evaluated as clip(m, -20, 20) / (20 if m >= 0 else 2): max(m / 2, -10) = max(m, -20) / 2.)"""
     return _mean_over(_margin_points(snr_db, threshold_db), associated, np.add.reduce(associated, axis=-1), 0.0)

@@ -1,4 +1,4 @@
-"""The scenario: every parameter of the paper's system model, typed, with SPEC.md's defaults.
+"""The scenario: every parameter of the paper's system model, typed, with the defaults of docs/model.md#scenario.
 
 Units are in the field names (``_m``, ``_hz``, ``_dbm``, ``_db``, ``_s``, ``_mps``, ``_n``).
 A `ScenarioConfig` is validated once, when it is built (directly or with `from_dict`), and is
@@ -44,7 +44,7 @@ _STRICT = pydantic.ConfigDict(extra="forbid", frozen=True)
 
 @dataclass(config=_STRICT)
 class MobilityConfig:
-    """Gauss-Markov ED mobility, the paper's Eq. (gm), with SPEC.md's decisions."""
+    """Gauss-Markov ED mobility, the paper's Eq. (gm), with the decisions of docs/model.md#mobility."""
 
     memory: float = Field(0.85, ge=0.0, le=1.0, description="eth, temporal correlation of the velocity, [0, 1]")
     sigma: float = Field(0.5, ge=0.0, le=1e3, description="sigma-hat, randomness of the velocity (m/s), [0, 1e3]")
@@ -78,7 +78,7 @@ class HoverConfig:
 
 @dataclass(config=_STRICT)
 class RewardWeights:
-    """r = w1 EE_sys + w2 Xi + w3 beta - |w4| P_total (SPEC.md: the w4 term is always a penalty)."""
+    """r = w1 EE_sys + w2 Xi + w3 beta - |w4| P_total (docs/model.md#metrics-and-reward: the w4 term is always a penalty)."""
 
     # |w| <= 1e6: times the largest EE_sys of the scenario box (~1e18) still finite
     w1: float = Field(4e-4, ge=-1e6, le=1e6, description="weight of EE_sys, [-1e6, 1e6]")
@@ -89,7 +89,7 @@ class RewardWeights:
 
 @dataclass(config=_STRICT)
 class ScenarioConfig:
-    """Every parameter of the system model. Defaults: SPEC.md's scenario table."""
+    """Every parameter of the system model. Defaults: docs/model.md#scenario."""
 
     n_eds: int = Field(10, ge=1, le=10_000, description="V, end devices, [1, 10000]")
     n_uavs: int = Field(2, ge=1, le=64, description="U, UAV gateways, [1, 64]")
@@ -155,7 +155,7 @@ class ScenarioConfig:
     # ---- derived quantities (read-only; never stored twice) ----
     @property
     def quota(self) -> int:
-        """Lambda_max: max EDs per UAV (SPEC.md: ceil(1.5 V / U) unless set)."""
+        """Lambda_max: max EDs per UAV (docs/model.md#association: ceil(1.5 V / U) unless set)."""
         if self.max_eds_per_uav is not None:
             return self.max_eds_per_uav
         return math.ceil(1.5 * self.n_eds / self.n_uavs)
