@@ -2,9 +2,9 @@
 
 Every function broadcasts over leading batch dimensions. The simulator core, the
 environments, the baselines and the analysis all call these functions; no equation is
-written anywhere else. Equation labels refer to the paper's LaTeX source
-(``shared/paper/uav-lora-mappo-vtc2026.tex``); where docs/model.md#decisions decides something the paper
-leaves open, the docstring says so.
+written anywhere else. Equation labels, e.g. Eq. (gm), are those of the paper (Ahmed et al.,
+VTC2026-Spring), each restated in docs/model.md; where the project decides something the paper
+leaves open (docs/model.md#decisions), the docstring says so.
 """
 
 from __future__ import annotations
