@@ -53,7 +53,7 @@ def ray_address():
     os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (TESTS_DIR, REPO, old) if p)
     started = not ray.is_initialized()
     if started:
-        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+        ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     yield ray.get_runtime_context().gcs_address
     if started:
         ray.shutdown()
