@@ -386,7 +386,7 @@ def _run_locked(grid: GridConfig, grid_file: str, args: argparse.Namespace, spec
     if not ray.is_initialized():
         cluster.connect(args.address, args.num_cpus)
         started_ray = True
-    pool = None
+    pool = tracker = None
     t_start = time.perf_counter()
     try:
         base = baseline_runs(grid)
@@ -431,12 +431,14 @@ def _run_locked(grid: GridConfig, grid_file: str, args: argparse.Namespace, spec
     finally:
         # no run may stay RUNNING once the grid stops (the callback closes its own; this
         # catches any left by a crash); with MLflow unreachable they stay until --resume adopts them
-        try:
-            closed = Tracker(uri, grid.experiment, grid_file, retry_timeout_s=5).close_running("KILLED")
-            if closed:
-                print(f"marked {len(closed)} unfinished MLflow run(s) KILLED", file=sys.stderr)
-        except Exception:
-            pass
+        if tracker is not None:
+            tracker.retry_timeout_s = min(tracker.retry_timeout_s, 10.0)  # MLflow may be the reason we stop
+            try:
+                closed = tracker.close_running("KILLED")
+                if closed:
+                    print(f"marked {len(closed)} unfinished MLflow run(s) KILLED", file=sys.stderr)
+            except TrackingUnavailable:
+                print("MLflow unreachable: runs left RUNNING are adopted by --resume", file=sys.stderr)
         if started_ray:
             ray.shutdown()
 
