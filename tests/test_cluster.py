@@ -13,6 +13,7 @@ from __future__ import annotations
 import glob
 import json
 import os
+import secrets
 import signal
 import socket
 import subprocess
@@ -41,31 +42,43 @@ def free_port() -> int:
 
 @pytest.fixture(scope="module")
 def two_nodes():
-    from ray.cluster_utils import Cluster
-
     tmp = tempfile.mkdtemp(prefix="rc", dir="/tmp")  # Ray's socket paths must stay short
-    saved = {k: os.environ.get(k) for k in ("RAY_TMPDIR", "PYTHONPATH", "RAY_ADDRESS")}
+    saved = {k: os.environ.get(k) for k in ("RAY_TMPDIR", "PYTHONPATH", "RAY_ADDRESS", "RAY_AUTH_MODE",
+                                            "RAY_AUTH_TOKEN", "RAY_AUTH_TOKEN_PATH")}
     os.environ["RAY_TMPDIR"] = tmp
     os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (REPO, saved["PYTHONPATH"]) if p)
     os.environ.pop("RAY_ADDRESS", None)
+    # token authentication, as docs/cluster.md asks: the nodes and every driver get the same
+    # token, set explicitly (with RAY_AUTH_MODE unset, a token file in ~/.ray turns token auth
+    # on for some processes and not for others)
+    os.environ["RAY_AUTH_MODE"] = "token"
+    os.environ["RAY_AUTH_TOKEN"] = secrets.token_hex(16)
+    os.environ.pop("RAY_AUTH_TOKEN_PATH", None)
     client_port, dashboard_port = free_port(), free_port()
-    c = Cluster(initialize_head=True, head_node_args={
-        "num_cpus": 1, "ray_client_server_port": client_port, "include_dashboard": True,
-        "dashboard_host": "127.0.0.1", "dashboard_port": dashboard_port,
-    })
-    worker = c.add_node(num_cpus=1)
-    c.wait_for_nodes()
-    info = {"cluster": c, "worker": worker, "tmp": tmp, "client_port": client_port,
-            "dashboard": f"http://127.0.0.1:{dashboard_port}"}
+    proc = subprocess.Popen([sys.executable, os.path.join(TESTS_DIR, "two_node_cluster.py"), str(client_port),
+                             str(dashboard_port)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    info = json.loads(proc.stdout.readline())
+    info.update(proc=proc, tmp=tmp, client_port=client_port, dashboard=f"http://127.0.0.1:{dashboard_port}")
     try:
         yield info
     finally:
-        c.shutdown()
+        proc.stdin.close()  # the helper shuts its cluster down
+        try:
+            proc.wait(timeout=120)
+        except subprocess.TimeoutExpired:
+            proc.kill()
         for k, v in saved.items():
             if v is None:
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
+
+
+def remove_worker(two_nodes) -> None:
+    proc = two_nodes["proc"]
+    proc.stdin.write("remove_worker\n")
+    proc.stdin.flush()
+    assert proc.stdout.readline().strip() == "removed"
 
 
 def make_grid(tmp_path, name: str, *, seeds=(0,), budget=20, baselines=("random",), uri=None, **extra) -> str:
@@ -135,8 +148,7 @@ def trial_rows(tmp_path, experiment: str) -> dict[str, list[dict]]:
 
 @pytest.mark.parametrize("way", ["auto", "host_port", "ray_client"])
 def test_reach_the_cluster(two_nodes, tmp_path, way):
-    c = two_nodes["cluster"]
-    address = {"auto": "auto", "host_port": c.address,
+    address = {"auto": "auto", "host_port": two_nodes["address"],
                "ray_client": f"ray://127.0.0.1:{two_nodes['client_port']}"}[way]
     grid = make_grid(tmp_path, f"reach_{way}")
     out = finish(driver(grid, "--address", address))
@@ -144,6 +156,16 @@ def test_reach_the_cluster(two_nodes, tmp_path, way):
     assert "Ray: 2 node(s), 2 CPU" in out
     assert_one_finished_run_each(f"sqlite:///{tmp_path / 'mlflow.db'}", f"reach_{way}",
                                  {"mappo-V6-U2-s0"}, {"random-V6-U2-s0"})
+
+
+def test_wrong_token_is_one_clear_line(two_nodes, tmp_path):
+    grid = make_grid(tmp_path, "token")
+    out = finish(driver(grid, "--address", two_nodes["address"],
+                        env_extra={"RAY_AUTH_TOKEN": secrets.token_hex(16)}), timeout=300)
+    last = out.strip().splitlines()[-1]
+    assert last.startswith(f"error: --address {two_nodes['address']}: cannot connect"), out[-3000:]
+    assert "RAY_AUTH_TOKEN" in last
+    assert not (tmp_path / "mlflow.db").exists()
 
 
 def test_ray_job_submit(two_nodes, tmp_path):
@@ -218,7 +240,7 @@ def test_mlflow_server_goes_away_then_resume_completes(two_nodes, tmp_path, mlfl
 
     uri = mlflow_server["uri"]
     grid = make_grid(tmp_path, "server", budget=400, uri=uri, mlflow={"tracking_uri": uri, "retry_timeout_s": 5})
-    proc = driver(grid, "--address", two_nodes["cluster"].address)
+    proc = driver(grid, "--address", two_nodes["address"])
     pattern = str(tmp_path / "ray_results" / "server" / "mappo-*" / "checkpoint_*")
     deadline = time.monotonic() + 300
     while not glob.glob(pattern):
@@ -237,7 +259,7 @@ def test_mlflow_server_goes_away_then_resume_completes(two_nodes, tmp_path, mlfl
     assert time.monotonic() - t0 < 60
 
     mlflow_server["start"]()
-    out = finish(driver(grid, "--resume", "--address", two_nodes["cluster"].address))
+    out = finish(driver(grid, "--resume", "--address", two_nodes["address"]))
     assert "1/1 trials finished, 0 failed" in out, out[-4000:]
     runs = assert_one_finished_run_each(uri, "server", {"mappo-V6-U2-s0"}, {"random-V6-U2-s0"})
     train = next(r for r in runs if r.data.tags["kind"] == "train")
@@ -245,10 +267,9 @@ def test_mlflow_server_goes_away_then_resume_completes(two_nodes, tmp_path, mlfl
 
 
 def test_worker_node_lost_mid_trial_is_retried(two_nodes, tmp_path):
-    c, worker = two_nodes["cluster"], two_nodes["worker"]
-    head_id, worker_id = c.head_node.unique_id, worker.unique_id
+    head_id, worker_id = two_nodes["head_id"], two_nodes["worker_id"]
     grid = make_grid(tmp_path, "lost", seeds=(0, 1), budget=600, baselines=(), failure={"max_failures": 2})
-    proc = driver(grid, "--address", c.address)
+    proc = driver(grid, "--address", two_nodes["address"])
     deadline = time.monotonic() + 300
     victim = None
     while victim is None:
@@ -259,7 +280,7 @@ def test_worker_node_lost_mid_trial_is_retried(two_nodes, tmp_path):
             if rows and rows[-1].get("node_id") == worker_id and ckpts and not rows[-1].get("done"):
                 victim = name
         time.sleep(0.2)
-    c.remove_node(worker, allow_graceful=False)  # kills the worker's raylet and its trial
+    remove_worker(two_nodes)  # kills the worker's raylet and its trial
     out = finish(proc, timeout=600)
     assert proc.returncode == 0, out[-4000:]
     assert "2/2 trials finished, 0 failed" in out
