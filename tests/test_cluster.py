@@ -170,26 +170,32 @@ def test_wrong_token_is_one_clear_line(two_nodes, tmp_path):
 
 def test_ray_job_submit(two_nodes, tmp_path):
     """`ray job submit`: relative paths need UAVLORA_LAUNCH_DIR (else one clear error line)."""
-    work = tmp_path / "job"
-    work.mkdir()
-    grid = make_grid(tmp_path, "job", uri="sqlite:///mlflow.db")
-    grid_rel = os.path.basename(grid)
-    os.replace(grid, work / grid_rel)
     ray_bin = os.path.join(os.path.dirname(sys.executable), "ray")
 
-    def submit(env_vars: dict) -> subprocess.CompletedProcess:
-        runtime_env = json.dumps({"env_vars": env_vars})
-        return subprocess.run(
-            [ray_bin, "job", "submit", "--address", two_nodes["dashboard"], "--working-dir", str(work),
-             "--runtime-env-json", runtime_env, "--", sys.executable, "-m", "uavlora_rllib.tune", grid_rel],
-            capture_output=True, text=True, timeout=600, env=dict(os.environ),
-        )
+    def submit(name: str, env_vars: dict) -> subprocess.CompletedProcess:
+        # The grid is passed by absolute path, without --working-dir: with two raylets on one
+        # host, Ray 2.60's runtime-env agents fail to fetch a working_dir package for the job's
+        # tasks ("Failed to download runtime_env file package"); a real cluster has one raylet
+        # per machine, and deploy/ uses an installed package instead of a working_dir too.
+        grid = make_grid(tmp_path, name, uri="sqlite:///mlflow.db")
+        deadline = time.monotonic() + 120
+        while True:
+            proc = subprocess.run(
+                [ray_bin, "job", "submit", "--address", two_nodes["dashboard"],
+                 "--runtime-env-json", json.dumps({"env_vars": env_vars}), "--",
+                 sys.executable, "-m", "uavlora_rllib.tune", grid],
+                capture_output=True, text=True, timeout=600, env=dict(os.environ),
+            )
+            # the dashboard accepts jobs once its agent on the head is up
+            if "No available agent to submit job" not in proc.stderr or time.monotonic() > deadline:
+                return proc
+            time.sleep(2)
 
-    bad = submit({})
+    bad = submit("job_bad", {})
     assert bad.returncode != 0
     assert "error: mlflow.tracking_uri:" in bad.stdout + bad.stderr and "UAVLORA_LAUNCH_DIR" in bad.stdout + bad.stderr
     assert "Traceback" not in bad.stdout
-    good = submit({"UAVLORA_LAUNCH_DIR": str(tmp_path)})
+    good = submit("job", {"UAVLORA_LAUNCH_DIR": str(tmp_path)})
     assert good.returncode == 0, (good.stdout + good.stderr)[-4000:]
     assert "1/1 trials finished" in good.stdout
     assert_one_finished_run_each(f"sqlite:///{tmp_path / 'mlflow.db'}", "job", {"mappo-V6-U2-s0"},
