@@ -159,6 +159,9 @@ class UavLoraTrainable(tune.Trainable):
 
         import uavlora_rllib.envs.multi_agent  # noqa: F401  (registers the "uavlora" env)
 
+        from uavlora_rllib.experiment.quiet import quiet_known_warnings
+
+        quiet_known_warnings()
         cfg = config.get("trial", config)
         self.cfg = cfg
         import_plugins(cfg.get("plugins", []))
@@ -458,6 +461,9 @@ def _run_locked(grid: GridConfig, grid_file: str, args: argparse.Namespace, spec
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from uavlora_rllib.experiment.quiet import quiet_known_warnings
+
+    quiet_known_warnings()
     try:
         args = build_parser().parse_args(argv)
         grid = load_grid(args.grid)

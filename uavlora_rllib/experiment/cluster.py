@@ -97,16 +97,21 @@ def connect(address: str | None, num_cpus: int | None) -> None:
     """ray.init for the given --address; raises ConfigError with what to check on failure."""
     import ray
 
+    from uavlora_rllib.experiment.quiet import SETUP_HOOK
+
     check_extras(address)
     if address and num_cpus is not None:
         raise ConfigError("--num-cpus: only for a local Ray; with --address the cluster's nodes set their CPUs")
+    # every worker process of this job silences the known harmless library messages (a Ray
+    # Jobs entrypoint runs inside the job's own runtime env, which is left as submitted)
+    runtime_env = None if under_ray_job() else {"worker_process_setup_hook": SETUP_HOOK}
     if not address:
         # "local" always starts a new Ray: a bare ray.init() would attach to any `ray start`
         # cluster on this machine (and then refuse num_cpus)
-        ray.init(address="local", num_cpus=num_cpus, include_dashboard=False)
+        ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, runtime_env=runtime_env)
         return
     try:
-        ray.init(address=address)
+        ray.init(address=address, runtime_env=runtime_env)
     except Exception as exc:  # ConnectionError, AuthenticationError, TimeoutError, ValueError, ...
         first = " ".join(str(exc).split())[:300] or type(exc).__name__
         auth = ""
