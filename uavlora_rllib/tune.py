@@ -283,12 +283,12 @@ def status_reporter():
     """Tune's status table: one row per trial, with its name, algorithm, V, U, seed and progress.
 
     Ray 2.60's default table ("new output") shows the grid-search value, here the whole
-    trial dict, cut short; the CLIReporter shows chosen config and metric columns instead
-    (RAY_AIR_NEW_OUTPUT=0 selects it; read when `fit` starts).
+    trial dict, cut short; the CLIReporter shows chosen config and metric columns instead.
+    Tune uses it only with RAY_AIR_NEW_OUTPUT=0 (read when `fit` starts: `_run_locked` sets
+    it, for restored experiments too, whose pickled run config holds this reporter).
     """
     from ray.tune import CLIReporter
 
-    os.environ["RAY_AIR_NEW_OUTPUT"] = "0"
     return CLIReporter(
         parameter_columns={"trial/algorithm": "algorithm", "trial/n_eds": "V", "trial/n_uavs": "U",
                            "trial/seed": "seed"},
@@ -406,6 +406,7 @@ def _run_locked(grid: GridConfig, grid_file: str, args: argparse.Namespace, spec
             tuner = tune.Tuner.restore(exp_path, trainable, resume_unfinished=True, resume_errored=True)
         else:
             tuner = make_tuner(grid, specs, storage, uri, grid_file, tracker.commit)
+        os.environ["RAY_AIR_NEW_OUTPUT"] = "0"  # the table of `status_reporter`
         try:
             results = tuner.fit()
         except Exception as exc:
