@@ -345,9 +345,7 @@ def run_grid(grid: GridConfig, grid_file: str, args: argparse.Namespace) -> int:
     storage = storage_path(grid, args.storage)
     exp_path = experiment_path(storage, grid.experiment)
     uri = absolute_tracking_uri(grid.mlflow.tracking_uri)
-    if args.address and args.num_cpus is not None:
-        raise ConfigError("--num-cpus: only for a local Ray; with --address the cluster's nodes set their CPUs")
-    cluster.check_extras(args.address)
+    cluster.check_address_args(args.address, args.num_cpus)
     check_storage(storage)
 
     # one driver per experiment, held until this function returns (cloud storage: see docs)

@@ -93,15 +93,20 @@ def check_extras(address: str | None) -> None:
         )
 
 
+def check_address_args(address: str | None, num_cpus: int | None) -> None:
+    """The --address / --num-cpus combination and the extras it needs (no connection yet)."""
+    if address and num_cpus is not None:
+        raise ConfigError("--num-cpus: only for a local Ray; with --address the cluster's nodes set their CPUs")
+    check_extras(address)
+
+
 def connect(address: str | None, num_cpus: int | None) -> None:
     """ray.init for the given --address; raises ConfigError with what to check on failure."""
     import ray
 
     from uavlora_rllib.experiment.quiet import SETUP_HOOK
 
-    check_extras(address)
-    if address and num_cpus is not None:
-        raise ConfigError("--num-cpus: only for a local Ray; with --address the cluster's nodes set their CPUs")
+    check_address_args(address, num_cpus)
     # every worker process of this job silences the known harmless library messages (a Ray
     # Jobs entrypoint runs inside the job's own runtime env, which is left as submitted)
     runtime_env = None if under_ray_job() else {"worker_process_setup_hook": SETUP_HOOK}
