@@ -55,8 +55,9 @@ def two_nodes():
     os.environ["RAY_AUTH_TOKEN"] = secrets.token_hex(16)
     os.environ.pop("RAY_AUTH_TOKEN_PATH", None)
     client_port, dashboard_port = free_port(), free_port()
-    proc = subprocess.Popen([sys.executable, os.path.join(TESTS_DIR, "two_node_cluster.py"), str(client_port),
-                             str(dashboard_port)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    ports = [client_port, dashboard_port, free_port(), free_port()]
+    proc = subprocess.Popen([sys.executable, os.path.join(TESTS_DIR, "two_node_cluster.py"), *map(str, ports)],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     info = json.loads(proc.stdout.readline())
     info.update(proc=proc, tmp=tmp, client_port=client_port, dashboard=f"http://127.0.0.1:{dashboard_port}")
     try:
