@@ -53,7 +53,7 @@ def ray_address():
     os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (TESTS_DIR, REPO, old) if p)
     started = not ray.is_initialized()
     if started:
-        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+        ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     yield ray.get_runtime_context().gcs_address
     if started:
         ray.shutdown()
@@ -271,3 +271,100 @@ def test_interrupted_grid_resumes_with_one_run_per_trial(ray_address, tmp_path, 
     last = last_result(trial_dir)
     assert last["env_steps"] >= budget and last["done"]
     assert last["iterations_since_restore"] < last["training_iteration"]
+
+
+def _wait_for(predicate, what: str, proc=None, timeout: float = 240) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if proc is not None:
+            assert proc.poll() is None, proc.stdout.read()[-3000:]
+        assert time.monotonic() < deadline, f"no {what} within {timeout} s"
+        time.sleep(0.2)
+
+
+def test_sigkilled_driver_resumes_with_one_run_each_and_its_runs_adopted(ray_address, tmp_path, capsys):
+    """SIGKILL (no cleanup at all) mid-trial: the lock is stale, a run is RUNNING; --resume adopts."""
+    budget = 600
+    grid_file = make_grid(tmp_path, "killed", budget, max_concurrent=1)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "uavlora_rllib.tune", grid_file, "--address", ray_address],
+        cwd=tmp_path, env=dict(os.environ), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    exp_dir = tmp_path / "ray_results" / "killed"
+    ckpt = str(exp_dir / f"{ALGO}-V6-U2-s0_*" / "checkpoint_*")
+
+    def state_after_checkpoint() -> bool:
+        # Tune's periodic experiment snapshot taken after the first checkpoint: the trial is in it
+        ckpts, states = glob.glob(ckpt), glob.glob(str(exp_dir / "experiment_state-*.json"))
+        return bool(ckpts and states) and max(map(os.path.getmtime, states)) > min(map(os.path.getmtime, ckpts))
+
+    try:
+        _wait_for(state_after_checkpoint, "checkpoint and experiment snapshot", proc)
+        proc.kill()
+        proc.wait(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert os.path.exists(tmp_path / "ray_results" / ".killed.driver.json")  # the dead driver's lock
+    client, runs = mlflow_runs(tmp_path, "killed")
+    running = {r.info.run_name: r.info.run_id for r in runs if r.info.status == "RUNNING"}
+    assert f"{ALGO}-V6-U2-s0" in running, [(r.info.run_name, r.info.status) for r in runs]
+
+    rc = tune_cli.main([grid_file, "--resume"])
+    out, err = capsys.readouterr()
+    assert rc == 0, err[-3000:]
+    assert "took over the lock of a dead driver" in err and "2/2 trials finished" in out
+    client, runs = mlflow_runs(tmp_path, "killed")
+    assert sorted(r.info.run_name for r in runs) == sorted(
+        [f"{ALGO}-V6-U2-s{s}" for s in (0, 1)] + [f"{b}-V6-U2-s{s}" for b in ("random", "fixed") for s in (0, 1)])
+    assert all(r.info.status == "FINISHED" for r in runs)
+    by_name = {r.info.run_name: r.info.run_id for r in runs}
+    for name, run_id in running.items():
+        assert by_name[name] == run_id  # adopted, not duplicated
+    for r in runs:
+        if r.data.tags["kind"] == "train":
+            check_train_run(client, r, grid_file, budget)
+    assert not os.path.exists(tmp_path / "ray_results" / ".killed.driver.json")  # released
+
+
+def test_resume_before_tune_started_adopts_leftovers(ray_address, tmp_path, capsys):
+    """A driver killed during the baselines, before Tune wrote anything: --resume starts the
+    trials, adopts the RUNNING baseline run it left, and replaces a train run whose trial is lost."""
+    from uavlora_rllib.experiment.driver_lock import lock_path
+    from uavlora_rllib.experiment.grid import load_grid, scenario_for
+    from uavlora_rllib.experiment.tracking import KIND_TRAIN, Tracker, run_params
+
+    budget = 40
+    grid_file = make_grid(tmp_path, "early", budget)
+    grid = load_grid(grid_file)
+    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", "early", grid_file)
+    scenario = scenario_for(grid, 6, 2)
+    params = run_params(scenario, None, 2)
+    partial = {k: params[k] for k in list(params)[:5]}  # killed in the middle of log_params
+    left_baseline = tracker.create_run(
+        "random-V6-U2-s0", tracker.base_tags("baseline", "random", 0, 6, 2, budget), partial)
+    tags = tracker.base_tags(KIND_TRAIN, ALGO, 1, 6, 2, budget)
+    tags["trial_id"] = "lost0001"
+    lost_train = tracker.create_run(f"{ALGO}-V6-U2-s1", tags, {})
+    os.makedirs(tmp_path / "ray_results", exist_ok=True)
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    with open(lock_path(str(tmp_path / "ray_results"), "early"), "w") as fh:
+        json.dump({"host": __import__("socket").gethostname(), "pid": dead.pid, "token": "x",
+                   "started": time.time(), "heartbeat": time.time()}, fh)
+    assert not (tmp_path / "ray_results" / "early").exists()
+
+    rc = tune_cli.main([grid_file, "--resume"])
+    out, err = capsys.readouterr()
+    assert rc == 0, err[-3000:]
+    assert "no Tune state" in err and "took over the lock" in err and "2/2 trials finished" in out
+    client, runs = mlflow_runs(tmp_path, "early")
+    assert sorted(r.info.run_name for r in runs) == sorted(
+        [f"{ALGO}-V6-U2-s{s}" for s in (0, 1)] + [f"{b}-V6-U2-s{s}" for b in ("random", "fixed") for s in (0, 1)])
+    assert all(r.info.status == "FINISHED" for r in runs)
+    adopted = next(r for r in runs if r.info.run_name == "random-V6-U2-s0")
+    assert adopted.info.run_id == left_baseline and dict(adopted.data.params) == params
+    assert "eval/ee_sys_mean" in adopted.data.metrics
+    assert lost_train not in {r.info.run_id for r in runs}  # its trial no longer exists: replaced
+    assert client.get_run(lost_train).info.lifecycle_stage == "deleted"
+    check_baseline_runs(runs, budget)

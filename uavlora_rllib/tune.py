@@ -1,4 +1,4 @@
-"""Run a grid YAML: baseline evaluations, then one Ray Tune trial per algorithm x seed x V x U.
+"""Run a grid YAML: one Ray Tune trial per algorithm x seed x V x U, and the baseline evaluations.
 
     python -m uavlora_rllib.tune GRID.yaml [--resume] [--dry-run] [--address ADDR]
                                            [--storage DIR] [--num-cpus N]
@@ -6,27 +6,33 @@
 * The grid is validated first (`grid.load_grid`); a bad grid prints ONE line on stderr and
   exits with code 2 before Ray starts. ``--dry-run`` prints the trial table and the baseline
   evaluations and exits 0 without starting Ray.
-* Baselines (``baselines:``) are evaluated on the driver, one MLflow run (kind=baseline) per
-  baseline x seed x V x U; a FINISHED run with the same scenario is not redone.
+* Before any baseline or trial starts: the driver lock (one driver per experiment,
+  `experiment.driver_lock`), the connection to Ray (`experiment.cluster`: a private local
+  Ray without ``--address``; ``auto``, ``HOST:PORT`` or ``ray://HOST:10001`` otherwise; under
+  ``ray job submit`` the job's cluster), that one trial's resources fit the cluster, and that
+  MLflow answers. Any of these failing is one line and exit code 2.
+* Baselines (``baselines:``) run as Ray tasks in parallel with the trials
+  (`experiment.baseline_tasks`); each is one MLflow run (kind=baseline) written by the
+  driver; a FINISHED run with the same scenario is not redone.
 * Training: one `UavLoraTrainable` trial per `grid.trials` entry, resources per trial from
   ``resources:`` (1 learner bundle + one bundle per env runner), a checkpoint every
   ``checkpoint_every`` iterations and at the end, stop at ``stop.env_steps`` env steps
   sampled, then the execution-phase evaluation (the entry's greedy policy, the trial's seed,
-  ``evaluation.episodes`` episodes) reported as ``eval/*``. `tracking.MlflowTrialCallback`
-  logs everything to MLflow from the driver.
+  ``evaluation.episodes`` episodes) reported as ``eval/*``. A trial that fails (its node
+  died) is retried from its last checkpoint up to ``failure.max_failures`` times, into the
+  same MLflow run. `tracking.MlflowTrialCallback` logs everything to MLflow from the driver.
 * ``--resume`` restores the Tune experiment ``<storage>/<experiment>``: finished trials are
   not rerun, interrupted or errored ones continue from their last checkpoint, and each trial
-  keeps its one MLflow run (found again by its trial_id tag). Without ``--resume`` an
-  existing experiment directory is an error (no silent second copy of the grid).
+  keeps its one MLflow run (found again by its trial_id tag). If the driver died before Tune
+  saved anything, ``--resume`` starts the trials. Without ``--resume`` an existing
+  experiment is an error (no silent second copy of the grid).
 * Interrupt with Ctrl+C (SIGINT) once: Tune saves the experiment state and the MLflow runs of
-  unfinished trials are marked KILLED; ``--resume`` picks them up. Exit codes: 0 all trials
-  finished, 1 some trial failed, 130 interrupted, 2 bad input.
+  unfinished trials are marked KILLED; ``--resume`` picks them up. A driver killed outright
+  (SIGKILL, lost machine) is also resumable: see `experiment.tracking`. Exit codes: 0 all
+  trials and baselines finished, 1 some failed (or MLflow stayed unreachable), 130
+  interrupted, 2 bad input or a failed preflight check.
 
-On a Ray cluster (``--address auto`` or ``ray://host:10001``): the project must be installed
-on every node (same venv), ``storage`` (or ``--storage``) must be a path every node can
-reach (NFS mount, or a cloud URI such as ``s3://bucket/ray_results``), and the MLflow URI
-is written by the driver only (a sqlite file on the driver's disk, or an MLflow server).
-Algorithms registered through ``plugins:`` must be importable on every node.
+Running on a cluster (shared storage, MLflow server, token auth, Ray Jobs, GPUs): docs/cluster.md.
 """
 
 from __future__ import annotations
@@ -43,7 +49,9 @@ from ray import tune
 from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in
+from uavlora_rllib.experiment import cluster
 from uavlora_rllib.experiment.grid import (
+    BaselineSpec,
     GridConfig,
     algorithm_overrides,
     TrialSpec,
@@ -89,20 +97,35 @@ def _storage_arg(text: str) -> str:
 
 # --------------------------------------------------------------------------- paths
 def storage_path(grid: GridConfig, override: str | None) -> str:
-    path = override or grid.storage
-    return path if "://" in path else os.path.abspath(os.path.expanduser(path))
+    """The Ray storage dir: --storage or the grid's, relative to the launch dir (`cluster.resolve_path`)."""
+    return cluster.resolve_path(override or grid.storage, "--storage" if override else "storage")
+
+
+def experiment_path(storage: str, experiment: str) -> str:
+    return f"{storage.rstrip('/')}/{experiment}" if "://" in storage else os.path.join(storage, experiment)
 
 
 def absolute_tracking_uri(uri: str) -> str:
-    """sqlite:///relative.db -> sqlite:////abs/relative.db (resolved against the working dir)."""
-    prefix = "sqlite:///"
-    if uri.startswith(prefix) and not uri.startswith(prefix + "/") and ":memory:" not in uri:
-        return prefix + os.path.abspath(uri[len(prefix) :])
-    return uri
+    """sqlite:///relative.db -> sqlite:////<launch dir>/relative.db (see `cluster.resolve_tracking_uri`)."""
+    return cluster.resolve_tracking_uri(uri)
 
 
 def describe_uri(uri: str) -> str:
     return uri[len("sqlite:///") :] if uri.startswith("sqlite:///") else uri
+
+
+def check_storage_writable(storage: str) -> None:
+    """A local storage dir must be creatable and writable (checked before anything runs)."""
+    if "://" in storage:
+        return
+    try:
+        os.makedirs(storage, exist_ok=True)
+        probe = os.path.join(storage, f".write-test-{os.getpid()}")
+        with open(probe, "w"):
+            pass
+        os.unlink(probe)
+    except OSError as exc:
+        raise ConfigError(f"storage: cannot write to {storage}: {exc.strerror or exc}") from None
 
 
 # --------------------------------------------------------------------------- dry run
@@ -158,6 +181,9 @@ class UavLoraTrainable(tune.Trainable):
         import uavlora_rllib.envs.multi_agent  # noqa: F401  (registers the "uavlora" env)
         from uavlora_rllib.experiment import periodic_eval
 
+        from uavlora_rllib.experiment.quiet import quiet_known_warnings
+
+        quiet_known_warnings()
         cfg = config.get("trial", config)
         self.cfg = cfg
         import_plugins(cfg.get("plugins", []))
@@ -171,6 +197,7 @@ class UavLoraTrainable(tune.Trainable):
             self.scenario, int(cfg.get("eval_interval_env_steps", 0)), int(cfg["eval_episodes"]), int(cfg["seed"])))
         self.algo = algo_config.build_algo()
         self._last_steps: int | None = 0
+        self._node_id = cluster.node_id()  # which raylet ran it (two may share a host)
 
     def step(self) -> dict:
         from uavlora_rllib.experiment import periodic_eval
@@ -187,6 +214,7 @@ class UavLoraTrainable(tune.Trainable):
         else:  # first iteration after a restore
             sampled = _number(_lookup(result, "env_runners/num_env_steps_sampled")) or 0
         out["env_steps_per_s"] = float(sampled) / dt
+        out["node_id"] = self._node_id
         self._last_steps = steps
         if steps >= int(self.cfg["budget_env_steps"]):
             out.update(self.evaluate())
@@ -225,9 +253,8 @@ class UavLoraTrainable(tune.Trainable):
 def trial_resources(grid: GridConfig):
     from ray.tune import PlacementGroupFactory
 
-    r = grid.resources
-    bundles = [{"CPU": r.num_cpus_per_learner}] + [{"CPU": r.num_cpus_per_env_runner}] * r.num_env_runners
-    return PlacementGroupFactory(bundles, strategy="PACK")
+    # the trial process, env runners and remote learners (GPUs included), in RLlib's own layout
+    return PlacementGroupFactory(grid.resources.bundles(), strategy="PACK")
 
 
 def _trial_name(trial) -> str:
@@ -240,116 +267,227 @@ def _trial_dirname(trial) -> str:
 
 
 # --------------------------------------------------------------------------- phases
-def run_baselines(grid: GridConfig, tracker, out=None) -> None:
-    from uavlora_rllib.baselines.policies import make_baseline
-    from uavlora_rllib.evaluate import run_with_progress
+def baselines_to_run(grid: GridConfig, tracker, out=None) -> list[BaselineSpec]:
+    """The grid's baseline runs that are not FINISHED in MLflow yet."""
     from uavlora_rllib.experiment.tracking import run_params
 
     out = out or sys.stdout
-    episodes = grid.evaluation.episodes
+    todo = []
     for b in baseline_runs(grid):
-        params = run_params(b.scenario, None, episodes)
+        params = run_params(b.scenario, None, grid.evaluation.episodes)
         if tracker.finished_baseline(b.baseline, b.seed, b.n_eds, b.n_uavs, params):
             print(f"baseline {b.name}: already in MLflow, skipped", file=out, flush=True)
-            continue
-        t0 = time.perf_counter()
+        else:
+            todo.append(b)
+    return todo
 
-        def evaluate(b=b):
-            policy = make_baseline(b.baseline, b.scenario, seed=b.seed)
-            # run_episodes, with an estimate and a progress bar on stderr when it is long (optimal)
-            return run_with_progress(policy, b.scenario, episodes, b.seed, b.baseline, f"baseline {b.name}").summary()
 
-        tracker.log_baseline(b.baseline, b.name, b.seed, b.n_eds, b.n_uavs, params, evaluate, grid.stop.env_steps)
-        print(f"baseline {b.name}: evaluated in {time.perf_counter() - t0:.1f} s", file=out, flush=True)
+def baseline_logger(grid: GridConfig, tracker):
+    """(spec, summary or the task's exception) -> the baseline's one MLflow run."""
+    from uavlora_rllib.experiment.tracking import run_params
+
+    def log(spec: BaselineSpec, result: Any) -> None:
+        params = run_params(spec.scenario, None, grid.evaluation.episodes)
+
+        def evaluate() -> dict:
+            if isinstance(result, BaseException):
+                raise result
+            return result
+
+        try:
+            tracker.log_baseline(spec.baseline, spec.name, spec.seed, spec.n_eds, spec.n_uavs, params, evaluate,
+                                 grid.stop.env_steps)
+        except Exception as exc:
+            if exc is not result:  # the evaluation's own error is recorded as a FAILED run
+                raise
+
+    return log
+
+
+def status_reporter():
+    """Tune's status table: one row per trial, with its name, algorithm, V, U, seed and progress.
+
+    Ray 2.60's default table ("new output") shows the grid-search value, here the whole
+    trial dict, cut short; the CLIReporter shows chosen config and metric columns instead.
+    Tune uses it only with RAY_AIR_NEW_OUTPUT=0 (read when `fit` starts: `_run_locked` sets
+    it, for restored experiments too, whose pickled run config holds this reporter).
+    """
+    from ray.tune import CLIReporter
+
+    return CLIReporter(
+        parameter_columns={"trial/algorithm": "algorithm", "trial/n_eds": "V", "trial/n_uavs": "U",
+                           "trial/seed": "seed"},
+        metric_columns={"env_steps": "env steps", "episode_return_mean": "return", "ee_sys_mean": "EE"},
+        max_report_frequency=30,
+        sort_by_metric=False,
+    )
+
+
+def make_tuner(grid: GridConfig, specs: list[TrialSpec], storage: str, uri: str, grid_file: str, commit: str):
+    from uavlora_rllib.experiment.tracking import MlflowTrialCallback
+
+    callback = MlflowTrialCallback(uri, grid.experiment, grid_file, commit, retry_timeout_s=grid.mlflow.retry_timeout_s)
+    return tune.Tuner(
+        tune.with_resources(UavLoraTrainable, trial_resources(grid)),
+        param_space={"trial": tune.grid_search([trial_config(s, grid) for s in specs])},
+        tune_config=tune.TuneConfig(
+            max_concurrent_trials=grid.max_concurrent_trials,
+            trial_name_creator=_trial_name,
+            trial_dirname_creator=_trial_dirname,
+            reuse_actors=True,
+        ),
+        run_config=tune.RunConfig(
+            name=grid.experiment,
+            storage_path=storage,
+            callbacks=[callback],
+            checkpoint_config=tune.CheckpointConfig(
+                checkpoint_frequency=grid.checkpoint_every, checkpoint_at_end=True, num_to_keep=2
+            ),
+            failure_config=tune.FailureConfig(max_failures=grid.failure.max_failures),
+            progress_reporter=status_reporter(),
+            verbose=1,
+        ),
+    )
+
+
+def _tracking_failure(exc: BaseException):
+    """The TrackingUnavailable inside an exception chain (Tune wraps callback errors), or None."""
+    from uavlora_rllib.experiment.tracking import TrackingUnavailable
+
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, TrackingUnavailable):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
 
 
 def run_grid(grid: GridConfig, grid_file: str, args: argparse.Namespace) -> int:
-    import ray
-
-    from uavlora_rllib.experiment.tracking import MlflowTrialCallback, Tracker
+    from uavlora_rllib.experiment.driver_lock import DriverLock
 
     specs = trials(grid)
     storage = storage_path(grid, args.storage)
-    exp_path = os.path.join(storage, grid.experiment) if "://" not in storage else f"{storage}/{grid.experiment}"
+    exp_path = experiment_path(storage, grid.experiment)
     uri = absolute_tracking_uri(grid.mlflow.tracking_uri)
-    trainable = tune.with_resources(UavLoraTrainable, trial_resources(grid))
+    cluster.check_address_args(args.address, args.num_cpus)
+    check_storage_writable(storage)
 
-    if args.resume:
-        if not tune.Tuner.can_restore(exp_path):
-            raise ConfigError(f"--resume: no Tune experiment to resume at {exp_path}")
-    elif "://" not in exp_path and os.path.exists(os.path.join(exp_path, "tuner.pkl")):
+    # one driver per experiment, held until this function returns (cloud storage: see docs)
+    lock = DriverLock(storage, grid.experiment) if "://" not in storage else None
+    if lock is not None:
+        lock.acquire()
+        if lock.taken_over is not None:
+            print(f"note: took over the lock of a dead driver ({lock.taken_over.describe()})", file=sys.stderr)
+    elif args.resume:
+        print("note: cloud storage has no driver lock: run one driver per experiment", file=sys.stderr)
+    try:
+        return _run_locked(grid, grid_file, args, specs, storage, exp_path, uri)
+    finally:
+        if lock is not None:
+            lock.release()
+
+
+def _run_locked(grid: GridConfig, grid_file: str, args: argparse.Namespace, specs: list[TrialSpec], storage: str,
+                exp_path: str, uri: str) -> int:
+    """Connect, check, then run the baselines and the trials (the driver lock is held)."""
+    import ray
+
+    from uavlora_rllib.experiment.baseline_tasks import BASELINE_CPUS, BaselinePool
+    from uavlora_rllib.experiment.tracking import Tracker, TrackingUnavailable
+
+    restorable = tune.Tuner.can_restore(exp_path)
+    if not args.resume and restorable:
         raise ConfigError(
             f"storage: the experiment {exp_path} exists already; continue it with --resume, "
             "or change experiment/--storage, or delete it"
         )
+    if args.resume and not restorable:
+        print(f"note: no Tune state at {exp_path} yet (the grid stopped before Tune started): starting the trials",
+              file=sys.stderr)
     if args.address and "://" not in storage:
         print(f"note: on a cluster, storage {storage} must be a path shared by every node", file=sys.stderr)
 
-    tracker = Tracker(uri, grid.experiment, grid_file)
-    t_start = time.perf_counter()
-    try:
-        run_baselines(grid, tracker)
-    except KeyboardInterrupt:
-        # Tune has not started: nothing to resume; finished baseline runs are skipped next time
-        print("interrupted during the baseline evaluations; run the same command again", file=sys.stderr)
-        return EXIT_INTERRUPTED
-
     started_ray = False
     if not ray.is_initialized():
-        if args.address:
-            ray.init(address=args.address)
-        else:
-            ray.init(num_cpus=args.num_cpus, include_dashboard=False)
+        cluster.connect(args.address, args.num_cpus)
         started_ray = True
+    pool = tracker = None
+    t_start = time.perf_counter()
     try:
-        if args.resume:
+        base = baseline_runs(grid)
+        cluster.preflight(cluster.as_bundles(trial_resources(grid)), BASELINE_CPUS, len(base))
+        print(f"Ray: {cluster.describe_cluster()}", flush=True)
+        try:
+            tracker = Tracker(uri, grid.experiment, grid_file, retry_timeout_s=grid.mlflow.retry_timeout_s)
+        except TrackingUnavailable as exc:
+            raise ConfigError(str(exc)) from None
+        pool = BaselinePool(baselines_to_run(grid, tracker), grid.evaluation.episodes,
+                            baseline_logger(grid, tracker)).start()
+        if args.resume and restorable:
+            trainable = tune.with_resources(UavLoraTrainable, trial_resources(grid))
             tuner = tune.Tuner.restore(exp_path, trainable, resume_unfinished=True, resume_errored=True)
         else:
-            callback = MlflowTrialCallback(uri, grid.experiment, grid_file, tracker.commit)
-            tuner = tune.Tuner(
-                trainable,
-                param_space={"trial": tune.grid_search([trial_config(s, grid) for s in specs])},
-                tune_config=tune.TuneConfig(
-                    max_concurrent_trials=grid.max_concurrent_trials,
-                    trial_name_creator=_trial_name,
-                    trial_dirname_creator=_trial_dirname,
-                    reuse_actors=True,
-                ),
-                run_config=tune.RunConfig(
-                    name=grid.experiment,
-                    storage_path=storage,
-                    callbacks=[callback],
-                    checkpoint_config=tune.CheckpointConfig(
-                        checkpoint_frequency=grid.checkpoint_every, checkpoint_at_end=True, num_to_keep=2
-                    ),
-                    verbose=1,
-                ),
-            )
-        results = tuner.fit()
+            tuner = make_tuner(grid, specs, storage, uri, grid_file, tracker.commit)
+        os.environ["RAY_AIR_NEW_OUTPUT"] = "0"  # the table of `status_reporter`
+        try:
+            results = tuner.fit()
+        except Exception as exc:
+            failure = _tracking_failure(exc)
+            if failure is None:
+                raise
+            pool.cancel()
+            print(f"error: {failure}", file=sys.stderr)
+            return EXIT_FAILED
+        done = sum(1 for r in results if r.metrics and r.metrics.get("done"))
+        interrupted = done + len(results.errors) < len(specs)
+        if interrupted:
+            pool.cancel()
+        else:
+            if pool.pending:
+                print(f"waiting for {pool.pending} baseline evaluation(s)", flush=True)
+            pool.wait()
+        if pool.error is not None:
+            print(f"error: {pool.error}", file=sys.stderr)
+            return EXIT_FAILED
+    except KeyboardInterrupt:
+        if pool is not None:
+            pool.cancel()
+        print(f"interrupted: continue with  python -m uavlora_rllib.tune {args.grid} --resume", file=sys.stderr)
+        return EXIT_INTERRUPTED
     finally:
         # no run may stay RUNNING once the grid stops (the callback closes its own; this
-        # catches any left by a crash)
-        closed = tracker.close_running("KILLED")
-        if closed:
-            print(f"marked {len(closed)} unfinished MLflow run(s) KILLED", file=sys.stderr)
+        # catches any left by a crash); with MLflow unreachable they stay until --resume adopts them
+        if tracker is not None:
+            tracker.retry_timeout_s = min(tracker.retry_timeout_s, 10.0)  # MLflow may be the reason we stop
+            try:
+                closed = tracker.close_running("KILLED")
+                if closed:
+                    print(f"marked {len(closed)} unfinished MLflow run(s) KILLED", file=sys.stderr)
+            except TrackingUnavailable:
+                print("MLflow unreachable: runs left RUNNING are adopted by --resume", file=sys.stderr)
         if started_ray:
             ray.shutdown()
 
-    done = sum(1 for r in results if r.metrics and r.metrics.get("done"))
     failed = len(results.errors)
     wall = time.perf_counter() - t_start
     print(f"\n{done}/{len(specs)} trials finished, {failed} failed, in {wall:.0f} s")
+    if pool.failed:
+        print(f"{len(pool.failed)} baseline evaluation(s) failed: {', '.join(n for n, _ in pool.failed)}")
     print(f"MLflow: {describe_uri(uri)} (experiment {grid.experiment!r}; view with: mlflow ui --backend-store-uri {uri})")
     print(f"Ray results and checkpoints: {exp_path}")
-    if failed:
+    if failed or pool.failed:
         return EXIT_FAILED
-    if done < len(specs):
-        print(f"interrupted: continue with  python -m uavlora_rllib.tune {grid_file} --resume", file=sys.stderr)
+    if interrupted:
+        print(f"interrupted: continue with  python -m uavlora_rllib.tune {args.grid} --resume", file=sys.stderr)
         return EXIT_INTERRUPTED
     return EXIT_OK
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from uavlora_rllib.experiment.quiet import quiet_known_warnings
+
+    quiet_known_warnings()
     try:
         args = build_parser().parse_args(argv)
         if args.list_hparams is not None:

@@ -21,7 +21,8 @@ Schema (see tune_configs/smoke.yaml for a complete example)::
     stop: {env_steps: 2000000}   # training budget per trial
     checkpoint_every: 10         # training iterations between checkpoints
     resources: {num_env_runners: 1, ...}   # registry.Resources, per trial
-    mlflow: {tracking_uri: "sqlite:///mlflow.db"}
+    mlflow: {tracking_uri: "sqlite:///mlflow.db", retry_timeout_s: 300}
+    failure: {max_failures: 3}   # retries of a failed trial (lost node) from its last checkpoint
     evaluation: {episodes: 10}   # execution-phase episodes per trial / baseline run;
                                  # interval_env_steps: greedy-policy curve (null: budget/20, 0: off)
     storage: ./ray_results       # Ray Tune storage (a shared path on a cluster)
@@ -33,7 +34,9 @@ a fraction of T_max) gets `stop.env_steps` there unless its overrides set it.
 A plugin module registers entries with `registry.register(...)` and adds each name to
 `registry.MODULES` (name -> its own module) so that workers can import it too.
 
-Relative paths (`storage`, a relative sqlite file) are relative to the working directory.
+Relative paths (`storage`, a relative sqlite file) are relative to the directory the driver was
+launched from (`experiment.cluster.launch_dir`; under `ray job submit` they need
+UAVLORA_LAUNCH_DIR or an absolute path).
 
 Input is taken strictly (see config_errors.build): no bool or string for a number, no NaN or
 inf, seeds in [0, 2^32 - 1], the experiment name a safe identifier (it names a directory
@@ -121,6 +124,9 @@ class StopConfig:
 @typed_dataclass(config=_STRICT)
 class MlflowConfig:
     tracking_uri: str = "sqlite:///mlflow.db"
+    # seconds the driver keeps retrying (with backoff) while MLflow is unreachable, then stops
+    # with a clear message; --resume fills in what was not logged (docs/cluster.md)
+    retry_timeout_s: float = Field(300.0, gt=0, le=86400)
 
     @field_validator("tracking_uri")
     @classmethod
@@ -146,6 +152,13 @@ class MlflowConfig:
                 if problem:
                     raise ValueError(f"the sqlite file's directory is not usable ({problem}); got {v!r}")
         return v
+
+
+@typed_dataclass(config=_STRICT)
+class FailureConfig:
+    # times Tune restarts a failed trial (e.g. its node died) from its last checkpoint, into the
+    # same MLflow run, before the trial counts as failed; 0 disables retries
+    max_failures: int = Field(3, ge=0, le=1000)
 
 
 @typed_dataclass(config=_STRICT)
@@ -180,6 +193,7 @@ class GridConfig:
     resources: registry.Resources = dataclasses.field(default_factory=registry.Resources)
     mlflow: MlflowConfig = dataclasses.field(default_factory=MlflowConfig)
     evaluation: EvaluationConfig = dataclasses.field(default_factory=EvaluationConfig)
+    failure: FailureConfig = dataclasses.field(default_factory=FailureConfig)
     storage: str = Field("./ray_results", min_length=1)
     max_concurrent_trials: int | None = Field(None, ge=1, le=100_000)
     plugins: list[str] = dataclasses.field(default_factory=list)

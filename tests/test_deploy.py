@@ -1,0 +1,71 @@
+"""deploy/: the cluster-launcher YAML and the KubeRay RayJob parse, install the project with
+constraints.txt and run the real grid entry point on a grid that exists."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import re
+
+import yaml
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+DEPLOY = os.path.join(REPO, "deploy")
+ENTRY = "python -m uavlora_rllib.tune"
+
+
+def load(name: str) -> dict:
+    with open(os.path.join(DEPLOY, name)) as fh:
+        return yaml.safe_load(fh)
+
+
+def grid_of(command: str) -> str:
+    m = re.search(re.escape(ENTRY) + r"\s+(\S+\.yaml)", command)
+    assert m, command
+    return m.group(1)
+
+
+def test_entry_point_is_a_module():
+    assert importlib.util.find_spec("uavlora_rllib.tune") is not None
+
+
+def test_cluster_launcher_yaml_matches_rays_schema_and_installs_with_constraints():
+    import jsonschema
+    import ray.autoscaler
+
+    config = load("ray-cluster.yaml")
+    with open(os.path.join(os.path.dirname(ray.autoscaler.__file__), "ray-schema.json")) as fh:
+        jsonschema.validate(config, json.load(fh))  # the schema `ray up` validates against
+    setup = "\n".join(config["setup_commands"])
+    assert "pip install" in setup and "-c ~/uavlora-rllib/constraints.txt" in setup
+    assert any("RAY_AUTH_MODE=token" in c for c in config["head_start_ray_commands"])
+    assert any("RAY_AUTH_MODE=token" in c for c in config["worker_start_ray_commands"])
+    # the grid command in its usage block names the entry point and a grid of the repo
+    with open(os.path.join(DEPLOY, "ray-cluster.yaml")) as fh:
+        usage = " ".join(line.lstrip("# ").rstrip("\\\n") for line in fh if line.startswith("#"))
+    assert ENTRY in usage and "--address auto" in usage
+    assert os.path.exists(os.path.join(REPO, grid_of(usage)))
+
+
+def test_rayjob_manifest_runs_a_grid_on_an_image_built_with_constraints():
+    job = load("rayjob.yaml")
+    assert job["apiVersion"] == "ray.io/v1" and job["kind"] == "RayJob"
+    spec = job["spec"]
+    assert spec["entrypoint"].startswith(ENTRY)
+    assert os.path.exists(os.path.join(REPO, grid_of(spec["entrypoint"])))
+    assert yaml.safe_load(spec["runtimeEnvYAML"])["env_vars"]["UAVLORA_LAUNCH_DIR"] == "/shared"
+    cluster = spec["rayClusterSpec"]
+    assert cluster["rayVersion"] == "2.60.0"
+    pods = [cluster["headGroupSpec"]["template"]] + [g["template"] for g in cluster["workerGroupSpecs"]]
+    for pod in pods:
+        (container,) = pod["spec"]["containers"]
+        env = {e["name"]: e for e in container["env"]}
+        assert env["RAY_AUTH_MODE"]["value"] == "token" and "secretKeyRef" in env["RAY_AUTH_TOKEN"]["valueFrom"]
+        assert {"name": "shared", "mountPath": "/shared"} in container["volumeMounts"]
+    images = {p["spec"]["containers"][0]["image"] for p in pods}
+    assert len(images) == 1  # head and workers run the same code
+    with open(os.path.join(DEPLOY, "Dockerfile")) as fh:
+        dockerfile = fh.read()
+    assert "FROM rayproject/ray:2.60.0-py311" in dockerfile
+    assert "pip install --no-cache-dir -c constraints.txt -e ." in dockerfile
