@@ -215,12 +215,14 @@ def test_resources_beyond_the_local_machine(tmp_path, capsys):
     data = _mutate(tmp_path, resources={"num_cpus_per_learner": 1000})
     path = write(tmp_path, data)
     load_grid(path)  # a valid grid in itself: a cluster may have 1000 CPUs ...
-    rc, _, err = run_cli([path, "--dry-run"], capsys)  # ... the local Ray has not
+    rc, _, err = run_cli([path], capsys)  # ... the local Ray has not: refused before Ray starts
     assert rc == 2 and re.search(r"resources\.num_cpus_per_learner: one trial needs 1000 CPUs .* local Ray has \d+", err), err
-    rc, _, err = run_cli([path, "--dry-run", "--num-cpus", "2000"], capsys)
-    assert rc == 0, err
+    rc, out, err = run_cli([path, "--dry-run"], capsys)  # a preview (of a cluster grid) only notes it
+    assert rc == 0 and re.search(r"note: a local run would be refused: .*one trial needs 1000 CPUs", out), out
+    rc, out, err = run_cli([path, "--dry-run", "--num-cpus", "2000"], capsys)
+    assert rc == 0 and "note:" not in out, err
     data = _mutate(tmp_path, resources={"num_env_runners": 3, "num_cpus_per_env_runner": 1})
-    rc, _, err = run_cli([write(tmp_path, data), "--dry-run", "--num-cpus", "2"], capsys)
+    rc, _, err = run_cli([write(tmp_path, data), "--num-cpus", "2"], capsys)
     assert rc == 2 and err.startswith("error: ") and ": resources: one trial needs 4 CPUs" in err, err
 
 

@@ -500,15 +500,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.grid is None:
             raise UsageError("grid: a grid YAML is required (or --list-hparams ALGO)")
         grid = load_grid(args.grid)
+        local_problem = None
         if not args.address:  # a local Ray: a trial that needs more CPUs than it has never starts
             try:
                 check_local_resources(grid, args.num_cpus or os.cpu_count() or 1)
             except ConfigError as exc:
-                raise ConfigError(f"{args.grid}: {exc}") from None
+                local_problem = f"{args.grid}: {exc}"
         specs = trials(grid)
-        if args.dry_run:
+        if args.dry_run:  # a preview (e.g. of a cluster grid on a laptop): say it, do not refuse
             print(trial_table(grid, specs))
+            if local_problem:
+                print(f"note: a local run would be refused: {local_problem}")
             return EXIT_OK
+        if local_problem:
+            raise ConfigError(local_problem)
         return run_grid(grid, args.grid, args)
     except (UsageError, ConfigError) as exc:
         return fail(exc, code=EXIT_USAGE)
