@@ -68,6 +68,7 @@ from analysis.tables import (
     improvement_table,
     write_csv,
 )
+from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in, seed
 
 # Every file the report may write (nothing else in --out is touched or logged).
 OUTPUT_FILES = tuple(
@@ -337,11 +338,6 @@ def log_summary(client, exp, summaries, out_dir: str, result: dict[str, Any]) ->
     return run_id
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:
-        raise ReportError(message)
-
-
 def _smooth(text: str) -> float:
     try:
         w = float(text)
@@ -352,28 +348,8 @@ def _smooth(text: str) -> float:
     return w
 
 
-def _points(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 2, got {text!r}") from None
-    if n < 2:
-        raise argparse.ArgumentTypeError(f"must be >= 2, got {n}")
-    return n
-
-
-def _seed(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
-    if n < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {n}")
-    return n
-
-
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="python -m analysis.report", description=__doc__.split("\n\n")[0])
+    p = Parser(prog="python -m analysis.report", description=__doc__.split("\n\n")[0])
     p.add_argument("--experiment", action="append", required=True,
                    help="MLflow experiment name or shell glob; repeat to join several")
     p.add_argument("--tracking-uri", action="append", default=None,
@@ -381,8 +357,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="output folder (default reports/<experiment>)")
     p.add_argument("--reference", default="mappo", help="algorithm whose improvement is reported (default mappo)")
     p.add_argument("--smooth", type=_smooth, default=0.6, help="EMA weight of the training-return curves in [0, 1) (default 0.6)")
-    p.add_argument("--points", type=_points, default=200, help="env-step grid points of Fig. 3a (default 200)")
-    p.add_argument("--fig2-seed", type=_seed, default=0, help="evaluation episode of Fig. 2 (seed offset, default 0)")
+    p.add_argument("--points", type=int_in(2), default=200, help="env-step grid points of Fig. 3a (default 200)")
+    p.add_argument("--fig2-seed", type=seed, default=0, help="evaluation episode of Fig. 2 (seed offset, default 0)")
     p.add_argument("--fig2-algorithm", default=None, help="learner that plays Fig. 2 (default: the best by execution EE)")
     p.add_argument("--no-fig2", action="store_true", help="skip Fig. 2 (no simulation)")
     p.add_argument("--no-log", action="store_true", help="do not log the outputs to an MLflow summary run")
@@ -409,9 +385,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                   f"({type(exc).__name__}: {str(exc).strip().splitlines()[0] if str(exc).strip() else ''}); "
                                   "rerun with --no-log to skip logging") from None
             logged = f"; logged to summary run {run_id}"
-    except ReportError as exc:
-        print(f"report: error: {' '.join(str(exc).split())}", file=sys.stderr)
-        return 2
+    except UsageError as exc:  # ReportError and the parser's errors
+        return fail(exc, "report")
     except OSError as exc:  # the output folder filled up or vanished while writing
         print(f"report: error: cannot write the report: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2

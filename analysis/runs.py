@@ -21,6 +21,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from typing import Any
+from uavlora_rllib.cli_args import UsageError
 
 SUMMARY_KIND = "summary"
 EVAL_PREFIX = "eval/"
@@ -28,8 +29,9 @@ EE_KEY = "eval/ee_sys_mean"
 SAMPLED_EE_KEY = "eval_sampled/ee_sys_mean"  # execution with actions drawn from the trained policy
 
 
-class ReportError(Exception):
-    """Bad user input (experiment, tracking URI, flags): printed as one line, exit code 2."""
+class ReportError(UsageError):
+    """Bad user input (experiment, tracking URI, flags): printed as one line, exit code 2 (the
+    command-line tools' one usage-error family, cli_args.UsageError)."""
 
 
 @dataclass

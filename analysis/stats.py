@@ -34,6 +34,8 @@ from typing import Sequence
 import numpy as np
 from scipy import stats as _st
 
+from uavlora_rllib.experiment.evaluation import t_half_width_95
+
 BOOTSTRAP_RESAMPLES = 2000
 BOOTSTRAP_SEED = 0
 
@@ -59,7 +61,7 @@ def t_ci95(x: Sequence[float]) -> tuple[float, float]:
     if n < 2:
         return math.nan, math.nan
     m = float(a.mean())
-    half = float(_st.t.ppf(0.975, n - 1) * a.std(ddof=1) / math.sqrt(n))
+    half = t_half_width_95(a)
     return m - half, m + half
 
 

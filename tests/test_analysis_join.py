@@ -243,7 +243,7 @@ def test_error_paths_one_line_exit_2(stores, tmp_path, capsys):
         (["--experiment", "sweep_V10", "--tracking-uri", a, "--out", str(tmp_path / "o"), "--fig2-algorithm", "nope"],
          "--fig2-algorithm: 'nope' has no training runs"),
         (["--experiment", "nothing_*", "--tracking-uri", a], "'nothing_*' not found"),
-        (["--experiment", "sweep_V10", "--tracking-uri", a, "--fig2-seed", "-1"], "must be >= 0"),
+        (["--experiment", "sweep_V10", "--tracking-uri", a, "--fig2-seed", "-1"], "--fig2-seed: must be an integer in [0, 4294967295], got -1"),
         (["--experiment", "sweep_V10", "--tracking-uri", a, "--smooth", "2"], "[0, 1)"),
         (["--tracking-uri", a], "--experiment"),
     ]

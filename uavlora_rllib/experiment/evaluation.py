@@ -44,6 +44,14 @@ class Policy(Protocol):
         """Actions for the current slot: int array [N, U] (per_uav) or [N, U, 2 Lambda + 1]."""
 
 
+def t_half_width_95(x) -> float:
+    """Half-width of the 95% Student-t confidence interval of the mean of x (at least 2 values).
+    The one place this interval is computed: the execution phase over episodes, and the
+    analysis over seeds (analysis.stats.t_ci95)."""
+    x = np.asarray(x, dtype=float)
+    return float(stats.t.ppf(0.975, x.size - 1) * x.std(ddof=1) / np.sqrt(x.size))
+
+
 @dataclass
 class EvalResult:
     per_episode: dict[str, np.ndarray]  # metric -> [episodes]
@@ -56,9 +64,7 @@ class EvalResult:
     def ci95(self, key: str) -> float:
         """Half-width of the 95% Student-t confidence interval of the mean over episodes."""
         x = self.per_episode[key]
-        if len(x) < 2:
-            return 0.0
-        return float(stats.t.ppf(0.975, len(x) - 1) * np.std(x, ddof=1) / np.sqrt(len(x)))
+        return t_half_width_95(x) if len(x) >= 2 else 0.0
 
     def summary(self) -> dict:
         out: dict = {k: self.mean(k) for k in EPISODE_METRICS}
