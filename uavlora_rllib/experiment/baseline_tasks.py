@@ -52,7 +52,13 @@ class BaselinePool:
     def start(self) -> "BaselinePool":
         import ray
 
+        from uavlora_rllib.baselines.policies import evaluation_seconds
+
         task = ray.remote(num_cpus=BASELINE_CPUS, max_retries=3)(evaluate_baseline)
+        if self.specs:  # the phase's progress: this line, then one "(k/n)" line per result
+            cost = sum(evaluation_seconds(s.baseline, s.scenario, self.episodes) for s in self.specs)
+            print(f"baselines: {len(self.specs)} evaluations submitted as Ray tasks, about "
+                  f"{cost / 60:.1f} CPU-minutes in all (estimate)", file=self.out, flush=True)
         for spec in self.specs:
             self._refs[task.options(name=f"baseline:{spec.name}").remote(spec, self.episodes)] = spec
         if self._refs:
@@ -82,10 +88,11 @@ class BaselinePool:
                 if isinstance(result, BaseException):
                     msg = " ".join(str(result).split())[:300]
                     self.failed.append((spec.name, msg))
-                    print(f"baseline {spec.name}: FAILED: {msg}", file=self.out, flush=True)
-                else:
-                    print(f"baseline {spec.name}: evaluated in {result.get('_wall_s', 0.0):.1f} s",
+                    print(f"baseline {spec.name}: FAILED: {msg} ({self.logged}/{len(self.specs)})",
                           file=self.out, flush=True)
+                else:
+                    print(f"baseline {spec.name}: evaluated in {result.get('_wall_s', 0.0):.1f} s "
+                          f"({self.logged}/{len(self.specs)})", file=self.out, flush=True)
 
     @property
     def pending(self) -> int:
