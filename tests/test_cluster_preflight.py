@@ -84,7 +84,10 @@ def test_address_flags_are_checked_first(tmp_path, capsys, monkeypatch):
 
 @pytest.mark.slow
 def test_infeasible_trial_fails_before_any_baseline(tmp_path):
-    """A trial bundle bigger than the local Ray: exit 2 with the reason, no MLflow run, no Tune dir."""
+    """A trial bundle no node of the started Ray can hold (a GPU learner on a machine without
+    GPUs, which the grid's static CPU check cannot see): exit 2 with the reason from the live
+    cluster's resources, no MLflow run, no Tune dir. (A CPU bundle bigger than the machine is
+    refused even earlier, before Ray starts: tests/test_grid.py.)"""
     grid = {
         "experiment": "big",
         "algorithms": ["mappo"],
@@ -93,7 +96,7 @@ def test_infeasible_trial_fails_before_any_baseline(tmp_path):
         "n_eds": [6],
         "n_uavs": [2],
         "stop": {"env_steps": 20},
-        "resources": {"num_cpus_per_learner": 64, "num_env_runners": 0},
+        "resources": {"num_gpus_per_learner": 1, "num_env_runners": 0},
         "storage": str(tmp_path / "ray_results"),
         "mlflow": {"tracking_uri": "sqlite:///mlflow.db"},  # relative: lands in cwd = tmp_path
     }
