@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import time
 from typing import Any, Mapping, Sequence
 
 from uavlora_rllib.config_errors import ConfigError
@@ -100,6 +101,9 @@ def check_address_args(address: str | None, num_cpus: int | None) -> None:
     check_extras(address)
 
 
+CLIENT_START_TRIES = 3  # ray:// connects tried while the head's client server is still starting
+
+
 def connect(address: str | None, num_cpus: int | None) -> None:
     """ray.init for the given --address; raises ConfigError with what to check on failure."""
     import ray
@@ -116,7 +120,17 @@ def connect(address: str | None, num_cpus: int | None) -> None:
         ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, runtime_env=runtime_env)
         return
     try:
-        ray.init(address=address, runtime_env=runtime_env)
+        for attempt in range(CLIENT_START_TRIES):
+            try:
+                ray.init(address=address, runtime_env=runtime_env)
+                break
+            except ConnectionAbortedError as exc:
+                # Ray Client's proxy starts one server process per client and gives up when that
+                # takes too long (a busy head); that is worth another try, a refusal is not
+                if not address.startswith("ray://") or "Initialization failure" not in str(exc) \
+                        or attempt == CLIENT_START_TRIES - 1:
+                    raise
+                time.sleep(2.0 * (attempt + 1))
     except Exception as exc:  # ConnectionError, AuthenticationError, TimeoutError, ValueError, ...
         first = " ".join(str(exc).split())[:300] or type(exc).__name__
         auth = ""
