@@ -14,6 +14,7 @@ evaluated on 16 fresh episodes. The whole file takes ~2-3 minutes on an idle 2-c
 
 from __future__ import annotations
 
+import json
 import time
 
 import numpy as np
@@ -166,3 +167,40 @@ def test_mappo_per_device_mode_beats_random(trained_per_device):
     rnd = run_episodes(make_baseline("random", PER_DEVICE, seed=0), PER_DEVICE, EVAL_EPISODES, EVAL_SEED).mean("ee_sys_mean")
     print(f"mappo per_device: greedy EE {ee:.0f} = {ee / rnd:.2f}x random ({seconds:.0f} s of training)")
     assert ee >= BEAT_RANDOM * rnd, (ee, rnd)
+
+
+# ---------------------------------------------------------------- the benchmark's CLI (no training)
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--scenarios", "60x"], "--scenarios: expected VxU"),
+        (["--learners", "nope"], "--learners: unknown algorithm 'nope'"),
+        (["--learners", "mappo", "--set", "mappo.nope=1"], "--set mappo.nope: unknown field"),
+        (["--learners", "mappo", "--set", "qmix.lr=1"], "--set: 'qmix' is not one of the learners run"),
+        (["--learners", "qmix", "--action-mode", "per_device"], "--action-mode: algorithm 'qmix' supports action modes"),
+        (["--target", "1.5"], "--target: expected a number in (0, 1]"),
+        (["--env-steps", "0"], "--env-steps: must be a positive integer"),
+    ],
+)
+def test_bench_learn_bad_input_is_one_line_and_exit_2(argv, message, capsys):
+    from uavlora_rllib import bench_learn
+
+    assert bench_learn.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and message in err, err
+
+
+def test_bench_learn_steps_to_target_and_table(tmp_path, capsys):
+    from uavlora_rllib import bench_learn
+
+    curve = [{"env_steps": 10_000, "greedy_share": 0.5}, {"env_steps": 20_000, "greedy_share": 0.95}, {"env_steps": 30_000, "greedy_share": 0.85}]
+    assert bench_learn.steps_to_share(curve, 0.9) == 20_000  # the first crossing, even if it falls back
+    assert bench_learn.steps_to_share(curve, 0.99) is None
+    row = {"learner": "mappo", "n_eds": 60, "n_uavs": 4, "action_mode": "per_uav", "seed": 0, "tag": "t", "env_steps": 30_000,
+           "greedy_ee": 8_500.0, "greedy_share": 0.85, "sampled_share": None, "env_steps_to_target": 20_000, "target": 0.9,
+           "reference": "greedy", "reference_ee": 10_000.0, "random_ee": 5_000.0, "train_s": 12.0, "wall_s": 15.0}
+    path = tmp_path / "r.jsonl"
+    path.write_text(json.dumps(row) + "\n")
+    assert bench_learn.main(["--table", str(path)]) == 0
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert "| 60 | 4 | per_uav | mappo | t | 0 | 30,000 | 0.850 | - | 20,000 (90%) | 1.70 | greedy 10,000 | 0.500 |" in last
