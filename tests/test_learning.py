@@ -2,14 +2,17 @@
 collapse onto one action shared by all UAVs (issue 13).
 
 Scenario: V = 4 EDs, U = 2 UAVs, 20-slot episodes. Its per-slot optimum puts the UAVs on
-distinct SFs in ~88% of the slots (asserted below as the premise: under the paper's same-SF interference a shared
-SF costs EE), and the collapsed policy, both UAVs on one action, is what shared-parameter
-actors fell into at larger scenarios (BENCHMARKS.md "Learning at scale"): the `fixed`
-baseline, which is such a policy, gets ~0.35x random here.
+distinct SFs in ~88% of the decisions (asserted below as the premise: under the paper's same-SF
+interference a shared SF costs EE) and reaches ~2.2x random; the collapsed policy, both UAVs
+on one action, is what shared-parameter actors fell into at larger scenarios (BENCHMARKS.md
+"Learning at scale"): the `fixed` baseline, which is such a policy, gets ~0.35x random here.
 
 Each learner trains once (module fixture, one after the other on a private 2-CPU Ray
 cluster) with its symmetry-breaking setting and CI-sized step sizes (`CI` below), then is
-evaluated on 16 fresh episodes. The whole file takes ~2-3 minutes on an idle 2-core machine.
+evaluated on 16 fresh episodes. Measured (seed 0): greedy EE / random = MAPPO 1.68, IPPO 1.90,
+QMIX 1.99, VDN 1.89, COMA 2.04, MAPPO per_device 2.59; same action in <= 1% of the decisions.
+The whole file: ~4 minutes of CPU in one process (14 minutes of wall time on a 2-core machine
+shared with other jobs at load average ~20).
 """
 
 from __future__ import annotations
