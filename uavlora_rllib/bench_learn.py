@@ -195,13 +195,13 @@ def run_trial(entry, scenario, overrides: dict, seed: int, args, ref: Reference)
                 t0 = time.perf_counter()
                 ee = evaluate("greedy")
                 eval_s += time.perf_counter() - t0
-                point = {"env_steps": steps, "greedy_share": ee / ref.ee, "train_sampled_ee": train_ee, "train_s": round(train_s, 1)}
+                point = {"env_steps": steps, "greedy_ee": ee, "greedy_share": ee / ref.ee, "train_sampled_ee": train_ee, "train_s": round(train_s, 1)}
                 curve.append(point)
                 print(f"  {entry.name} V={scenario.n_eds} U={scenario.n_uavs} seed={seed}: {steps} env steps, "
                       f"greedy {point['greedy_share']:.3f} of {ref.name}, training-episode EE {train_ee}, {train_s:.0f} s", flush=True)
                 while next_eval <= steps:
                     next_eval += args.eval_every
-        greedy_ee = ref.ee * curve[-1]["greedy_share"]
+        greedy_ee = curve[-1]["greedy_ee"]
         t0 = time.perf_counter()
         sampled_ee = evaluate("sampled") if sampled_hook is not None else None
         eval_s += time.perf_counter() - t0
