@@ -31,7 +31,8 @@ import torch
 from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.baselines import make_baseline
 from uavlora_rllib.experiment.evaluation import run_episodes
-from uavlora_rllib.sim.core import BatchCore, decode_joint_action
+from uavlora_rllib.sim.actions import decode_joint_action
+from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
 torch.set_num_threads(1)
@@ -41,7 +42,8 @@ EVAL_EPISODES, EVAL_SEED = 16, 5
 ENVS = 4  # scenarios sampled at once
 
 # Per learner: (hyperparameter overrides, training iterations). The first entries of each are the
-# symmetry-breaking choices of BENCHMARKS.md "Learning at scale" (the recommended defaults); the
+# symmetry-breaking choices of BENCHMARKS.md "Learning at scale" (the registry defaults, stated
+# here so the test keeps them if a default changes; QMIX at 4 updates per episode); the
 # rest only make a CI-sized budget enough (larger step sizes, fewer epochs, a short epsilon
 # schedule and a short horizon: the problem is myopic, actions never change the next slot).
 _PPO_CI = {"share_actor": False, "lr": 2e-3, "num_epochs": 8, "num_minibatches": 2, "batch_episodes": 8}

@@ -20,7 +20,8 @@ kept only as a scale.
 
 Reported per trial (one JSON line, appended and flushed as soon as the trial ends, so a killed
 run keeps every finished trial): the final greedy EE and its share, the sampled (stochastic)
-EE and share where the registry entry offers a sampled policy (`SAMPLED_POLICY_HOOK`), the
+EE and share (the registry's `policy(..., explore=True)`: actions drawn from the trained
+distribution on the same evaluation episodes, its action stream seeded by --eval-seed), the
 env steps at which the greedy share first reached `--target` (0.9), the curve of every
 evaluation, the training-time EE of the episodes the learner sampled (on training scenarios;
 context only, never the judge), and wall time (training alone, and with the evaluations).
@@ -45,9 +46,6 @@ from uavlora_rllib.cli_args import Parser, UsageError, positive_int
 SCENARIOS = ((10, 2), (60, 2), (100, 2), (60, 4), (60, 8))
 DEFAULT_LEARNERS = ("mappo", "ippo", "qmix", "vdn", "coma")
 OPTIMAL_MAX_UAVS = 2  # `optimal` is exhaustive over 90^U joint actions: U = 2 takes seconds, U = 3 hours
-# Registry entries that offer stochastic execution provide this callable, with the same
-# signature as `greedy_policy`: (algorithm, scenario) -> evaluation.Policy sampling actions.
-SAMPLED_POLICY_HOOK = "sampled_policy"
 
 
 # --------------------------------------------------------------------------- arguments
@@ -175,11 +173,9 @@ def run_trial(entry, scenario, overrides: dict, seed: int, args, ref: Reference)
     hparams = entry.hparams(overrides, prefix=f"--set {entry.name}")
     t_start = time.perf_counter()
     algo = entry.build(scenario, hparams, resources, seed).build_algo()
-    sampled_hook = getattr(entry, SAMPLED_POLICY_HOOK, None)
-
     def evaluate(kind: str) -> float:
-        make = entry.greedy_policy if kind == "greedy" else sampled_hook
-        return run_episodes(make(algo, scenario), scenario, args.eval_episodes, args.eval_seed).mean("ee_sys_mean")
+        policy = entry.policy(algo, scenario, explore=kind == "sampled", seed=args.eval_seed)
+        return run_episodes(policy, scenario, args.eval_episodes, args.eval_seed).mean("ee_sys_mean")
 
     curve: list[dict] = []
     train_s = eval_s = 0.0
@@ -203,7 +199,7 @@ def run_trial(entry, scenario, overrides: dict, seed: int, args, ref: Reference)
                     next_eval += args.eval_every
         greedy_ee = curve[-1]["greedy_ee"]
         t0 = time.perf_counter()
-        sampled_ee = evaluate("sampled") if sampled_hook is not None else None
+        sampled_ee = evaluate("sampled")
         eval_s += time.perf_counter() - t0
     finally:
         algo.stop()

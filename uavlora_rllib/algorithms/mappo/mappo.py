@@ -76,7 +76,11 @@ class MAPPOHParams:
     vf_loss_coeff: float = Field(1.0, ge=0.0, description="weight of the value loss [-] (actor and critic share Adam)")
     grad_clip: float | None = Field(10.0, gt=0.0, description="global gradient-norm clip [-]; null: off (decision)")
     share_actor: bool = Field(
-        True, description="one actor for all UAVs (+ agent-id one-hot) [bool]; false: one actor per UAV"
+        False,
+        description="one actor for all UAVs (+ agent-id one-hot) [bool]; false (default): one actor per UAV "
+        "(a shared actor's argmax collapses to one action shared by every UAV, which the same-SF "
+        "interference punishes: greedy 0.23 -> 0.9998 of the greedy baseline at V=60/U=4, 100k env steps; "
+        "BENCHMARKS.md 'Learning at scale')",
     )
     critic: Literal["central", "local"] | None = Field(
         None,

@@ -121,7 +121,7 @@ class MAPPOTorchRLModule(TorchRLModule, ValueFunctionAPI, InferenceOnlyAPI):
             self.head.n_logits,
             fc_hidden=fc_hidden,
             gru_hidden=int(mc.get("gru_hidden", 128)),
-            share=bool(mc.get("share_actor", True)),
+            share=bool(mc.get("share_actor", False)),
             out_hidden=fc_hidden,
             out_gain=0.01,  # near-uniform initial policy (standard for PPO actors)
         )

@@ -6,7 +6,7 @@ Shapes (one team = one row of the batch; U UAVs, d = obs_dim, A = actions per UA
   h       [B, U, H]      GRU hidden state, H = gru_hidden
   q       [B, T, U, A]   per-UAV Q-values
 
-Agent network: the common `RecurrentAgentNet` (shared by the UAVs unless share_agent_net=False):
+Agent network: the common `RecurrentAgentNet` (one per UAV by default; shared with share_agent_net=True):
   [o_u ; one-hot(u)] -> Linear(fc_hidden) -> ReLU -> GRU(gru_hidden) -> Linear(A)
 The one-hot id is only appended when the network is shared.
 
@@ -116,7 +116,7 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
             self.n_actions,
             fc_hidden=int(mc.get("fc_hidden", 128)),
             gru_hidden=self.gru_hidden,
-            share=bool(mc.get("share_agent_net", True)),
+            share=bool(mc.get("share_agent_net", False)),
         )
         # The mixer is built here and removed again on inference-only (env runner) copies.
         self.mixer = make_mixer(
