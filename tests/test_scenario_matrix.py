@@ -143,7 +143,9 @@ def test_optimal_beats_every_candidate_with_cross_gain():
 
 
 # ---------------------------------------------------------------- one training iteration per learner
-LEARNER_CASE = {"interference": "cross_gain", "rate_model": "lora_phy", "association": "optimal"}
+# every scenario option a learner sees (the action mode is the learner's own axis below)
+SCENARIO_OPTIONS = [dict(zip(("interference", "rate_model", "association"), v))
+                    for v in itertools.product(OPTIONS["interference"], OPTIONS["rate_model"], OPTIONS["association"])]
 # the smallest updates each learner allows on these 4-slot episodes
 TINY = {
     "mappo": {"num_epochs": 1, "num_minibatches": 1, "batch_episodes": 2, "max_seq_len": 4, "gru_hidden": 8, "fc_hidden": 8, "critic_hidden": 8},
@@ -153,7 +155,8 @@ TINY = {
     "coma": {"batch_episodes": 2, "gru_hidden": 8, "actor_hidden": 8},
 }
 LEARNER_CASES = [
-    (name, mode) for name in registry.available() for mode in registry.get(name).action_modes
+    (name, mode, options) for name in registry.available() for mode in registry.get(name).action_modes
+    for options in SCENARIO_OPTIONS
 ]
 
 
@@ -176,10 +179,13 @@ def ray_local():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name, action_mode", LEARNER_CASES, ids=[f"{n}-{m}" for n, m in LEARNER_CASES])
-def test_one_training_iteration_per_learner(ray_local, name, action_mode):
+@pytest.mark.parametrize("name, action_mode, options", LEARNER_CASES,
+                         ids=[f"{n}-{m}-{_combo_id(o)}" for n, m, o in LEARNER_CASES])
+def test_one_training_iteration_per_learner(ray_local, name, action_mode, options):
+    """Every learner x every action mode it claims x every scenario option: one training
+    iteration with finite learner metrics, then its greedy policy plays the scenario."""
     entry = registry.get(name)
-    cfg = _cfg(action_mode=action_mode, **LEARNER_CASE)
+    cfg = _cfg(action_mode=action_mode, **options)
     known = {f for f in entry.hparams_cls.__pydantic_fields__}
     hparams = entry.hparams({k: v for k, v in TINY.get(name, {}).items() if k in known})
     resources = registry.Resources(num_envs_per_env_runner=2)
