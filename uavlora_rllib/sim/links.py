@@ -18,6 +18,8 @@ the same trajectories bit for bit (tested).
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
+
 import numpy as np
 
 from uavlora_rllib.sim import physics
@@ -73,7 +75,7 @@ def pair_channels(ed_xy: np.ndarray, uav_xy: np.ndarray, cfg: ScenarioConfig) ->
     return np.sqrt(d2, out=d2), gains, gain_db
 
 
-class LinkStage:
+class LinkStage(ABC):
     """A link stage for N scenarios: called with the ED positions, returns the slot's Links.
     Holds what the stages share: the scenario, the batch size, and the slot ranking (`_rank`).
     A new stage (another channel or association model) subclasses it and sets `all_pairs`."""
@@ -90,9 +92,9 @@ class LinkStage:
         self._grp_base = (env_idx * (u + 1))[:, None]  # groups: UAV 0..U-1, U = unassociated
         self._positions = np.broadcast_to(np.arange(v), (n_envs, v))
 
+    @abstractmethod
     def __call__(self, xy: np.ndarray) -> Links:
         """The links of the slot whose ED positions are `xy` [2, N, V] (by coordinate)."""
-        raise NotImplementedError
 
     def _rank(
         self, serving_idx: np.ndarray, associated: np.ndarray, all_associated: bool, g_serving: np.ndarray,

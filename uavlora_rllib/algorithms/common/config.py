@@ -60,8 +60,9 @@ class HParamsConfig:
 
     def apply_hparams(self, hparams: Any, scenario: ScenarioConfig) -> dict[str, Any] | None:
         """Set the AlgorithmConfig fields that RLlib itself reads from `hparams`; return the
-        model_config entries the algorithm resolves itself (e.g. a default that depends on it)."""
-        raise NotImplementedError
+        model_config entries the algorithm resolves itself (e.g. a default that depends on it).
+        Every algorithm's config class overrides it (`@override(HParamsConfig)`)."""
+        raise TypeError(f"{type(self).__name__} must override HParamsConfig.apply_hparams")
 
 
 def apply_resources(config: Any, resources: Any) -> Any:
