@@ -69,9 +69,11 @@ class COMAEpisodeBatch(ConnectorV2):
         state = np.stack(
             [np.stack([np.asarray(i[GLOBAL_STATE], dtype=np.float32) for i in ep.get_infos()]) for ep in episodes]
         )
-        # CPU tensors; COMATorchLearner._update moves them to the learner's device.
+        # on the learner's device (a GPU learner): RLlib's default connectors, which would move
+        # them, are replaced by this one
+        device = next(rl_module[DEFAULT_MODULE_ID].parameters()).device
         cols = {OBS: obs, ACTIONS: actions, REWARDS: rewards, GLOBAL_STATE: state}
-        return {DEFAULT_MODULE_ID: {k: torch.from_numpy(v) for k, v in cols.items()}}
+        return {DEFAULT_MODULE_ID: {k: torch.from_numpy(v).to(device) for k, v in cols.items()}}
 
 
 class COMATorchLearner(TorchLearner):
@@ -81,18 +83,6 @@ class COMATorchLearner(TorchLearner):
     def build(self) -> None:
         super().build()
         self._updates = 0
-
-    # The one private hook overridden: COMA's critic-only steps must run on the batch between
-    # the learner connector and the joint forward pass, and no public hook sits there.
-    @override(TorchLearner)
-    def _update(self, batch: dict[str, Any]):
-        if self.device is not None and str(self.device) != "cpu":
-            batch = {mid: {k: v.to(self.device) for k, v in cols.items()} for mid, cols in batch.items()}
-        steps = self.config.hparams.critic_steps
-        if steps:
-            for module_id, cols in batch.items():
-                self._critic_only_steps(module_id, cols, steps)
-        return super()._update(batch)
 
     def _critic_only_steps(self, module_id, cols: dict[str, Any], steps: int) -> None:
         """`steps` critic-only gradient steps on this batch before the joint step, so that the
@@ -144,6 +134,16 @@ class COMATorchLearner(TorchLearner):
     @override(TorchLearner)
     def compute_loss_for_module(self, *, module_id, config, batch: dict[str, Any], fwd_out: dict[str, Any]):
         hp = self.config.hparams
+        if hp.critic_steps:
+            # the critic goes first: its critic-only steps on this batch, then the joint step's
+            # forward pass again, so that the advantage comes from the critic after them. The
+            # forward pass RLlib made before this hook (critic before the steps) is discarded,
+            # and so are its random draws (the bootstrap's sampled actions): the draws restart
+            # from where they stood before the update, so the random stream is the same as
+            # with the critic steps run before any forward pass.
+            torch.set_rng_state(self._rng_before_update)
+            self._critic_only_steps(module_id, batch, hp.critic_steps)
+            fwd_out = self.module[module_id].forward_train(batch)
         actions, rewards = batch[ACTIONS].long(), batch[REWARDS] * hp.reward_scale
         steps = actions.shape[1]
         q, q_target = fwd_out[Q_VALUES], fwd_out[Q_TARGET]  # [B, T, U, A]
@@ -180,6 +180,11 @@ class COMATorchLearner(TorchLearner):
             window=1,
         )
         return critic_loss + actor_loss
+
+    @override(TorchLearner)
+    def before_gradient_based_update(self, *, timesteps: dict[str, Any]) -> None:
+        super().before_gradient_based_update(timesteps=timesteps)
+        self._rng_before_update = torch.get_rng_state()  # see compute_loss_for_module
 
     @override(TorchLearner)
     def after_gradient_based_update(self, *, timesteps: dict[str, Any]) -> None:
