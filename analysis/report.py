@@ -68,7 +68,7 @@ from analysis.tables import (
     improvement_table,
     write_csv,
 )
-from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in, seed
+from uavlora_rllib.cli_args import Parser, UsageError, fail, float_in, int_in, seed
 
 # Every file the report may write (nothing else in --out is touched or logged).
 OUTPUT_FILES = tuple(
@@ -338,16 +338,6 @@ def log_summary(client, exp, summaries, out_dir: str, result: dict[str, Any]) ->
     return run_id
 
 
-def _smooth(text: str) -> float:
-    try:
-        w = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 1), got {text!r}") from None
-    if not 0.0 <= w < 1.0:
-        raise argparse.ArgumentTypeError(f"must be in [0, 1), got {w}")
-    return w
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="python -m analysis.report", description=__doc__.split("\n\n")[0])
     p.add_argument("--experiment", action="append", required=True,
@@ -356,7 +346,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="MLflow tracking URI; repeat to read several stores (default sqlite:///mlflow.db)")
     p.add_argument("--out", default=None, help="output folder (default reports/<experiment>)")
     p.add_argument("--reference", default="mappo", help="algorithm whose improvement is reported (default mappo)")
-    p.add_argument("--smooth", type=_smooth, default=0.6, help="EMA weight of the training-return curves in [0, 1) (default 0.6)")
+    p.add_argument("--smooth", type=float_in(0.0, 1.0, high_open=True), default=0.6, help="EMA weight of the training-return curves in [0, 1) (default 0.6)")
     p.add_argument("--points", type=int_in(2), default=200, help="env-step grid points of Fig. 3a (default 200)")
     p.add_argument("--fig2-seed", type=seed, default=0, help="evaluation episode of Fig. 2 (seed offset, default 0)")
     p.add_argument("--fig2-algorithm", default=None, help="learner that plays Fig. 2 (default: the best by execution EE)")

@@ -41,7 +41,7 @@ from typing import Any, Sequence
 
 import yaml
 
-from uavlora_rllib.cli_args import Parser, UsageError, positive_int
+from uavlora_rllib.cli_args import Parser, UsageError, float_in, positive_int
 
 SCENARIOS = ((10, 2), (60, 2), (100, 2), (60, 4), (60, 8))
 DEFAULT_LEARNERS = ("mappo", "ippo", "qmix", "vdn", "coma")
@@ -76,16 +76,6 @@ def _seeds(text: str) -> list[int]:
     return seeds
 
 
-def _share(text: str) -> float:
-    try:
-        x = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number in (0, 1], got {text!r}") from None
-    if not 0.0 < x <= 1.0:
-        raise argparse.ArgumentTypeError(f"expected a number in (0, 1], got {text!r}")
-    return x
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(
         prog="python -m uavlora_rllib.bench_learn",
@@ -102,7 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="evaluate the greedy policy every K env steps (default 20000; the curve and steps-to-target come from these)")
     p.add_argument("--eval-episodes", type=positive_int, default=5, help="evaluation episodes per point (default 5)")
     p.add_argument("--eval-seed", type=int, default=0, help="evaluation seed block (episodes EVAL_SEED_BASE + seed*10000 + k; default 0)")
-    p.add_argument("--target", type=_share, default=0.9, help="share of the reference for the env-steps-to-target column (default 0.9)")
+    p.add_argument("--target", type=float_in(0.0, 1.0, low_open=True), default=0.9, help="share of the reference for the env-steps-to-target column (default 0.9)")
     p.add_argument("--action-mode", choices=("per_uav", "per_device"), default="per_uav")
     p.add_argument("--episode-len", type=positive_int, default=150, help="slots per episode (default 150, the paper's)")
     p.add_argument("--set", action="append", default=[], metavar="LEARNER.KEY=VALUE",

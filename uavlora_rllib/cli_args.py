@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from typing import Callable
 
@@ -49,6 +50,25 @@ def positive_int(text: str) -> int:
 
 
 seed = int_in(0, SEED_MAX)
+
+
+def float_in(low: float, high: float, low_open: bool = False, high_open: bool = False) -> Callable[[str], float]:
+    """A parser of finite numbers in the interval from low to high (each end open or closed)."""
+    allowed = f"{'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number in {allowed}, got {text!r}") from None
+        too_low = value <= low if low_open else value < low
+        too_high = value >= high if high_open else value > high
+        if not math.isfinite(value) or too_low or too_high:
+            raise argparse.ArgumentTypeError(f"expected a number in {allowed}, got {text!r}")
+        return value
+
+    parse.__name__ = "number"
+    return parse
 
 
 def fail(message: object, prog: str | None = None, code: int = 2) -> int:
