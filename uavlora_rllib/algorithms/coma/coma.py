@@ -29,7 +29,6 @@ from pydantic import Field
 from pydantic.dataclasses import dataclass as typed_dataclass
 from ray.rllib.algorithms.algorithm import Algorithm
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
-from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 from ray.rllib.utils.annotations import override
 from ray.rllib.utils.metrics import (
     ENV_RUNNER_RESULTS,
@@ -115,6 +114,8 @@ class COMAConfig(HParamsConfig, AlgorithmConfig):
     """AlgorithmConfig of COMA; hyperparameters: COMAHParams through `uavlora(...)`."""
 
     hparams_cls = COMAHParams
+    module_class = COMATorchRLModule
+    learner_class = COMATorchLearner
 
     def __init__(self, algo_class=None):
         super().__init__(algo_class=algo_class or COMA)
@@ -137,14 +138,6 @@ class COMAConfig(HParamsConfig, AlgorithmConfig):
         )
         factors = [scenario.n_sf, scenario.n_tp, scenario.n_bw] if h.critic_factored_actions else []
         return {"action_factors": factors, "critic_hidden": list(h.critic_hidden)}
-
-    @override(AlgorithmConfig)
-    def get_default_rl_module_spec(self) -> RLModuleSpec:
-        return RLModuleSpec(module_class=COMATorchRLModule)
-
-    @override(AlgorithmConfig)
-    def get_default_learner_class(self):
-        return COMATorchLearner
 
 
 class COMA(Algorithm):

@@ -22,6 +22,10 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, ClassVar
 
+from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
+from ray.rllib.core.rl_module.rl_module import RLModuleSpec
+from ray.rllib.utils.annotations import override
+
 from uavlora_rllib.algorithms.common.metrics import log_episode_metrics
 from uavlora_rllib.sim.observation import obs_dim, state_dim
 from uavlora_rllib.sim.scenario import ScenarioConfig
@@ -40,7 +44,17 @@ def module_dims(scenario: ScenarioConfig) -> dict[str, int]:
 class HParamsConfig:
     """Mixin for an AlgorithmConfig: the one way a typed hyperparameter object reaches RLlib."""
 
-    hparams_cls: ClassVar[type]
+    hparams_cls: ClassVar[type]  # the typed hyperparameters
+    module_class: ClassVar[type]  # the algorithm's RLModule
+    learner_class: ClassVar[type]  # the algorithm's Learner
+
+    @override(AlgorithmConfig)
+    def get_default_rl_module_spec(self) -> RLModuleSpec:
+        return RLModuleSpec(module_class=self.module_class)
+
+    @override(AlgorithmConfig)
+    def get_default_learner_class(self) -> type:
+        return self.learner_class
 
     def uavlora(self, hparams: Any, scenario: ScenarioConfig, torch_threads: int = 1) -> Any:
         if not isinstance(hparams, self.hparams_cls):

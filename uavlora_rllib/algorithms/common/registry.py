@@ -6,7 +6,7 @@ algorithm needs no change anywhere else. Modules are imported lazily (importing 
 torch costs seconds), from `MODULES`.
 
 Adding an algorithm: a typed hyperparameter class and an AlgorithmConfig that follow
-common/config.py, a team-view RLModule whose forward_inference / forward_exploration return
+common/config.py (hparams_cls, module_class, learner_class, apply_hparams), a team-view RLModule whose forward_inference / forward_exploration return
 Columns.ACTIONS (then the default `make_policy` runs it, greedy or sampled), a `build` that
 calls `config.team_config`, and a line in `MODULES`. tests/test_algorithm_matrix.py then
 trains, checkpoints, restores and evaluates it with no new test code.

@@ -31,7 +31,6 @@ from typing import Literal
 from pydantic import ConfigDict, Field
 from pydantic.dataclasses import dataclass as typed_dataclass
 from ray.rllib.algorithms.ppo import PPO, PPOConfig
-from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 from ray.rllib.utils.annotations import override
 
 from uavlora_rllib.algorithms.common.config import HParamsConfig, team_config
@@ -107,6 +106,8 @@ class MAPPOConfig(HParamsConfig, PPOConfig):
     """PPOConfig whose defaults are MAPPO's module and learner (central critic)."""
 
     hparams_cls = MAPPOHParams
+    module_class = MAPPOTorchRLModule
+    learner_class = MAPPOTorchLearner
     default_critic = "central"
 
     def __init__(self, algo_class=None):
@@ -134,14 +135,6 @@ class MAPPOConfig(HParamsConfig, PPOConfig):
             grad_clip_by="global_norm",
         )
         return {"critic": h.critic or self.default_critic}
-
-    @override(PPOConfig)
-    def get_default_rl_module_spec(self) -> RLModuleSpec:
-        return RLModuleSpec(module_class=MAPPOTorchRLModule)
-
-    @override(PPOConfig)
-    def get_default_learner_class(self):
-        return MAPPOTorchLearner
 
     @override(PPOConfig)
     def validate(self) -> None:

@@ -42,7 +42,6 @@ from pydantic.dataclasses import dataclass as typed_dataclass
 from ray.rllib.algorithms.algorithm import Algorithm
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 from ray.rllib.core import DEFAULT_MODULE_ID
-from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 from ray.rllib.execution.rollout_ops import synchronous_parallel_sample
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 from ray.rllib.utils.annotations import override
@@ -142,6 +141,8 @@ class QMIXConfig(HParamsConfig, AlgorithmConfig):
     """AlgorithmConfig of QMIX (mixer="qmix") and VDN (mixer="vdn"); hyperparameters: QMIXHParams."""
 
     hparams_cls = QMIXHParams
+    module_class = QMixModule
+    learner_class = QMIXTorchLearner
     mixer = "qmix"
 
     def __init__(self, algo_class=None):
@@ -154,14 +155,6 @@ class QMIXConfig(HParamsConfig, AlgorithmConfig):
     def apply_hparams(self, h: QMIXHParams, scenario: ScenarioConfig) -> dict:
         self.training(lr=h.lr, gamma=h.gamma, grad_clip=h.grad_clip, grad_clip_by="global_norm")
         return {"mixer": self.mixer, "epsilon_anneal_env_steps": h.epsilon_anneal_env_steps}
-
-    @override(AlgorithmConfig)
-    def get_default_rl_module_spec(self) -> RLModuleSpec:
-        return RLModuleSpec(module_class=QMixModule)
-
-    @override(AlgorithmConfig)
-    def get_default_learner_class(self):
-        return QMIXTorchLearner
 
 
 class VDNConfig(QMIXConfig):
