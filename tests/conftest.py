@@ -77,3 +77,33 @@ def reference_greedy(g: np.ndarray, d: np.ndarray, r_comm: float, quota: int) ->
 @pytest.fixture
 def paper_cfg() -> ScenarioConfig:
     return ScenarioConfig()
+
+
+def write_tiny_grid(
+    tmp_path, name: str, *, mappo: dict, episode_len: int, budget: int, seeds=(0,), baselines=("random",),
+    episodes: int = 1, uri: str | None = None, **extra: Any,
+) -> str:
+    """A grid YAML of tiny MAPPO trials on V=6, U=2 (seconds per trial), with its storage and
+    sqlite MLflow store under tmp_path; `extra` adds or replaces top-level grid keys. The Tune,
+    cluster and bookkeeping tests build their grids here."""
+    import yaml
+
+    grid = {
+        "experiment": name,
+        "algorithms": {"mappo": mappo},
+        "baselines": list(baselines),
+        "seeds": list(seeds),
+        "n_eds": [6],
+        "n_uavs": [2],
+        "scenario": {"episode_len": episode_len},
+        "stop": {"env_steps": budget},
+        "checkpoint_every": 1,
+        "evaluation": {"episodes": episodes},
+        "resources": {"num_env_runners": 0, "num_envs_per_env_runner": 2, "torch_threads": 1},
+        "storage": str(tmp_path / "ray_results"),
+        "mlflow": {"tracking_uri": uri or f"sqlite:///{tmp_path / 'mlflow.db'}"},
+        **extra,
+    }
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(grid, sort_keys=False))
+    return str(path)

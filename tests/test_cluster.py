@@ -23,7 +23,8 @@ import time
 import urllib.request
 
 import pytest
-import yaml
+
+from conftest import write_tiny_grid
 
 pytestmark = pytest.mark.slow
 
@@ -83,25 +84,8 @@ def remove_worker(two_nodes) -> None:
 
 
 def make_grid(tmp_path, name: str, *, seeds=(0,), budget=20, baselines=("random",), uri=None, **extra) -> str:
-    grid = {
-        "experiment": name,
-        "algorithms": {"mappo": TINY_MAPPO},
-        "baselines": list(baselines),
-        "seeds": list(seeds),
-        "n_eds": [6],
-        "n_uavs": [2],
-        "scenario": {"episode_len": EPISODE_LEN},
-        "stop": {"env_steps": budget},
-        "checkpoint_every": 1,
-        "evaluation": {"episodes": 1},
-        "resources": {"num_env_runners": 0, "num_envs_per_env_runner": 2, "torch_threads": 1},
-        "storage": str(tmp_path / "ray_results"),
-        "mlflow": {"tracking_uri": uri or f"sqlite:///{tmp_path / 'mlflow.db'}"},
-        **extra,
-    }
-    path = tmp_path / f"{name}.yaml"
-    path.write_text(yaml.safe_dump(grid, sort_keys=False))
-    return str(path)
+    return write_tiny_grid(tmp_path, name, mappo=TINY_MAPPO, episode_len=EPISODE_LEN, budget=budget, seeds=seeds,
+                           baselines=baselines, uri=uri, **extra)
 
 
 def driver(grid_file: str, *args: str, cwd=None, env_extra=None) -> subprocess.Popen:

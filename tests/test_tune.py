@@ -16,11 +16,12 @@ import sys
 import time
 
 import pytest
-import yaml
 
 from uavlora_rllib import tune as tune_cli
 from uavlora_rllib.experiment.evaluation import EPISODE_METRICS
 from uavlora_rllib.experiment.tracking import git_commit
+
+from conftest import write_tiny_grid
 
 pytestmark = pytest.mark.slow
 
@@ -64,26 +65,9 @@ def ray_address():
 
 
 def make_grid(tmp_path, name: str, budget: int, max_concurrent: int | None = None) -> str:
-    grid = {
-        "experiment": name,
-        "algorithms": {ALGO: TINY_MAPPO},
-        "baselines": ["random", "fixed"],
-        "seeds": [0, 1],
-        "n_eds": [6],
-        "n_uavs": [2],
-        "scenario": {"episode_len": EPISODE_LEN},
-        "stop": {"env_steps": budget},
-        "checkpoint_every": 1,
-        "evaluation": {"episodes": 2},
-        "resources": {"num_env_runners": 0, "num_envs_per_env_runner": 2, "torch_threads": 1},
-        "storage": str(tmp_path / "ray_results"),
-        "mlflow": {"tracking_uri": f"sqlite:///{tmp_path / 'mlflow.db'}"},
-    }
-    if max_concurrent:
-        grid["max_concurrent_trials"] = max_concurrent
-    path = tmp_path / f"{name}.yaml"
-    path.write_text(yaml.safe_dump(grid, sort_keys=False))
-    return str(path)
+    extra = {"max_concurrent_trials": max_concurrent} if max_concurrent else {}
+    return write_tiny_grid(tmp_path, name, mappo=TINY_MAPPO, episode_len=EPISODE_LEN, budget=budget, seeds=(0, 1),
+                           baselines=("random", "fixed"), episodes=2, **extra)
 
 
 def mlflow_runs(tmp_path, experiment: str) -> list:
