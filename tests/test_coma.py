@@ -224,6 +224,26 @@ def test_learns_to_beat_random(trained):
     assert train_ee > SAMPLED_MARGIN * rnd.mean("ee_sys_mean")
 
 
+def test_updates_per_iteration_reuse_the_batch_with_a_clipped_ratio(trained):
+    """updates_per_iteration = 3: three learner updates (each moving the target critic) on
+    every sampled batch, the actor's term PPO's clipped surrogate around the sampling policy:
+    on the first update the ratio is 1 (the env runner's log-probabilities match the learner's),
+    so the clip fraction stays small, and the losses are finite."""
+    entry = registry.get("coma")
+    resources = registry.Resources(num_envs_per_env_runner=4)
+    hparams = entry.hparams({"updates_per_iteration": 3, "batch_episodes": 4, "critic_steps": 1})
+    algo = entry.build(trained["scenario"], hparams, resources, 0).build_algo()
+    try:
+        for i in (1, 2):
+            result = algo.train()
+            stats = result["learners"]["default_policy"]
+            assert int(result["num_gradient_updates_lifetime"]) == 3 * i
+            assert 0.0 <= float(stats["clip_fraction"]) < 0.5
+            assert np.isfinite(float(stats["actor_loss"])) and np.isfinite(float(stats["critic_loss"]))
+    finally:
+        algo.stop()
+
+
 def test_checkpoint_round_trip(trained):
     from ray.rllib.algorithms.algorithm import Algorithm
 

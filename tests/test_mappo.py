@@ -219,6 +219,35 @@ def test_separate_actors_per_uav():
     assert out["action_dist_inputs"].shape == (2, 3, 2, SMALL.n_joint_actions)
 
 
+def test_shared_actor_with_per_uav_heads():
+    """actor_agent_heads: a shared trunk plus each UAV's own output layer. The heads start at
+    zero (the near-uniform initial policy stays), and once trained they let two UAVs with the
+    same observation and history act differently; without a shared actor the switch is refused."""
+    from ray.rllib.core.rl_module.rl_module import RLModuleSpec
+
+    spec = RLModuleSpec(
+        module_class=MAPPOTorchRLModule,
+        observation_space=team_observation_space(SMALL),
+        action_space=team_action_space(SMALL),
+        model_config={"critic": "central", "state_dim": state_dim(SMALL), "share_actor": True,
+                      "actor_agent_heads": True, "max_seq_len": 8},
+    )
+    m = spec.build()
+    assert m.actor.agent_out is not None and float(m.actor.agent_out.abs().sum()) == 0.0
+    same = torch.rand(1, 1, 1, obs_dim(SMALL)).expand(1, 1, SMALL.n_uavs, -1)
+    h0 = {"h": torch.zeros(1, SMALL.n_uavs, 128)}
+    m.actor.nets[0].inp.weight.data[:, obs_dim(SMALL):] = 0.0  # no agent-id input: only the heads differ
+    logits = m.forward_train({"obs": same, "state_in": h0})["action_dist_inputs"]
+    assert torch.allclose(logits[0, 0, 0], logits[0, 0, 1])
+    with torch.no_grad():
+        m.actor.agent_out.normal_(0, 1.0)
+    logits = m.forward_train({"obs": same, "state_in": h0})["action_dist_inputs"]
+    assert not torch.allclose(logits[0, 0, 0], logits[0, 0, 1])
+    entry = registry.get("mappo")
+    with pytest.raises(ConfigError, match=r"algorithms\.mappo\.actor_agent_heads: true needs share_actor: true"):
+        entry.build(SMALL, entry.hparams({"actor_agent_heads": True, "share_actor": False}), RES, 0)
+
+
 # ---------------------------------------------------------------- GRU state
 def test_module_carries_gru_state():
     m = _module(SMALL)

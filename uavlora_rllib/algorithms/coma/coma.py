@@ -6,8 +6,9 @@ MultiDiscrete([90] * U), shared reward, global state in info["state"]); each env
 N scenarios through one vectorised BatchCore. One training iteration:
   1. sample `batch_episodes` whole episodes (T = episode_len steps each) with the current
      policy (see `_sample_episodes` for why it asks for timesteps, not episodes),
-  2. one learner update: critic TD(lambda) loss + counterfactual actor loss (coma_learner.py),
-  3. target critic update (soft tau per update, or hard every K updates),
+  2. one learner update (`updates_per_iteration` of them on the same batch): critic TD(lambda)
+     loss + counterfactual actor loss (coma_learner.py),
+  3. target critic update after each update (soft tau per update, or hard every K updates),
   4. sync the actor's weights to the env runners (inference-only: they never hold the critic).
 Networks: coma_module.py. Hyperparameters: `COMAHParams` (grid YAML `algorithms.coma`,
 `--list-hparams coma`). Execution (common/policy.py): greedy = argmax of each UAV's actor
@@ -91,6 +92,17 @@ class COMAHParams:
     critic_steps: int = Field(
         4, ge=0, description="critic-only gradient steps on each batch before the joint step [steps] (critic first, as in the paper)"
     )
+    updates_per_iteration: int = Field(
+        1,
+        ge=1,
+        description="learner updates (critic steps + joint step + target move) on each sampled batch [updates]; "
+        "> 1 turns the actor's term into PPO's clipped surrogate r A (r = pi / pi_sampling per UAV, clipped at "
+        "1 +- ratio_clip), because from the second update on the batch is off-policy; 1: COMA's plain "
+        "on-policy gradient",
+    )
+    ratio_clip: float = Field(
+        0.2, gt=0, le=1, description="clip of each UAV's probability ratio when updates_per_iteration > 1 [-]"
+    )
     critic_warmup_updates: int = Field(0, ge=0, description="first updates that train the critic only [updates]; 0: off")
     normalize_advantages: bool = Field(False, description="standardise the advantages over the batch [bool] (not in COMA)")
     reward_scale: float = Field(1.0, gt=0, description="factor on the rewards in the critic targets [-]")
@@ -158,16 +170,23 @@ class COMA(Algorithm):
         self.metrics.aggregate(runner_metrics, key=ENV_RUNNER_RESULTS)
         self.metrics.log_value("num_episodes_trained", len(episodes), reduce="sum")
 
-        with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
-            learner_results = self.learner_group.update(
-                episodes=episodes,
-                timesteps={
-                    NUM_ENV_STEPS_SAMPLED_LIFETIME: self.metrics.peek(
-                        (ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0
-                    )
-                },
-            )
-        self.metrics.aggregate(learner_results, key=LEARNER_RESULTS)
+        # updates_per_iteration > 1: the same episodes again (the learner clips the actor's
+        # probability ratio to the policy that sampled them, their ACTION_LOGP)
+        for _ in range(self.config.hparams.updates_per_iteration):
+            with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
+                learner_results = self.learner_group.update(
+                    episodes=episodes,
+                    timesteps={
+                        NUM_ENV_STEPS_SAMPLED_LIFETIME: self.metrics.peek(
+                            (ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0
+                        )
+                    },
+                )
+            self.metrics.aggregate(learner_results, key=LEARNER_RESULTS)
+        # lifetime counter in the metrics logger, which checkpoints keep (as QMIX's)
+        self.metrics.log_value(
+            "num_gradient_updates_lifetime", self.config.hparams.updates_per_iteration, reduce="lifetime_sum"
+        )
 
         with self.metrics.log_time((TIMERS, SYNCH_WORKER_WEIGHTS_TIMER)):
             self.env_runner_group.sync_weights(from_worker_or_learner_group=self.learner_group, inference_only=True)

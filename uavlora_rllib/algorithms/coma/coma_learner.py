@@ -6,7 +6,7 @@ replaced by `COMAEpisodeBatch`, which stacks B complete episodes of length T int
 [B, T(+1), ...] tensors. The actor's GRU is unrolled over the whole episode from a zero state
 (exactly what the env runner did while sampling), so no sequence length needs choosing.
 
-One update per sampled batch (on-policy):
+One update per sampled batch (on-policy; `updates_per_iteration` > 1 reuses the batch, see below):
   critic loss  = mean_{b,t,u} (Q_u(s_t, a_t,-u)[a_t,u] - G^lambda_t,u)^2, G from the TARGET critic
   actor loss   = -mean_{b,t,u} A_t,u log pi_u(a_t,u | tau_t,u) - entropy_coeff * mean entropy,
                  A_t,u = Q_u(s_t, a_t)[a_t,u] - sum_a' pi_u(a' | tau_t,u) Q_u(s_t, (a_t,-u, a'))
@@ -17,6 +17,10 @@ does not involve the actor), two Adam optimizers with their own learning rates a
 grad-norm clipping, so the advantage comes from the critic after its critic-only steps
 (critic_steps = 0: a purely joint step, the advantage from the critic before this batch).
 Then the target critic moves: Polyak tau per update, or a hard copy every K updates.
+updates_per_iteration = K > 1: the algorithm runs K such updates on one batch; from the second on
+the batch is off-policy, so the actor term becomes PPO's clipped surrogate
+min(r A, clip(r, 1 -+ ratio_clip) A) with r = pi_u / pi_u,sampling per UAV and step (gradient
+A grad log pi at r = 1, as COMA's); the critic's targets are recomputed each update.
 Counters (`_updates`: warm-up, hard-update period) restart at 0 after a checkpoint restore.
 """
 
@@ -27,6 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 from ray.rllib.connectors.connector_v2 import ConnectorV2
+from ray.rllib.core.columns import Columns
 from ray.rllib.core import DEFAULT_MODULE_ID
 from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 from ray.rllib.utils.annotations import override
@@ -47,6 +52,7 @@ from uavlora_rllib.algorithms.coma.coma_module import (
 )
 
 ACTOR_OPT, CRITIC_OPT = "actor", "critic"
+SAMPLED_LOGP = "coma_sampled_logp"  # [B, T, U] log pi_u(a_t,u) of the policy that sampled the batch
 
 
 class COMAEpisodeBatch(ConnectorV2):
@@ -66,13 +72,18 @@ class COMAEpisodeBatch(ConnectorV2):
         obs = np.stack([np.asarray(ep.get_observations(), dtype=np.float32) for ep in episodes])
         actions = np.stack([np.asarray(ep.get_actions(), dtype=np.int64) for ep in episodes])
         rewards = np.stack([np.asarray(ep.get_rewards(), dtype=np.float32) for ep in episodes])
+        # the sampling policy's per-UAV log-probabilities: the ratio's denominator when the
+        # batch is reused (updates_per_iteration > 1)
+        logp = np.stack(
+            [np.asarray(ep.get_extra_model_outputs(Columns.ACTION_LOGP), dtype=np.float32) for ep in episodes]
+        )
         state = np.stack(
             [np.stack([np.asarray(i[GLOBAL_STATE], dtype=np.float32) for i in ep.get_infos()]) for ep in episodes]
         )
         # on the learner's device (a GPU learner): RLlib's default connectors, which would move
         # them, are replaced by this one
         device = next(rl_module[DEFAULT_MODULE_ID].parameters()).device
-        cols = {OBS: obs, ACTIONS: actions, REWARDS: rewards, GLOBAL_STATE: state}
+        cols = {OBS: obs, ACTIONS: actions, REWARDS: rewards, GLOBAL_STATE: state, SAMPLED_LOGP: logp}
         return {DEFAULT_MODULE_ID: {k: torch.from_numpy(v).to(device) for k, v in cols.items()}}
 
 
@@ -163,7 +174,16 @@ class COMATorchLearner(TorchLearner):
             adv = (adv - adv.mean()) / (adv.std() + 1e-8)
         logp = torch.gather(logp_all, -1, actions.unsqueeze(-1)).squeeze(-1)
         entropy = -(pi * logp_all).sum(-1).mean()
-        actor_loss = -(adv * logp).mean() - hp.entropy_coeff * entropy
+        if hp.updates_per_iteration > 1:
+            # the batch is reused: PPO's clipped surrogate per UAV around the sampling policy
+            # (on the first update r = 1 and its gradient is COMA's A grad log pi)
+            ratio = torch.exp(logp - batch[SAMPLED_LOGP])
+            adv = adv.detach()
+            surrogate = torch.min(ratio * adv, ratio.clamp(1 - hp.ratio_clip, 1 + hp.ratio_clip) * adv)
+            actor_loss = -surrogate.mean() - hp.entropy_coeff * entropy
+            self.metrics.log_value((module_id, "clip_fraction"), ((ratio - 1).abs() > hp.ratio_clip).float().mean().detach(), window=1)
+        else:
+            actor_loss = -(adv * logp).mean() - hp.entropy_coeff * entropy
         if self._updates < hp.critic_warmup_updates:
             actor_loss = actor_loss * 0.0  # critic only: the advantage is meaningless before it fits
         self.metrics.log_dict(

@@ -86,6 +86,8 @@ class RecurrentAgentNet(nn.Module):
             width = out_hidden or gru_hidden
             bound = 1.0 / np.sqrt(width)  # nn.Linear's default range for this fan-in
             self.agent_out = nn.Parameter(torch.empty(n_agents, width, n_out).uniform_(-bound, bound))
+            if out_gain is not None:  # the heads start at zero: the near-uniform policy of out_gain stays
+                nn.init.zeros_(self.agent_out)
 
     def initial_state(self, batch: int | None = None) -> torch.Tensor:
         """Zero GRU state: [U, H], or [batch, U, H]."""

@@ -81,6 +81,11 @@ class MAPPOHParams:
         "interference punishes: greedy 0.23 -> 0.9998 of the greedy baseline at V=60/U=4, 100k env steps; "
         "BENCHMARKS.md 'Learning at scale')",
     )
+    actor_agent_heads: bool = Field(
+        False,
+        description="with share_actor=true: each UAV also gets its own linear output layer on the shared "
+        "GRU trunk, added to the shared one (as COMA's actor) [bool]",
+    )
     critic: Literal["central", "local"] | None = Field(
         None,
         description="'central' (V(s, u) on the global state, MAPPO) | 'local' (V(o_u, u), IPPO); "
@@ -92,7 +97,13 @@ class MAPPOHParams:
     )
 
     def check(self, scenario: ScenarioConfig, resources: Resources, path: str) -> None:
-        """A minibatch must hold at least one GRU sequence of the scenario's episodes."""
+        """A minibatch must hold at least one GRU sequence of the scenario's episodes; per-UAV
+        heads need the shared actor they sit on."""
+        if self.actor_agent_heads and not self.share_actor:
+            raise ConfigError(
+                f"{path}.actor_agent_heads: true needs share_actor: true (one actor per UAV already has "
+                "its own output layer); allowed: false, or share_actor: true"
+            )
         minibatch = self.batch_episodes * scenario.episode_len // self.num_minibatches
         if minibatch < min(self.max_seq_len, scenario.episode_len):
             raise ConfigError(

@@ -100,7 +100,7 @@ class Critic(nn.Module):
 
 class MAPPOTorchRLModule(TorchRLModule, ValueFunctionAPI, InferenceOnlyAPI):
     """See module docstring. model_config: MAPPOHParams' fields (gru_hidden, fc_hidden,
-    critic_hidden, share_actor, value_norm, max_seq_len), critic ("central" | "local", resolved
+    critic_hidden, share_actor, actor_agent_heads, value_norm, max_seq_len), critic ("central" | "local", resolved
     by the algorithm), state_dim, torch_threads."""
 
     @override(TorchRLModule)
@@ -122,6 +122,7 @@ class MAPPOTorchRLModule(TorchRLModule, ValueFunctionAPI, InferenceOnlyAPI):
             fc_hidden=fc_hidden,
             gru_hidden=int(mc.get("gru_hidden", 128)),
             share=bool(mc.get("share_actor", False)),
+            agent_heads=bool(mc.get("share_actor", False)) and bool(mc.get("actor_agent_heads", False)),
             out_hidden=fc_hidden,
             out_gain=0.01,  # near-uniform initial policy (standard for PPO actors)
         )
