@@ -58,7 +58,7 @@ CI: dict[str, tuple[dict, int]] = {
     "ippo": (_PPO_CI, 40),  # 6,400 env steps: 1.90x random, seed 0
     "qmix": (_Q_CI, 100),  # 100 x 4 episodes x 20 slots = 8,000 env steps
     "vdn": (_Q_CI, 100),
-    "coma": ({"lr_actor": 3e-4, "lr_critic": 1e-3}, 100),  # 100 x 16 episodes x 20 slots = 32,000 env steps
+    "coma": ({"lr_actor": 3e-4, "lr_critic": 1e-3}, 40),  # 40 x 16 episodes x 20 slots = 12,800 env steps, 8 updates each
 }
 PER_DEVICE = SMALL.replace(action_mode="per_device")  # MAPPO's per-device action mode (one SF/TP per ED)
 PER_DEVICE_CI = (_PPO_CI, 80)

@@ -93,12 +93,14 @@ class COMAHParams:
         4, ge=0, description="critic-only gradient steps on each batch before the joint step [steps] (critic first, as in the paper)"
     )
     updates_per_iteration: int = Field(
-        1,
+        8,
         ge=1,
         description="learner updates (critic steps + joint step + target move) on each sampled batch [updates]; "
         "> 1 turns the actor's term into PPO's clipped surrogate r A (r = pi / pi_sampling per UAV, clipped at "
         "1 +- ratio_clip), because from the second update on the batch is off-policy; 1: COMA's plain "
-        "on-policy gradient",
+        "on-policy gradient (decision: 1 -> 8 took greedy EE from 0.63 to 1.000 of the optimum at V=10/U=2 "
+        "within 60k env steps and from 0.73 to 0.998 of the greedy baseline at V=60/U=4; BENCHMARKS.md "
+        "'Learning at scale')",
     )
     ratio_clip: float = Field(
         0.2, gt=0, le=1, description="clip of each UAV's probability ratio when updates_per_iteration > 1 [-]"
