@@ -210,9 +210,20 @@ def test_bench_learn_steps_to_target_and_table(tmp_path, capsys):
     assert bench_learn.steps_to_share(curve, 0.99) is None
     row = {"learner": "mappo", "n_eds": 60, "n_uavs": 4, "action_mode": "per_uav", "seed": 0, "tag": "t", "env_steps": 30_000,
            "greedy_ee": 8_500.0, "greedy_share": 0.85, "sampled_share": None, "env_steps_to_target": 20_000, "target": 0.9,
-           "reference": "greedy", "reference_ee": 10_000.0, "random_ee": 5_000.0, "train_s": 12.0, "wall_s": 15.0}
+           "reference": "greedy", "reference_ee": 10_000.0, "random_ee": 5_000.0, "train_s": 12.0, "wall_s": 15.0,
+           "budget_env_steps": 30_000, "curve": curve}
     path = tmp_path / "r.jsonl"
     path.write_text(json.dumps(row) + "\n")
     assert bench_learn.main(["--table", str(path)]) == 0
-    last = capsys.readouterr().out.strip().splitlines()[-1]
-    assert "| 60 | 4 | per_uav | mappo | t | 0 | 30,000 | 0.850 | - | 20,000 (90%) | 1.70 | greedy 10,000 | 0.500 |" in last
+    out = capsys.readouterr().out
+    assert "| 60 | 4 | per_uav | mappo | t | 0 | 30,000 | 0.850 | - | 20,000 (90%) | 1.70 | greedy 10,000 | 0.500 |" in out
+    # one seed at 30k: no verdict on the 3-seed, 200k target
+    assert out.strip().splitlines()[-1].startswith("| 60 | 4 | per_uav | mappo | t | 30,000 | 0 | 0.850 | 0.850 | - | 0.85 | n/a |")
+    # three seeds at 200k: the mean decides (U=4: 0.85), and V=10/U=2 also at 60k (0.9)
+    rows = [dict(row, seed=s, budget_env_steps=200_000, greedy_share=g) for s, g in ((0, 0.95), (1, 0.9), (2, 0.6))]
+    rows += [dict(row, n_eds=10, n_uavs=2, seed=s, budget_env_steps=200_000, greedy_share=1.0,
+                  curve=[{"env_steps": 60_000, "greedy_share": g}, {"env_steps": 200_000, "greedy_share": 1.0}])
+             for s, g in ((0, 0.95), (1, 0.9), (2, 0.8))]
+    lines = bench_learn.summary_table(rows).splitlines()
+    assert lines[2].endswith("| 0,1,2 | 0.817 | 0.600 | - | 0.85 | missed | - |")
+    assert lines[3].endswith("| 0,1,2 | 1.000 | 1.000 | - | 0.95 | met | 0.883 missed |")

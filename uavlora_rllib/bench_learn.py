@@ -245,6 +245,59 @@ def markdown_table(rows: Sequence[dict]) -> str:
     return "\n".join(lines)
 
 
+# Issue 13's targets for the mean greedy share over >= 3 seeds at >= 200k env steps, by U; and
+# at V=10/U=2 the mean greedy share at 60k env steps.
+TARGET_SEEDS, TARGET_BUDGET = 3, 200_000
+EARLY_TARGET = (10, 2, 60_000, 0.9)  # (V, U, env steps, share)
+
+
+def share_target(n_uavs: int) -> float:
+    """The greedy-share target of a scenario with n_uavs UAVs (0.95 / 0.85 / 0.75)."""
+    return 0.95 if n_uavs <= 2 else 0.85 if n_uavs <= 4 else 0.75
+
+
+def share_at(row: dict, env_steps: int) -> float | None:
+    """The greedy share of the last evaluation at or before `env_steps` (None: none was made)."""
+    points = [p for p in row["curve"] if p["env_steps"] <= env_steps]
+    return points[-1]["greedy_share"] if points else None
+
+
+def _mean(xs: Sequence[float | None]) -> float | None:
+    xs = [x for x in xs if x is not None]
+    return sum(xs) / len(xs) if xs else None
+
+
+def summary_table(rows: Sequence[dict]) -> str:
+    """One line per (scenario, mode, learner, tag, budget): the mean over seeds of the greedy and
+    sampled shares, the worst seed, and the verdict on the target (issue 13), which needs
+    >= TARGET_SEEDS seeds at >= TARGET_BUDGET env steps (else 'n/a')"""
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        key = (r["n_eds"], r["n_uavs"], r["action_mode"], r["learner"], r.get("tag") or "", r["budget_env_steps"])
+        groups.setdefault(key, []).append(r)
+    lines = [
+        "| V | U | mode | learner | tag | budget | seeds | mean greedy share | worst seed | mean sampled share | "
+        "target | verdict | mean share at 60k |",
+        "|---:|---:|---|---|---|---:|---|---:|---:|---:|---:|---|---:|",
+    ]
+    for (v, u, mode, learner, tag, budget), rs in groups.items():
+        greedy = _mean([r["greedy_share"] for r in rs])
+        worst = min(r["greedy_share"] for r in rs)
+        target = share_target(u)
+        enough = len({r["seed"] for r in rs}) >= TARGET_SEEDS and budget >= TARGET_BUDGET
+        verdict = "n/a" if mode != "per_uav" or not enough else ("met" if greedy >= target else "missed")
+        early = "-"
+        if (v, u) == EARLY_TARGET[:2] and mode == "per_uav":
+            at = _mean([share_at(r, EARLY_TARGET[2]) for r in rs])
+            early = _fmt(at) + ("" if at is None else (" met" if at >= EARLY_TARGET[3] else " missed"))
+        seeds = ",".join(str(r["seed"]) for r in rs)
+        lines.append(
+            f"| {v} | {u} | {mode} | {learner} | {tag} | {budget:,} | {seeds} | {_fmt(greedy)} | {_fmt(worst)} | "
+            f"{_fmt(_mean([r.get('sampled_share') for r in rs]))} | {target:.2f} | {verdict} | {early} |"
+        )
+    return "\n".join(lines)
+
+
 def read_results(path: str) -> list[dict]:
     rows = []
     with open(path) as f:
@@ -285,7 +338,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
         if args.table is not None:
-            print(markdown_table(read_results(args.table)))
+            rows = read_results(args.table)
+            print(markdown_table(rows))
+            print(f"\nMean over seeds (targets: greedy share >= 0.95 at U=2, 0.85 at U=4, 0.75 at U=8, mean of "
+                  f">= {TARGET_SEEDS} seeds at >= {TARGET_BUDGET:,} env steps; V=10/U=2 >= 0.9 at 60k):\n")
+            print(summary_table(rows))
             return 0
         trials, overrides = _setup(args)
     except (UsageError, ConfigError) as exc:
