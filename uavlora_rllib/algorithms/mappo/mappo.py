@@ -71,7 +71,13 @@ class MAPPOHParams:
     gru_hidden: int = Field(128, ge=1, description="GRU width of the actor [units] (paper)")
     fc_hidden: int = Field(128, ge=1, description="width of the actor's ReLU layers before and after the GRU [units]")
     critic_hidden: int = Field(128, ge=1, description="width of the critic's two ReLU layers [units] (decision)")
-    entropy_coeff: float = Field(0.01, ge=0.0, description="weight of the mean per-agent entropy bonus [-] (decision)")
+    entropy_coeff: float = Field(
+        0.001,
+        ge=0.0,
+        description="weight of the mean per-agent entropy bonus [-] (decision: 0.01 -> 0.001 took greedy EE at "
+        "V=60/U=8 from 0.60 to 0.95 (MAPPO) and 0.50 to 0.85 (IPPO) of the greedy baseline at 100k env steps, "
+        "1.000 at V=60/U=4 and V=10/U=2 kept; BENCHMARKS.md 'Learning at scale')",
+    )
     vf_loss_coeff: float = Field(1.0, ge=0.0, description="weight of the value loss [-] (actor and critic share Adam)")
     grad_clip: float | None = Field(10.0, gt=0.0, description="global gradient-norm clip [-]; null: off (decision)")
     share_actor: bool = Field(
