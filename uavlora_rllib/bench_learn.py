@@ -26,6 +26,10 @@ env steps at which the greedy share first reached `--target` (0.9), the curve of
 evaluation, the training-time EE of the episodes the learner sampled (on training scenarios;
 context only, never the judge), and wall time (training alone, and with the evaluations).
 
+`--table FILE` prints every trial, then the mean over seeds per (scenario, learner, tag, budget)
+with issue 13's verdict: mean greedy share >= 0.95 at U=2, 0.85 at U=4, 0.75 at U=8, judged only
+where >= 3 seeds ran at >= 200k env steps (else 'n/a'), and at V=10/U=2 the mean share at 60k.
+
 Learners are judged on the execution phase only, never on training return.
 """
 
