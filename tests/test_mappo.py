@@ -66,7 +66,7 @@ def test_registered_with_both_action_modes():
         assert set(entry.action_modes) == {"per_uav", "per_device"}
     h = registry.get("mappo").hparams(None)
     assert (h.lr, h.gamma, h.clip_param, h.num_epochs, h.gru_hidden, h.batch_episodes) == (1e-4, 0.99, 0.2, 15, 128, 16)
-    assert (h.lambda_, h.entropy_coeff, h.grad_clip) == (0.95, 0.001, 10.0)
+    assert (h.lambda_, h.entropy_coeff, h.grad_clip) == (0.0, 0.001, 10.0)
 
 
 @pytest.mark.parametrize(
