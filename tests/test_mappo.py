@@ -233,7 +233,7 @@ def test_shared_actor_with_per_uav_heads():
                       "actor_agent_heads": True, "max_seq_len": 8},
     )
     m = spec.build()
-    assert m.actor.agent_out is not None and float(m.actor.agent_out.abs().sum()) == 0.0
+    assert m.actor.agent_out is not None and float(m.actor.agent_out.detach().abs().sum()) == 0.0
     same = torch.rand(1, 1, 1, obs_dim(SMALL)).expand(1, 1, SMALL.n_uavs, -1)
     h0 = {"h": torch.zeros(1, SMALL.n_uavs, 128)}
     m.actor.nets[0].inp.weight.data[:, obs_dim(SMALL):] = 0.0  # no agent-id input: only the heads differ
