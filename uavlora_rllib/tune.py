@@ -160,7 +160,7 @@ def trial_config(spec: TrialSpec, grid: GridConfig) -> dict[str, Any]:
         "n_eds": spec.n_eds,
         "n_uavs": spec.n_uavs,
         "scenario": spec.scenario.to_dict(),
-        "overrides": algorithm_overrides(grid, spec.algorithm, registry.get(spec.algorithm)),
+        "overrides": algorithm_overrides(grid, spec.algorithm),
         "hparams": hparams_dict(spec.hparams),
         "resources": dataclasses.asdict(grid.resources),
         "budget_env_steps": grid.stop.env_steps,

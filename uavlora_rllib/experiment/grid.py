@@ -29,8 +29,10 @@ Schema (see tune_configs/smoke.yaml for a complete example)::
     max_concurrent_trials: null  # optional cap
     plugins: []                  # optional: modules to import that register more algorithms
 
-An algorithm whose hyperparameters have `t_max_env_steps` (QMIX/VDN: the epsilon schedule is
-a fraction of T_max) gets `stop.env_steps` there unless its overrides set it.
+`t_max_env_steps` (QMIX/VDN: the epsilon schedule is a fraction of T_max) is NOT tied to
+`stop.env_steps`: it stays at the paper's 2M unless the YAML sets it, so a short grid explores
+as the paper's first env steps do (a 60k budget as T_max annealed epsilon within 3k env steps,
+and VDN then stayed on one SF for both UAVs, BENCHMARKS.md "Learning at scale").
 A plugin module registers entries with `registry.register(...)` and adds each name to
 `registry.MODULES` (name -> its own module) so that workers can import it too.
 
@@ -342,15 +344,9 @@ def import_plugins(modules: list[str], prefix: str = "plugins") -> None:
             ) from None
 
 
-def algorithm_overrides(grid: GridConfig, name: str, entry: Any) -> dict[str, Any]:
-    """The YAML overrides of one algorithm, plus T_max = stop.env_steps for algorithms whose
-    hyperparameters have a `t_max_env_steps` field (schedules such as QMIX's epsilon anneal
-    over 5% of T_max) unless the YAML sets it."""
-    overrides = dict(grid.algorithms.get(name) or {})
-    fields = {f.name for f in dataclasses.fields(entry.hparams_cls)}
-    if "t_max_env_steps" in fields and "t_max_env_steps" not in overrides:
-        overrides["t_max_env_steps"] = grid.stop.env_steps
-    return overrides
+def algorithm_overrides(grid: GridConfig, name: str) -> dict[str, Any]:
+    """The YAML overrides of one algorithm (a copy)."""
+    return dict(grid.algorithms.get(name) or {})
 
 
 def scenario_for(grid: GridConfig, n_eds: int, n_uavs: int) -> ScenarioConfig:
@@ -366,7 +362,7 @@ def _validate(grid: GridConfig) -> None:
     entries = {}
     for name in grid.algorithms:
         entry = registry.get(name, path=f"algorithms.{name}")
-        hparams = entry.hparams(algorithm_overrides(grid, name, entry), prefix=f"algorithms.{name}")
+        hparams = entry.hparams(algorithm_overrides(grid, name), prefix=f"algorithms.{name}")
         entries[name] = (entry, hparams)
 
     from uavlora_rllib.baselines.policies import BASELINES, make_baseline
@@ -439,7 +435,7 @@ def trials(grid: GridConfig) -> list[TrialSpec]:
     out = []
     for name in grid.algorithms:
         entry = registry.get(name, path=f"algorithms.{name}")
-        hparams = entry.hparams(algorithm_overrides(grid, name, entry), prefix=f"algorithms.{name}")
+        hparams = entry.hparams(algorithm_overrides(grid, name), prefix=f"algorithms.{name}")
         for seed, n_eds, n_uavs in itertools.product(grid.seeds, grid.n_eds, grid.n_uavs):
             out.append(TrialSpec(name, seed, n_eds, n_uavs, scenario_for(grid, n_eds, n_uavs), hparams))
     return out

@@ -178,12 +178,11 @@ class COMATorchLearner(TorchLearner):
             # the batch is reused: PPO's clipped surrogate per UAV around the sampling policy
             # (on the first update r = 1 and its gradient is COMA's A grad log pi)
             ratio = torch.exp(logp - batch[SAMPLED_LOGP])
-            adv = adv.detach()
             surrogate = torch.min(ratio * adv, ratio.clamp(1 - hp.ratio_clip, 1 + hp.ratio_clip) * adv)
-            actor_loss = -surrogate.mean() - hp.entropy_coeff * entropy
-            self.metrics.log_value((module_id, "clip_fraction"), ((ratio - 1).abs() > hp.ratio_clip).float().mean().detach(), window=1)
+            clip_fraction = ((ratio - 1).abs() > hp.ratio_clip).float().mean().detach()
         else:
-            actor_loss = -(adv * logp).mean() - hp.entropy_coeff * entropy
+            surrogate, clip_fraction = adv * logp, torch.zeros(())
+        actor_loss = -surrogate.mean() - hp.entropy_coeff * entropy
         if self._updates < hp.critic_warmup_updates:
             actor_loss = actor_loss * 0.0  # critic only: the advantage is meaningless before it fits
         self.metrics.log_dict(
@@ -195,6 +194,7 @@ class COMATorchLearner(TorchLearner):
                 "td_target_mean": targets.mean(),
                 "advantage_abs_mean": adv.detach().abs().mean(),
                 "baseline_mean": baseline.mean(),
+                "clip_fraction": clip_fraction,
             },
             key=module_id,
             window=1,

@@ -122,7 +122,7 @@ class MAPPOTorchRLModule(TorchRLModule, ValueFunctionAPI, InferenceOnlyAPI):
             fc_hidden=fc_hidden,
             gru_hidden=int(mc.get("gru_hidden", 128)),
             share=bool(mc.get("share_actor", False)),
-            agent_heads=bool(mc.get("share_actor", False)) and bool(mc.get("actor_agent_heads", False)),
+            agent_heads=bool(mc.get("actor_agent_heads", False)),  # RecurrentAgentNet refuses it unshared
             out_hidden=fc_hidden,
             out_gain=0.01,  # near-uniform initial policy (standard for PPO actors)
         )

@@ -111,7 +111,10 @@ class QMIXHParams:
         0.05, ge=0, le=1, description="share of t_max_env_steps over which epsilon anneals linearly [-] (5%)"
     )
     t_max_env_steps: int = Field(
-        2_000_000, ge=1, description="training budget T_max [env steps] (the grid sets it to stop.env_steps)"
+        2_000_000,
+        ge=1,
+        description="the paper's training budget T_max [env steps]: the epsilon schedule is a share of it; "
+        "independent of a grid's stop.env_steps, so a short run explores as the paper's first env steps do"
     )
 
     @model_validator(mode="after")
