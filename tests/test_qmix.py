@@ -87,6 +87,24 @@ def test_qmix_mixer_is_monotonic_and_vdn_sums_exactly():
     assert torch.equal(VDNMixer()(q2, torch.zeros(7, 3, 1)), q2.sum(-1))
 
 
+def test_vdn_state_bias_adds_a_state_value_that_leaves_every_uav_gradient_at_one():
+    torch.manual_seed(0)
+    u, s_dim = 3, 5
+    mixer = VDNMixer(s_dim, embed_dim=8, state_bias=True)
+    q = torch.randn(4, 6, u, requires_grad=True)
+    state = torch.randn(4, 6, s_dim)
+    out = mixer(q, state)
+    out.sum().backward()
+    assert torch.equal(q.grad, torch.ones_like(q))  # dQ_tot/dQ_u = 1: still VDN's credit assignment
+    v = out.detach() - q.detach().sum(-1)
+    torch.testing.assert_close(v, mixer.v(state).squeeze(-1).detach())
+    assert v.std() > 0  # a function of the state, not a constant
+    # the module builds it from the config, and execution (the agent network alone) ignores it
+    mod = _module(n_agents=u, state_dim=s_dim, mixer="vdn", vdn_state_bias=True)
+    assert isinstance(mod.mixer, VDNMixer) and mod.mixer.v is not None
+    assert _module(n_agents=u, state_dim=s_dim, mixer="vdn").mixer.v is None
+
+
 def _brute_nstep(r, nxt, term, gamma, n):
     b, t = r.shape
     y = np.zeros((b, t))

@@ -84,7 +84,14 @@ class QMIXHParams:
         "baseline at V=60/U=4, 0.22 -> 1.00 of the optimum at V=10/U=2; QMIX 0.91 -> 0.96 at V=60/U=8; "
         "BENCHMARKS.md 'Learning at scale')",
     )
-    mixing_embed_dim: int = Field(32, ge=1, description="QMIX mixing-network width [units] (Rashid et al.); unused by VDN")
+    mixing_embed_dim: int = Field(
+        32, ge=1, description="QMIX mixing-network width, also VDN's V(s) width [units] (Rashid et al.)"
+    )
+    vdn_state_bias: bool = Field(
+        False,
+        description="VDN only: Q_tot = sum_u Q_u + V(s), Rashid et al.'s VDN-S [bool]; execution is unchanged; "
+        "unused by QMIX, whose mixer always has V(s)",
+    )
     hypernet_embed_dim: int = Field(
         64, ge=1, description="hidden width of the 2-layer weight hypernetworks [units]; unused by VDN"
     )

@@ -11,7 +11,9 @@ Agent network: the common `RecurrentAgentNet` (one per UAV by default; shared wi
 The one-hot id is only appended when the network is shared.
 
 Mixers (Rashid et al. 2018/2020):
-  vdn:  Q_tot = sum_u Q_u
+  vdn:  Q_tot = sum_u Q_u, plus V(s) (a 2-layer MLP, mixing_embed_dim) with vdn_state_bias: the
+        "VDN-S" of Rashid et al.'s ablation. V(s) takes the state's value, which the UAVs' local
+        Q-values cannot split among themselves; execution (argmax of each Q_u) is unchanged.
   qmix: Q_tot = |W2(s)|^T ELU(|W1(s)|^T q + b1(s)) + V(s); W1, W2 from 2-layer hypernetworks
         (hypernet_embed_dim), b1 from one linear layer, V(s) a 2-layer MLP (mixing_embed_dim).
         Absolute weights make dQ_tot/dQ_u >= 0 (monotonic).
@@ -55,10 +57,19 @@ def linear_epsilon(t: int | float, start: float, end: float, anneal_steps: int |
 
 
 class VDNMixer(nn.Module):
+    """Sum of the UAVs' Q-values, optionally plus a state-value term V(s) (VDN-S)."""
+
+    def __init__(self, state_dim: int = 0, embed_dim: int = 32, state_bias: bool = False):
+        super().__init__()
+        self.v = (
+            nn.Sequential(nn.Linear(state_dim, embed_dim), nn.ReLU(), nn.Linear(embed_dim, 1)) if state_bias else None
+        )
+
     @override(nn.Module)
     def forward(self, q: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
-        """q [B, T, U] -> Q_tot [B, T] (state unused)."""
-        return q.sum(dim=-1)
+        """q [B, T, U], state [B, T, S] -> Q_tot [B, T] (state read only with the state bias)."""
+        total = q.sum(dim=-1)
+        return total if self.v is None else total + self.v(state).squeeze(-1)
 
 
 class QMixer(nn.Module):
@@ -88,9 +99,11 @@ class QMixer(nn.Module):
         return y.view(lead)
 
 
-def make_mixer(kind: str, n_agents: int, state_dim: int, embed_dim: int, hypernet_embed: int) -> nn.Module:
+def make_mixer(
+    kind: str, n_agents: int, state_dim: int, embed_dim: int, hypernet_embed: int, vdn_state_bias: bool = False
+) -> nn.Module:
     if kind == "vdn":
-        return VDNMixer()
+        return VDNMixer(state_dim, embed_dim, state_bias=vdn_state_bias)
     if kind == "qmix":
         return QMixer(n_agents, state_dim, embed_dim, hypernet_embed)
     raise ValueError(f"mixer: expected 'qmix' or 'vdn', got {kind!r}")
@@ -125,6 +138,7 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
             int(mc["state_dim"]),
             int(mc.get("mixing_embed_dim", 32)),
             int(mc.get("hypernet_embed_dim", 64)),
+            vdn_state_bias=bool(mc.get("vdn_state_bias", False)),
         )
         self._eps = (
             float(mc.get("epsilon_start", 1.0)),
