@@ -87,10 +87,10 @@ def test_qmix_mixer_is_monotonic_and_vdn_sums_exactly():
     assert torch.equal(VDNMixer()(q2, torch.zeros(7, 3, 1)), q2.sum(-1))
 
 
-def test_vdn_state_bias_adds_a_state_value_that_leaves_every_uav_gradient_at_one():
+def test_state_bias_adds_a_state_value_that_leaves_every_uav_gradient_at_one():
     torch.manual_seed(0)
     u, s_dim = 3, 5
-    mixer = VDNMixer(s_dim, embed_dim=8, state_bias=True)
+    mixer = VDNMixer(s_dim, embed_dim=8, state_bias=True)  # VDN-S
     q = torch.randn(4, 6, u, requires_grad=True)
     state = torch.randn(4, 6, s_dim)
     out = mixer(q, state)
@@ -99,10 +99,17 @@ def test_vdn_state_bias_adds_a_state_value_that_leaves_every_uav_gradient_at_one
     v = out.detach() - q.detach().sum(-1)
     torch.testing.assert_close(v, mixer.v(state).squeeze(-1).detach())
     assert v.std() > 0  # a function of the state, not a constant
-    # the module builds it from the config, and execution (the agent network alone) ignores it
-    mod = _module(n_agents=u, state_dim=s_dim, mixer="vdn", vdn_state_bias=True)
-    assert isinstance(mod.mixer, VDNMixer) and mod.mixer.v is not None
-    assert _module(n_agents=u, state_dim=s_dim, mixer="vdn").mixer.v is None
+    # QMIX without V(s): Q_tot loses exactly the V(s) term
+    torch.manual_seed(1)
+    with_v = QMixer(u, s_dim, embed_dim=8, hypernet_embed=8)
+    no_v = QMixer(u, s_dim, embed_dim=8, hypernet_embed=8, state_bias=False)
+    no_v.load_state_dict({k: p for k, p in with_v.state_dict().items() if not k.startswith("v.")})
+    torch.testing.assert_close(with_v(q.detach(), state) - no_v(q.detach(), state), with_v.v(state).squeeze(-1))
+    # the modules take it from the config (default on for both mixers); execution never reads it
+    for kind in ("vdn", "qmix"):
+        assert _module(n_agents=u, state_dim=s_dim, mixer=kind).mixer.v is not None
+        assert _module(n_agents=u, state_dim=s_dim, mixer=kind, state_bias=False).mixer.v is None
+    assert QMIXHParams().state_bias is True
 
 
 def _brute_nstep(r, nxt, term, gamma, n):

@@ -11,12 +11,13 @@ Agent network: the common `RecurrentAgentNet` (one per UAV by default; shared wi
 The one-hot id is only appended when the network is shared.
 
 Mixers (Rashid et al. 2018/2020):
-  vdn:  Q_tot = sum_u Q_u, plus V(s) (a 2-layer MLP, mixing_embed_dim) with vdn_state_bias: the
-        "VDN-S" of Rashid et al.'s ablation. V(s) takes the state's value, which the UAVs' local
-        Q-values cannot split among themselves; execution (argmax of each Q_u) is unchanged.
+  vdn:  Q_tot = sum_u Q_u + V(s)
   qmix: Q_tot = |W2(s)|^T ELU(|W1(s)|^T q + b1(s)) + V(s); W1, W2 from 2-layer hypernetworks
-        (hypernet_embed_dim), b1 from one linear layer, V(s) a 2-layer MLP (mixing_embed_dim).
-        Absolute weights make dQ_tot/dQ_u >= 0 (monotonic).
+        (hypernet_embed_dim), b1 from one linear layer. Absolute weights make dQ_tot/dQ_u >= 0
+        (monotonic).
+  V(s), a 2-layer MLP (mixing_embed_dim), is there with state_bias (default); VDN with it is the
+  "VDN-S" of Rashid et al.'s ablation. It takes the state's value, which the UAVs' local Q-values
+  cannot split among themselves; execution (argmax of each Q_u) never reads it.
 
 On env runners the module is built inference-only: the mixer and every target network are
 dropped (InferenceOnlyAPI), so decentralised execution only ever holds the agent network.
@@ -56,18 +57,21 @@ def linear_epsilon(t: int | float, start: float, end: float, anneal_steps: int |
     return float(start + frac * (end - start))
 
 
+def _state_value(state_dim: int, embed_dim: int) -> nn.Module:
+    """V(s): the state-dependent bias of both mixers."""
+    return nn.Sequential(nn.Linear(state_dim, embed_dim), nn.ReLU(), nn.Linear(embed_dim, 1))
+
+
 class VDNMixer(nn.Module):
-    """Sum of the UAVs' Q-values, optionally plus a state-value term V(s) (VDN-S)."""
+    """Sum of the UAVs' Q-values, plus V(s) with state_bias (VDN-S); without it the state is unused."""
 
     def __init__(self, state_dim: int = 0, embed_dim: int = 32, state_bias: bool = False):
         super().__init__()
-        self.v = (
-            nn.Sequential(nn.Linear(state_dim, embed_dim), nn.ReLU(), nn.Linear(embed_dim, 1)) if state_bias else None
-        )
+        self.v = _state_value(state_dim, embed_dim) if state_bias else None
 
     @override(nn.Module)
     def forward(self, q: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
-        """q [B, T, U], state [B, T, S] -> Q_tot [B, T] (state read only with the state bias)."""
+        """q [B, T, U], state [B, T, S] -> Q_tot [B, T]."""
         total = q.sum(dim=-1)
         return total if self.v is None else total + self.v(state).squeeze(-1)
 
@@ -75,7 +79,7 @@ class VDNMixer(nn.Module):
 class QMixer(nn.Module):
     """Monotonic mixing network with hypernetworks on the global state."""
 
-    def __init__(self, n_agents: int, state_dim: int, embed_dim: int = 32, hypernet_embed: int = 64):
+    def __init__(self, n_agents: int, state_dim: int, embed_dim: int = 32, hypernet_embed: int = 64, state_bias: bool = True):
         super().__init__()
         self.n_agents, self.embed_dim = n_agents, embed_dim
         self.hyper_w1 = nn.Sequential(
@@ -83,7 +87,7 @@ class QMixer(nn.Module):
         )
         self.hyper_b1 = nn.Linear(state_dim, embed_dim)
         self.hyper_w2 = nn.Sequential(nn.Linear(state_dim, hypernet_embed), nn.ReLU(), nn.Linear(hypernet_embed, embed_dim))
-        self.v = nn.Sequential(nn.Linear(state_dim, embed_dim), nn.ReLU(), nn.Linear(embed_dim, 1))
+        self.v = _state_value(state_dim, embed_dim) if state_bias else None
 
     @override(nn.Module)
     def forward(self, q: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
@@ -95,17 +99,19 @@ class QMixer(nn.Module):
         b1 = self.hyper_b1(s).view(-1, 1, self.embed_dim)
         hidden = F.elu(torch.bmm(qf, w1) + b1)
         w2 = self.hyper_w2(s).abs().view(-1, self.embed_dim, 1)
-        y = torch.bmm(hidden, w2).view(-1) + self.v(s).view(-1)
+        y = torch.bmm(hidden, w2).view(-1)
+        if self.v is not None:
+            y = y + self.v(s).view(-1)
         return y.view(lead)
 
 
 def make_mixer(
-    kind: str, n_agents: int, state_dim: int, embed_dim: int, hypernet_embed: int, vdn_state_bias: bool = False
+    kind: str, n_agents: int, state_dim: int, embed_dim: int, hypernet_embed: int, state_bias: bool = True
 ) -> nn.Module:
     if kind == "vdn":
-        return VDNMixer(state_dim, embed_dim, state_bias=vdn_state_bias)
+        return VDNMixer(state_dim, embed_dim, state_bias=state_bias)
     if kind == "qmix":
-        return QMixer(n_agents, state_dim, embed_dim, hypernet_embed)
+        return QMixer(n_agents, state_dim, embed_dim, hypernet_embed, state_bias=state_bias)
     raise ValueError(f"mixer: expected 'qmix' or 'vdn', got {kind!r}")
 
 
@@ -138,7 +144,7 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
             int(mc["state_dim"]),
             int(mc.get("mixing_embed_dim", 32)),
             int(mc.get("hypernet_embed_dim", 64)),
-            vdn_state_bias=bool(mc.get("vdn_state_bias", False)),
+            state_bias=bool(mc.get("state_bias", True)),
         )
         self._eps = (
             float(mc.get("epsilon_start", 1.0)),
