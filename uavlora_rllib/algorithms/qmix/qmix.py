@@ -18,7 +18,8 @@ One training iteration (`QMIX.training_step`):
   4. push the agent network's weights to the env runners.
 
 Hyperparameters: `QMIXHParams` (`--list-hparams qmix`; one class for both names; the mixer
-is fixed by the name: "qmix" -> monotonic hypernetwork mixer, "vdn" -> sum). Defaults follow
+is fixed by the name: "qmix" -> monotonic hypernetwork mixer, "vdn" -> sum; both add V(s) unless
+state_bias is false, see qmix_module.py). Defaults follow
 the paper's training table (docs/model.md); the epsilon schedule is linear from
 epsilon_start to epsilon_end over epsilon_anneal_fraction x t_max_env_steps env steps (5% of
 T_max = 2M).
@@ -171,7 +172,7 @@ class QMIXConfig(HParamsConfig, AlgorithmConfig):
 
 
 class VDNConfig(QMIXConfig):
-    """QMIX's algorithm with the sum mixer."""
+    """QMIX's algorithm with the sum mixer (plus V(s) with state_bias: VDN-S)."""
 
     mixer = "vdn"
 
