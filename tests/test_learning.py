@@ -227,3 +227,25 @@ def test_bench_learn_steps_to_target_and_table(tmp_path, capsys):
     lines = bench_learn.summary_table(rows).splitlines()
     assert lines[2].endswith("| 0,1,2 | 0.817 | 0.600 | - | 0.85 | missed | - |")
     assert lines[3].endswith("| 0,1,2 | 1.000 | 1.000 | - | 0.95 | met | 0.883 missed |")
+
+
+def test_bench_learn_trial_row_records_what_ran(tmp_path, capsys):
+    """One tiny end-to-end trial: the JSON row carries the reference, the curve and every
+    hyperparameter the trial ran with (the override applied), so it stays readable after a
+    later registry change."""
+    from uavlora_rllib import bench_learn
+
+    out = tmp_path / "r.jsonl"
+    argv = ["--scenarios", "10x2", "--learners", "vdn", "--env-steps", "2400", "--eval-every", "1200",
+            "--eval-episodes", "1", "--envs-per-runner", "8", "--set", "vdn.state_bias=false", "--tag", "tiny",
+            "--out", str(out)]  # 8 envs x 150 slots: 1,200 env steps per iteration
+    assert bench_learn.main(argv) == 0
+    (row,) = [json.loads(line) for line in out.read_text().splitlines()]
+    assert (row["learner"], row["n_eds"], row["n_uavs"], row["reference"], row["tag"]) == ("vdn", 10, 2, "optimal", "tiny")
+    assert row["hparams"]["state_bias"] is False and row["hparams"]["lr"] == 1e-4  # override + paper default
+    assert row["overrides"] == {"state_bias": False}
+    assert [p["env_steps"] for p in row["curve"]] == [1200, 2400]
+    assert row["greedy_share"] == pytest.approx(row["greedy_ee"] / row["reference_ee"])
+    assert 0 < row["random_ee"] < row["reference_ee"]  # the optimum beats random actions
+    assert len(row["git_commit"]) == 40 or row["git_commit"] == "unknown"
+    assert "| 10 | 2 | per_uav | vdn | tiny | 0 | 2,400 |" in capsys.readouterr().out

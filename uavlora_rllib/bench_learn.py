@@ -161,7 +161,8 @@ def steps_to_share(curve: Sequence[dict], share: float) -> int | None:
 def run_trial(entry, scenario, overrides: dict, seed: int, args, ref: Reference) -> dict[str, Any]:
     from uavlora_rllib.algorithms.common import registry
     from uavlora_rllib.experiment.evaluation import run_episodes
-    from uavlora_rllib.experiment.tracking import ENV_STEPS, training_summary
+    from uavlora_rllib.experiment.grid import hparams_dict
+    from uavlora_rllib.experiment.tracking import ENV_STEPS, git_commit, training_summary
 
     resources = registry.Resources(num_envs_per_env_runner=args.envs_per_runner, torch_threads=args.torch_threads)
     hparams = entry.hparams(overrides, prefix=f"--set {entry.name}")
@@ -205,6 +206,10 @@ def run_trial(entry, scenario, overrides: dict, seed: int, args, ref: Reference)
         "seed": seed,
         "overrides": overrides,
         "tag": args.tag,
+        # every hyperparameter the trial ran with, and the code's commit: a row stays readable
+        # after a later session changes a registry default
+        "hparams": hparams_dict(hparams),
+        "git_commit": git_commit(),
         "budget_env_steps": args.env_steps,
         "env_steps": steps,
         "reference": ref.name,
