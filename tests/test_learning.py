@@ -249,3 +249,17 @@ def test_bench_learn_trial_row_records_what_ran(tmp_path, capsys):
     assert 0 < row["random_ee"] < row["reference_ee"]  # the optimum beats random actions
     assert len(row["git_commit"]) == 40 or row["git_commit"] == "unknown"
     assert "| 10 | 2 | per_uav | vdn | tiny | 0 | 2,400 |" in capsys.readouterr().out
+
+
+def test_bench_learn_inside_a_ray_session_leaves_it_running(ray_session, tmp_path):
+    """Called from Python within a Ray session (this module's), bench_learn uses it, no second
+    ray.init, and does not shut it down under its caller."""
+    import ray
+
+    from uavlora_rllib import bench_learn
+
+    argv = ["--scenarios", "10x2", "--learners", "vdn", "--env-steps", "1200", "--eval-every", "1200",
+            "--eval-episodes", "1", "--envs-per-runner", "8", "--out", str(tmp_path / "r.jsonl")]
+    assert bench_learn.main(argv) == 0
+    assert ray.is_initialized()
+    assert len((tmp_path / "r.jsonl").read_text().splitlines()) == 1

@@ -366,7 +366,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     torch.set_num_threads(args.torch_threads)
     # A private cluster: a bare ray.init() would attach to any `ray start` cluster on the host.
-    ray.init(address="local", num_cpus=args.num_cpus, include_dashboard=False, log_to_driver=False)
+    # Called from Python inside a Ray session (a notebook, a test), it uses that session and
+    # leaves it running (--num-cpus then does not apply).
+    owns_ray = not ray.is_initialized()
+    if owns_ray:
+        ray.init(address="local", num_cpus=args.num_cpus, include_dashboard=False, log_to_driver=False)
     refs: dict[tuple, Reference] = {}
     try:
         for i, (scenario, entry, seed) in enumerate(trials, 1):
@@ -384,7 +388,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 os.fsync(f.fileno())
             print(markdown_table([row]).splitlines()[-1], flush=True)
     finally:
-        ray.shutdown()
+        if owns_ray:
+            ray.shutdown()
     return 0
 
 
