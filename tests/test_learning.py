@@ -251,6 +251,20 @@ def test_bench_learn_trial_row_records_what_ran(tmp_path, capsys):
     assert "| 10 | 2 | per_uav | vdn | tiny | 0 | 2,400 |" in capsys.readouterr().out
 
 
+def test_bench_learn_per_device_trial_uses_the_per_uav_reference_as_scale(tmp_path):
+    """per_device has no tractable optimum: the row names the per_uav reference it is scaled by,
+    and random is the per_device random policy (the benchmark judges per_device against it)."""
+    from uavlora_rllib import bench_learn
+
+    out = tmp_path / "r.jsonl"
+    argv = ["--scenarios", "10x2", "--learners", "mappo", "--action-mode", "per_device", "--env-steps", "1200",
+            "--eval-every", "1200", "--eval-episodes", "1", "--envs-per-runner", "8", "--out", str(out)]
+    assert bench_learn.main(argv) == 0
+    (row,) = [json.loads(line) for line in out.read_text().splitlines()]
+    assert (row["action_mode"], row["reference"]) == ("per_device", "optimal (per_uav)")
+    assert row["random_ee"] > row["reference_ee"]  # an SF per ED lifts same-SF interference: see BENCHMARKS
+
+
 def test_bench_learn_inside_a_ray_session_leaves_it_running(ray_session, tmp_path):
     """Called from Python within a Ray session (this module's), bench_learn uses it, no second
     ray.init, and does not shut it down under its caller."""

@@ -141,12 +141,12 @@ def reference_for(scenario, episodes: int, eval_seed: int) -> Reference:
     from uavlora_rllib.experiment.evaluation import run_episodes
 
     per_uav = scenario.replace(action_mode="per_uav")
-    name = "optimal" if per_uav.n_uavs <= OPTIMAL_MAX_UAVS else "greedy"
-    if scenario.action_mode != "per_uav":
-        name += " (per_uav)"
-    ee = run_episodes(make_baseline(name, per_uav), per_uav, episodes, eval_seed).mean("ee_sys_mean")
+    baseline = "optimal" if per_uav.n_uavs <= OPTIMAL_MAX_UAVS else "greedy"
+    ee = run_episodes(make_baseline(baseline, per_uav), per_uav, episodes, eval_seed).mean("ee_sys_mean")
     rnd = run_episodes(make_baseline("random", scenario, seed=eval_seed), scenario, episodes, eval_seed).mean("ee_sys_mean")
-    return Reference(name, ee, rnd)
+    # per_device has no tractable reference of its own: the per_uav one is kept as a scale, labelled so
+    label = baseline if scenario.action_mode == "per_uav" else f"{baseline} (per_uav)"
+    return Reference(label, ee, rnd)
 
 
 def steps_to_share(curve: Sequence[dict], share: float) -> int | None:
