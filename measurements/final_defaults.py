@@ -7,10 +7,13 @@ Tags name the defaults of their time, and a later session's tag does not re-run 
 defaults it did not change. Which tags hold today's defaults, per learner:
   - mappo, ippo: `defaults-s3b` (GAE lambda 0, entropy 0.001, one actor per UAV), and MAPPO's
                  `lambda_=0` rows (that override on defaults-s3: the same setting);
-  - qmix, coma:  `defaults-s3` and `defaults-s3b` (s3 -> s3b changed only MAPPO/IPPO), and COMA's
-                 `defaults (updates_per_iteration=8)` row at 60x8 (run after that default was set);
-  - vdn:         `defaults-s4` (state_bias on) and the candidate row `vdn_state_bias=true` (the same
-                 setting under the switch's first name).
+  - qmix, vdn:   `defaults-s5` (updates_per_episode 0.25, state_bias on) and the candidate rows
+                 `updates_per_iteration=4` (4 updates per iteration of 16 episodes: the same ratio
+                 with bench_learn's 16 envs per runner);
+  - coma:        `defaults-s3` and `defaults-s3b` (s3 -> s3b changed only MAPPO/IPPO), and the
+                 `defaults (updates_per_iteration=8)` row at 60x8 (run after that default was set).
+Superseded: QMIX's `defaults-s3`/`defaults-s3b` and VDN's `defaults-s4` rows ran one update per
+episode (updates_per_episode 1.0), the default before session 5.
 One row per (V, U, action mode, learner, budget, seed): the last one in the file. Every selected row
 is re-tagged "final defaults" so that the table groups the seeds of one learner and scenario.
 """
@@ -24,9 +27,9 @@ from pathlib import Path
 FINAL_TAGS = {
     "mappo": {"defaults-s3b", "lambda_=0"},
     "ippo": {"defaults-s3b"},
-    "qmix": {"defaults-s3", "defaults-s3b"},
+    "qmix": {"defaults-s5", "updates_per_iteration=4"},
     "coma": {"defaults-s3", "defaults-s3b", "defaults (updates_per_iteration=8)"},
-    "vdn": {"defaults-s4", "vdn_state_bias=true"},
+    "vdn": {"defaults-s5", "updates_per_iteration=4"},
 }
 
 

@@ -73,6 +73,26 @@ def test_bad_config_errors_name_the_field():
             registry.get(name).build(per_device, QMIXHParams(), registry.Resources(), 0)
 
 
+@pytest.mark.parametrize(
+    "per_episode, added, expected",
+    [
+        (0.25, [16, 16, 16], [4, 4, 4]),  # the default with bench_learn's / smoke's 16 envs
+        (0.25, [2, 2, 2, 2], [0, 1, 0, 1]),  # fewer envs: the fraction carries over
+        (1.0, [4, 0, 3], [4, 0, 3]),  # EPyMARL's ratio: one update per episode
+        (1.5, [3, 3], [4, 5]),
+    ],
+)
+def test_updates_per_episode_keeps_the_update_to_data_ratio(per_episode, added, expected):
+    """The number of gradient updates follows the episodes added, whatever the envs per iteration."""
+    from types import SimpleNamespace
+
+    from uavlora_rllib.algorithms.qmix.qmix import QMIX
+
+    algo = SimpleNamespace(config=SimpleNamespace(hparams=QMIXHParams(updates_per_episode=per_episode)), _update_credit=0.0)
+    assert [QMIX._updates_due(algo, n) for n in added] == expected
+    assert sum(expected) == int(per_episode * sum(added))
+
+
 # ---------------------------------------------------------------------- mixers and targets
 def test_qmix_mixer_is_monotonic_and_vdn_sums_exactly():
     torch.manual_seed(0)

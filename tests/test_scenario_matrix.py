@@ -150,8 +150,11 @@ SCENARIO_OPTIONS = [dict(zip(("interference", "rate_model", "association"), v))
 TINY = {
     "mappo": {"num_epochs": 1, "num_minibatches": 1, "batch_episodes": 2, "max_seq_len": 4, "gru_hidden": 8, "fc_hidden": 8, "critic_hidden": 8},
     "ippo": {"num_epochs": 1, "num_minibatches": 1, "batch_episodes": 2, "max_seq_len": 4, "gru_hidden": 8, "fc_hidden": 8, "critic_hidden": 8},
-    "qmix": {"batch_size_episodes": 2, "buffer_size_episodes": 4, "learning_starts_episodes": 2, "gru_hidden": 8, "fc_hidden": 8},
-    "vdn": {"batch_size_episodes": 2, "buffer_size_episodes": 4, "learning_starts_episodes": 2, "gru_hidden": 8, "fc_hidden": 8},
+    # one update per episode, so that the first iteration's 2 episodes run the learner (0.25: none yet)
+    "qmix": {"batch_size_episodes": 2, "buffer_size_episodes": 4, "learning_starts_episodes": 2, "gru_hidden": 8, "fc_hidden": 8,
+             "updates_per_episode": 1.0},
+    "vdn": {"batch_size_episodes": 2, "buffer_size_episodes": 4, "learning_starts_episodes": 2, "gru_hidden": 8, "fc_hidden": 8,
+            "updates_per_episode": 1.0},
     "coma": {"batch_episodes": 2, "gru_hidden": 8, "actor_hidden": 8},
 }
 LEARNER_CASES = [
@@ -193,7 +196,8 @@ def test_one_training_iteration_per_learner(ray_local, name, action_mode, option
     try:
         result = algo.train()
         assert result["env_runners"]["num_env_steps_sampled_lifetime"] > 0
-        bad = [(p, v) for p, v in _finite_leaves(result.get("learners", {})) if not math.isfinite(v)]
+        assert result.get("learners"), "the iteration ran no learner update"
+        bad = [(p, v) for p, v in _finite_leaves(result["learners"]) if not math.isfinite(v)]
         assert not bad, bad
         # the trained policy plays the same scenario (execution phase) to finite metrics
         summary = run_episodes(entry.greedy_policy(algo, cfg), cfg, episodes=1, seed=0).summary()

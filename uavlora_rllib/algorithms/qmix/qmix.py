@@ -11,8 +11,9 @@ One training iteration (`QMIX.training_step`):
   1. sample rollout_fragment_length = episode_len steps on every env of every env runner:
      num_envs_per_env_runner x max(1, num_env_runners) whole episodes;
   2. store them in the episode replay (|D| = buffer_size_episodes whole episodes);
-  3. once the replay holds learning_starts_episodes episodes: updates_per_iteration times (by default
-     once per episode stored in step 2), sample batch_size_episodes whole episodes and run one TD update on the learner (the GRU
+  3. once the replay holds learning_starts_episodes episodes: updates_per_episode x the episodes
+     stored in step 2 times (the fraction carries over to the next iteration; an explicit
+     updates_per_iteration overrides it), sample batch_size_episodes whole episodes and run one TD update on the learner (the GRU
      is unrolled over whole episodes from a zero state: no burn-in, no truncated sequences,
      T = 150 is short enough), followed by a soft target update with tau;
   4. push the agent network's weights to the env runners.
@@ -106,13 +107,24 @@ class QMIXHParams:
     batch_size_episodes: int = Field(16, ge=1, description="whole episodes per gradient update [episodes] (paper)")
     buffer_size_episodes: int = Field(32, ge=1, description="replay capacity |D| [episodes] (paper)")
     learning_starts_episodes: int = Field(16, ge=1, description="episodes in the replay before the first update [episodes]")
+    updates_per_episode: float = Field(
+        0.25,
+        gt=0,
+        le=64,
+        description="gradient updates per episode added to the replay [updates/episode] (decision): the "
+        "update-to-data ratio, independent of how many envs and env runners sample. 0.25 (default) = one "
+        "update per 4 episodes: QMIX greedy 0.918 -> 1.000 of the optimum at V=10/U=2 (3 seeds, 200k env "
+        "steps; the 1.0 ratio swings late) and 0.95 of the greedy baseline at V=60/U=8, in a quarter to a "
+        "third of the training time; 1.0 = EPyMARL's one update per episode (the previous default); "
+        "BENCHMARKS.md 'Learning at scale'",
+    )
     updates_per_iteration: int | None = Field(
         None,
         ge=1,
-        description="gradient updates per training iteration [updates]; null (default): one per episode "
-        "completed in the iteration, EPyMARL's update-to-data ratio (one update per 16 episodes learned ~16x "
-        "slower: QMIX greedy 0.63 -> 0.998 of the greedy baseline at V=60/U=4, 100k env steps; "
-        "BENCHMARKS.md 'Learning at scale')",
+        description="gradient updates per training iteration [updates], overriding updates_per_episode; "
+        "null (default): updates_per_episode x the episodes the iteration added (one update per 16 "
+        "episodes learned ~16x slower than EPyMARL: QMIX greedy 0.63 -> 0.998 of the greedy baseline at "
+        "V=60/U=4 with 16, 100k env steps)",
     )
     epsilon_start: float = Field(1.0, ge=0, le=1, description="exploration epsilon at t = 0 [probability]")
     epsilon_end: float = Field(
@@ -201,6 +213,16 @@ class QMIX(Algorithm):
         )
         self._pending: dict[str, list] = {}  # episode id -> chunks (only if a runner cut an episode)
         self._episodes_dropped = 0
+        # updates owed but not yet run (< 1): with updates_per_episode 0.25 and 2 episodes per
+        # iteration, every second iteration runs one update. Not checkpointed: a restore forgets < 1 update.
+        self._update_credit = 0.0
+
+    def _updates_due(self, episodes_added: int) -> int:
+        """Gradient updates this iteration, updates_per_episode per episode added (see setup)."""
+        self._update_credit += episodes_added * self.config.hparams.updates_per_episode
+        n = int(self._update_credit + 1e-9)  # 1e-9: 4 x 0.25 adds up to exactly 1, never 0.999...
+        self._update_credit = max(self._update_credit - n, 0.0)
+        return n
 
     # ------------------------------------------------------------------ episodes -> replay
     def _store(self, episodes) -> int:
@@ -258,7 +280,7 @@ class QMIX(Algorithm):
             self.metrics.log_value("num_gradient_updates_lifetime", 0, reduce="lifetime_sum")
             return
         t_len = self._scenario.episode_len
-        n_updates = c.updates_per_iteration if c.updates_per_iteration is not None else added
+        n_updates = c.updates_per_iteration if c.updates_per_iteration is not None else self._updates_due(added)
         for _ in range(n_updates):
             data = self._replay.sample(c.batch_size_episodes)
             batch = MultiAgentBatch({DEFAULT_MODULE_ID: SampleBatch(data)}, env_steps=c.batch_size_episodes * t_len)
