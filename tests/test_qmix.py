@@ -53,6 +53,9 @@ def test_hparams_defaults_follow_spec():
     assert (h.lr, h.gamma, h.gru_hidden, h.batch_size_episodes, h.buffer_size_episodes) == (1e-4, 0.99, 128, 16, 32)
     assert (h.tau, h.grad_clip, h.epsilon_start, h.epsilon_end, h.n_step, h.mixing_embed_dim) == (0.01, 10.0, 1.0, 0.05, 1, 32)
     assert h.epsilon_anneal_env_steps == 100_000  # 5% of T_max = 2M
+    # the one default that differs, each measured (docs/model.md#training-defaults)
+    assert (registry.get("qmix").hparams({}).updates_per_episode, registry.get("vdn").hparams({}).updates_per_episode) == (0.25, 1.0)
+    assert VDNConfig().hparams == registry.get("vdn").hparams({}) and QMIXConfig().hparams == QMIXHParams()
     for name in ("qmix", "vdn"):
         entry = registry.get(name)
         assert entry.action_modes == ("per_uav",)
@@ -227,7 +230,7 @@ MATRIX_DIMS = {"n_agents": 2, "obs_dim": 1, "state_dim": 1, "n_actions": 3}  # a
 def _matrix_config(cls, **hparams):
     """The algorithm's config through its one entry point (`uavlora`), with the game's sizes."""
     obs_space, act_space = gym.spaces.Box(-1, 1, (2, 1), np.float32), gym.spaces.MultiDiscrete([3, 3])
-    cfg = cls().environment(observation_space=obs_space, action_space=act_space).uavlora(QMIXHParams(**hparams), SMALL)
+    cfg = cls().environment(observation_space=obs_space, action_space=act_space).uavlora(cls.hparams_cls(**hparams), SMALL)
     cfg.rl_module(model_config={**cfg.model_config, **MATRIX_DIMS})
     return cfg, {DEFAULT_MODULE_ID: (obs_space, act_space)}
 
