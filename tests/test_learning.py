@@ -224,9 +224,10 @@ def test_bench_learn_steps_to_target_and_table(tmp_path, capsys):
     rows += [dict(row, n_eds=10, n_uavs=2, seed=s, budget_env_steps=200_000, greedy_share=1.0,
                   curve=[{"env_steps": 60_000, "greedy_share": g}, {"env_steps": 200_000, "greedy_share": 1.0}])
              for s, g in ((0, 0.95), (1, 0.9), (2, 0.8))]
-    lines = bench_learn.summary_table(rows).splitlines()
-    assert lines[2].endswith("| 0,1,2 | 0.817 | 0.600 | - | 0.85 | missed | - |")
-    assert lines[3].endswith("| 0,1,2 | 1.000 | 1.000 | - | 0.95 | met | 0.883 missed |")
+    lines = bench_learn.summary_table(rows[::-1]).splitlines()  # seeds and scenarios in any order
+    # the scenario order (U, then V), seeds ascending
+    assert lines[2].startswith("| 10 | 2 |") and lines[2].endswith("| 0,1,2 | 1.000 | 1.000 | - | 0.95 | met | 0.883 missed |")
+    assert lines[3].startswith("| 60 | 4 |") and lines[3].endswith("| 0,1,2 | 0.817 | 0.600 | - | 0.85 | missed | - |")
 
 
 def test_bench_learn_trial_row_records_what_ran(tmp_path, capsys):

@@ -289,7 +289,13 @@ def summary_table(rows: Sequence[dict]) -> str:
         "target | verdict | mean share at 60k |",
         "|---:|---:|---|---|---|---:|---|---:|---:|---:|---:|---|---:|",
     ]
-    for (v, u, mode, learner, tag, budget), rs in groups.items():
+    def order(key: tuple) -> tuple:  # the scenario order (by U, then V), learners as registered
+        v, u, mode, learner, tag, budget = key
+        rank = DEFAULT_LEARNERS.index(learner) if learner in DEFAULT_LEARNERS else len(DEFAULT_LEARNERS)
+        return (u, v, mode, rank, learner, budget, tag)
+
+    for (v, u, mode, learner, tag, budget), rs in sorted(groups.items(), key=lambda kv: order(kv[0])):
+        rs = sorted(rs, key=lambda r: r["seed"])
         greedy = _mean([r["greedy_share"] for r in rs])
         worst = min(r["greedy_share"] for r in rs)
         target = share_target(u)
