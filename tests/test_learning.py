@@ -228,6 +228,12 @@ def test_bench_learn_steps_to_target_and_table(tmp_path, capsys):
     # the scenario order (U, then V), seeds ascending
     assert lines[2].startswith("| 10 | 2 |") and lines[2].endswith("| 0,1,2 | 1.000 | 1.000 | - | 0.95 | met | 0.883 missed |")
     assert lines[3].startswith("| 60 | 4 |") and lines[3].endswith("| 0,1,2 | 0.817 | 0.600 | - | 0.85 | missed | - |")
+    # evaluated at 40k only before 60k: a share below 0.9 there is no miss of "0.9 within 60k"
+    early = [dict(r, curve=[{"env_steps": 40_000, "greedy_share": 0.8}, {"env_steps": 200_000, "greedy_share": 1.0}])
+             for r in rows[3:]]
+    assert bench_learn.summary_table(early).splitlines()[2].endswith("| met | 0.800 at 40,000: n/a |")
+    assert bench_learn.summary_table([dict(r, curve=[dict(p, greedy_share=0.95) for p in r["curve"]]) for r in early]
+                                     ).splitlines()[2].endswith("| met | 0.950 met |")
 
 
 def test_bench_learn_trial_row_records_what_ran(tmp_path, capsys):
