@@ -265,10 +265,10 @@ def share_target(n_uavs: int) -> float:
     return 0.95 if n_uavs <= 2 else 0.85 if n_uavs <= 4 else 0.75
 
 
-def share_at(row: dict, env_steps: int) -> float | None:
-    """The greedy share of the last evaluation at or before `env_steps` (None: none was made)."""
+def point_at(row: dict, env_steps: int) -> dict | None:
+    """The last evaluation (curve point) at or before `env_steps` (None: none was made)."""
     points = [p for p in row["curve"] if p["env_steps"] <= env_steps]
-    return points[-1]["greedy_share"] if points else None
+    return points[-1] if points else None
 
 
 def _mean(xs: Sequence[float | None]) -> float | None:
@@ -304,10 +304,11 @@ def summary_table(rows: Sequence[dict]) -> str:
         verdict = "n/a" if mode != "per_uav" or not enough else ("met" if greedy >= target else "missed")
         early = "-"
         if (v, u) == EARLY_TARGET[:2] and mode == "per_uav":
-            at = _mean([share_at(r, EARLY_TARGET[2]) for r in rs])
+            points = [point_at(r, EARLY_TARGET[2]) for r in rs]
+            at = _mean([p and p["greedy_share"] for p in points])
             # a share reached by an earlier evaluation was reached within 60k; a miss needs the
             # evaluation at 60k itself (rows evaluated every 40k only have 40.8k before it)
-            last = min((max([p["env_steps"] for p in r["curve"] if p["env_steps"] <= EARLY_TARGET[2]], default=0) for r in rs))
+            last = min(p["env_steps"] if p else 0 for p in points)
             if at is None:
                 early = "-"
             elif at >= EARLY_TARGET[3]:

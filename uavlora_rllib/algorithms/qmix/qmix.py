@@ -38,8 +38,6 @@ restored run refills it (learning resumes after learning_starts_episodes new epi
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 from pydantic import Field, model_validator
 from pydantic.dataclasses import dataclass as typed_dataclass
@@ -71,6 +69,18 @@ from uavlora_rllib.sim.observation import obs_dim, state_dim
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
 MIXERS = ("qmix", "vdn")
+
+
+def _updates_per_episode(default: float, why: str):
+    """The `updates_per_episode` field: one meaning and range; QMIX and VDN each state their default."""
+    return Field(
+        default,
+        gt=0,
+        le=64,
+        description="gradient updates per episode added to the replay [updates/episode] (decision): the "
+        f"update-to-data ratio, independent of how many envs and env runners sample. {why}; BENCHMARKS.md "
+        "'Learning at scale'",
+    )
 
 
 @typed_dataclass(config={"extra": "forbid", "frozen": True})
@@ -110,16 +120,12 @@ class QMIXHParams:
     batch_size_episodes: int = Field(16, ge=1, description="whole episodes per gradient update [episodes] (paper)")
     buffer_size_episodes: int = Field(32, ge=1, description="replay capacity |D| [episodes] (paper)")
     learning_starts_episodes: int = Field(16, ge=1, description="episodes in the replay before the first update [episodes]")
-    updates_per_episode: float = Field(
+    updates_per_episode: float = _updates_per_episode(
         0.25,
-        gt=0,
-        le=64,
-        description="gradient updates per episode added to the replay [updates/episode] (decision): the "
-        "update-to-data ratio, independent of how many envs and env runners sample. 0.25 (default) = one "
-        "update per 4 episodes: QMIX greedy 0.918 -> 1.000 of the optimum at V=10/U=2 (3 seeds, 200k env "
-        "steps; the 1.0 ratio swings late) and 0.95 of the greedy baseline at V=60/U=8, in a quarter to a "
-        "third of the training time; 1.0 = EPyMARL's one update per episode (the previous default); "
-        "BENCHMARKS.md 'Learning at scale'",
+        "0.25 (default) = one update per 4 episodes: QMIX greedy 0.918 -> 1.000 of the optimum at V=10/U=2 "
+        "(3 seeds, 200k env steps; the 1.0 ratio swings late) and 0.95 of the greedy baseline at V=60/U=8, "
+        "in a quarter to a third of the training time; 1.0 = EPyMARL's one update per episode (the "
+        "previous default)",
     )
     updates_per_iteration: int | None = Field(
         None,
@@ -170,16 +176,11 @@ class QMIXHParams:
 class VDNHParams(QMIXHParams):
     """VDN hyperparameters (grid YAML `algorithms.vdn:`): QMIX's fields; one default differs."""
 
-    updates_per_episode: float = Field(
+    updates_per_episode: float = _updates_per_episode(
         1.0,
-        gt=0,
-        le=64,
-        description="gradient updates per episode added to the replay [updates/episode] (decision): the "
-        "update-to-data ratio, independent of how many envs and env runners sample. 1.0 (default) = "
-        "EPyMARL's one update per episode: VDN-S at V=10/U=2 reached 1.000 of the optimum on 3 seeds "
-        "(200k env steps) and 1.000 by 60k, while QMIX's 0.25 left one seed at 0.741 (VDN-S 0.914 mean) "
-        "and 0.67 at 40.8k; 0.25 removed VDN-S's late swing at V=60/U=2 (0.961 -> 0.999); BENCHMARKS.md "
-        "'Learning at scale'",
+        "1.0 (default) = EPyMARL's one update per episode: VDN-S at V=10/U=2 reached 1.000 of the optimum "
+        "on 3 seeds (200k env steps) and 1.000 by 60k, while QMIX's 0.25 left one seed at 0.741 (VDN-S "
+        "0.914 mean) and 0.67 at 40.8k; 0.25 removed VDN-S's late swing at V=60/U=2 (0.961 -> 0.999)",
     )
 
 
@@ -334,7 +335,7 @@ def _build(name: str, config_cls: type):
         entry = registry.get(name)
         entry.check_scenario(scenario)
         if not isinstance(hparams, entry.hparams_cls):
-            hparams = entry.hparams(hparams if isinstance(hparams, dict) else dataclasses.asdict(hparams))
+            hparams = entry.hparams(hparams)
         return team_config(
             config_cls(),
             name,
