@@ -234,6 +234,9 @@ def test_bench_learn_steps_to_target_and_table(tmp_path, capsys):
     assert bench_learn.summary_table(early).splitlines()[2].endswith("| met | 0.800 at 40,000: n/a |")
     assert bench_learn.summary_table([dict(r, curve=[dict(p, greedy_share=0.95) for p in r["curve"]]) for r in early]
                                      ).splitlines()[2].endswith("| met | 0.950 met |")
+    # a seed with no evaluation by 60k: no mean over the others in its place
+    gap = [dict(early[0], curve=[{"env_steps": 81_600, "greedy_share": 1.0}])] + early[1:]
+    assert bench_learn.summary_table(gap).splitlines()[2].endswith("| met | - |")
 
 
 def test_bench_learn_trial_row_records_what_ran(tmp_path, capsys):

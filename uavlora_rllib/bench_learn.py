@@ -305,18 +305,17 @@ def summary_table(rows: Sequence[dict]) -> str:
         early = "-"
         if (v, u) == EARLY_TARGET[:2] and mode == "per_uav":
             points = [point_at(r, EARLY_TARGET[2]) for r in rs]
-            at = _mean([p and p["greedy_share"] for p in points])
-            # a share reached by an earlier evaluation was reached within 60k; a miss needs the
-            # evaluation at 60k itself (rows evaluated every 40k only have 40.8k before it)
-            last = min(p["env_steps"] if p else 0 for p in points)
-            if at is None:
-                early = "-"
-            elif at >= EARLY_TARGET[3]:
-                early = f"{_fmt(at)} met"
-            elif last >= 0.95 * EARLY_TARGET[2]:
-                early = f"{_fmt(at)} missed"
-            else:
-                early = f"{_fmt(at)} at {last:,}: n/a"
+            if None not in points:  # a mean over seeds needs a point of every seed
+                at = _mean([p["greedy_share"] for p in points])
+                # a share reached by an earlier evaluation was reached within 60k; a miss needs the
+                # evaluation at 60k itself (rows evaluated every 40k only have 40.8k before it)
+                last = min(p["env_steps"] for p in points)
+                if at >= EARLY_TARGET[3]:
+                    early = f"{_fmt(at)} met"
+                elif last >= 0.95 * EARLY_TARGET[2]:
+                    early = f"{_fmt(at)} missed"
+                else:
+                    early = f"{_fmt(at)} at {last:,}: n/a"
         seeds = ",".join(str(r["seed"]) for r in rs)
         lines.append(
             f"| {v} | {u} | {mode} | {learner} | {tag} | {budget:,} | {seeds} | {_fmt(greedy)} | {_fmt(worst)} | "
