@@ -1,6 +1,6 @@
 """MAPPO (centralised critic) and IPPO (local critics) on RLlib's new API stack.
 
-Registered as "mappo" and "ippo" (`registry.AlgorithmEntry`). Both sample through the team
+Registered as "mappo" and "ippo" (`registry.register_algorithm`). Both sample through the team
 view (`team_env`, env "uavlora_team") with RLlib's `SingleAgentEnvRunner` over ONE vectorised
 `BatchCore` per env runner (`gym_env_vectorize_mode="vector_entry_point"`), learn with
 `MAPPOTorchLearner` (per-agent clipped PPO, per-agent GAE, see `mappo_learner`) and act with
@@ -33,8 +33,8 @@ from pydantic.dataclasses import dataclass as typed_dataclass
 from ray.rllib.algorithms.ppo import PPO, PPOConfig
 from ray.rllib.utils.annotations import override
 
-from uavlora_rllib.algorithms.common.config import HParamsConfig, team_config
-from uavlora_rllib.algorithms.common.registry import AlgorithmEntry, Resources, register
+from uavlora_rllib.algorithms.common.config import HParamsConfig
+from uavlora_rllib.algorithms.common.registry import Resources, register_algorithm
 from uavlora_rllib.algorithms.mappo.mappo_learner import MAPPOTorchLearner
 from uavlora_rllib.algorithms.mappo.mappo_module import MAPPOTorchRLModule
 from uavlora_rllib.config_errors import ConfigError
@@ -162,6 +162,11 @@ class MAPPOConfig(HParamsConfig, PPOConfig):
         )
         return {"critic": h.critic or self.default_critic}
 
+    @override(HParamsConfig)
+    def env_runner_settings(self, scenario: ScenarioConfig) -> dict:
+        # fragments sized by RLlib to fill the train batch evenly over runners and envs
+        return {"rollout_fragment_length": "auto"}
+
     @override(PPOConfig)
     def validate(self) -> None:
         # PPO features MAPPOTorchLearner does not implement: refuse them instead of ignoring them.
@@ -197,22 +202,7 @@ class MAPPO(PPO):
         return MAPPOConfig()
 
 
-def _build(name: str, config_cls: type):
-    def build(scenario: ScenarioConfig, hparams: MAPPOHParams, resources: Resources, seed: int) -> MAPPOConfig:
-        entry = ENTRIES[name]
-        if not isinstance(hparams, MAPPOHParams):
-            hparams = entry.hparams(hparams)
-        entry.check_scenario(scenario)
-        return team_config(config_cls(), name, scenario, hparams, resources, seed, rollout_fragment_length="auto")
+register_algorithm("mappo", MAPPOConfig, ("per_uav", "per_device"))
+register_algorithm("ippo", IPPOConfig, ("per_uav", "per_device"))
 
-    return build
-
-
-ENTRIES: dict[str, AlgorithmEntry] = {}
-for _name, _cls in (("mappo", MAPPOConfig), ("ippo", IPPOConfig)):
-    ENTRIES[_name] = AlgorithmEntry(
-        name=_name, hparams_cls=MAPPOHParams, action_modes=("per_uav", "per_device"), build=_build(_name, _cls)
-    )
-    register(ENTRIES[_name])
-
-__all__ = ["MAPPO", "MAPPOConfig", "IPPOConfig", "MAPPOHParams", "ENTRIES"]
+__all__ = ["MAPPO", "MAPPOConfig", "IPPOConfig", "MAPPOHParams"]
