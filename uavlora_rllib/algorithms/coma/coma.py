@@ -21,7 +21,7 @@ which needs a single Discrete action per agent).
 Choices beyond the paper (each a COMAHParams field, documented there): the critic trains
 `critic_steps` = 4 extra steps on each batch before the joint actor + critic step (the paper
 trains the critic first); TD(lambda) with lambda 0.8; the critic's lr is 5e-4; a dueling,
-SF/TP/BW-factored Q head; per-UAV actor output layers. Evidence in tests/test_coma.py.
+SF/TP/BW-factored Q head; per-UAV actor output layers.
 """
 
 from __future__ import annotations
@@ -56,8 +56,8 @@ class COMAHParams:
         5e-4,
         gt=0,
         le=1,
-        description="Adam step size of the critic [1/update] (decision: pymarl's COMA critic lr; the paper's "
-        "1e-4 is the actor's, and the critic must track the policy within ~830 updates)",
+        description="Adam step size of the critic [1/update] (pymarl's COMA critic lr; the paper's 1e-4 is the "
+        "actor's)",
     )
     gamma: float = Field(0.99, gt=0, le=1, description="discount per slot [-]")
     td_lambda: float = Field(0.8, ge=0, le=1, description="lambda of the critic's TD(lambda) targets [-] (Foerster et al.)")
@@ -92,11 +92,8 @@ class COMAHParams:
         8,
         ge=1,
         description="learner updates (critic steps + joint step + target move) on each sampled batch [updates]; "
-        "> 1 turns the actor's term into PPO's clipped surrogate r A (r = pi / pi_sampling per UAV, clipped at "
-        "1 +- ratio_clip), because from the second update on the batch is off-policy; 1: COMA's plain "
-        "on-policy gradient (decision: 1 -> 8 took greedy EE from 0.63 to 1.000 of the optimum at V=10/U=2 "
-        "within 60k env steps and from 0.73 to 0.998 of the greedy baseline at V=60/U=4; BENCHMARKS.md "
-        "'Learning at scale')",
+        "> 1 turns the actor's term into PPO's clipped surrogate, since from the second update on the batch is "
+        "off-policy; 1: COMA's plain on-policy gradient (docs/model.md#training-defaults)",
     )
     ratio_clip: float = Field(
         0.2, gt=0, le=1, description="clip of each UAV's probability ratio when updates_per_iteration > 1 [-]"
@@ -178,7 +175,9 @@ class COMA(EpisodeAlgorithm):
         joint actor + critic update, so that the actor's advantage comes from the critic that
         has seen the batch."""
         if self.config.hparams.critic_steps:
-            self.learner_group.foreach_learner(lambda learner: learner.train_critic(batch))
+            for result in self.learner_group.foreach_learner(lambda learner: learner.train_critic(batch)):
+                if not result.ok:  # a remote learner's error (a local one raises here directly)
+                    raise result.get()
         return super().update_learners(batch, timesteps)
 
 

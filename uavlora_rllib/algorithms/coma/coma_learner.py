@@ -33,10 +33,8 @@ import numpy as np
 import torch
 from ray.rllib.core.columns import Columns
 from ray.rllib.core.learner.torch.torch_learner import TorchLearner
-from ray.rllib.core.rl_module.apis import TargetNetworkAPI
 from ray.rllib.policy.sample_batch import MultiAgentBatch
 from ray.rllib.utils.annotations import override
-from ray.rllib.utils.torch_utils import update_target_network
 
 from uavlora_rllib.algorithms.coma.coma_module import (
     ACTIONS,
@@ -50,6 +48,7 @@ from uavlora_rllib.algorithms.coma.coma_module import (
     td_lambda_targets,
 )
 from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE
+from uavlora_rllib.algorithms.common.target_learner import TargetNetworkLearner
 
 ACTOR_OPT, CRITIC_OPT = "actor", "critic"
 SAMPLED_LOGP = "coma_sampled_logp"  # [B, T, U] log pi_u(a_t,u) of the policy that sampled the batch
@@ -78,15 +77,12 @@ def episode_batch(episodes: list) -> dict[str, np.ndarray]:
     return {OBS: obs, ACTIONS: actions, REWARDS: rewards, GLOBAL_STATE: state, SAMPLED_LOGP: logp}
 
 
-class COMATorchLearner(TorchLearner):
+class COMATorchLearner(TargetNetworkLearner):
     """Losses of COMA; hyperparameters from the typed config.hparams (COMAHParams, coma.py)."""
 
-    @override(TorchLearner)
+    @override(TargetNetworkLearner)
     def build(self) -> None:
         super().build()
-        self.module.foreach_module(
-            lambda mid, mod: mod.make_target_networks() if isinstance(mod, TargetNetworkAPI) else None
-        )
         self.updates = 0  # joint updates so far: the warm-up and the hard target period count them
 
     def train_critic(self, batch: MultiAgentBatch) -> None:
@@ -119,22 +115,11 @@ class COMATorchLearner(TorchLearner):
     def configure_optimizers_for_module(self, module_id, config=None) -> None:
         module = self.module[module_id]
         hp = self.config.hparams
-        actor_params = list(module.actor.parameters())
-        critic_params = list(module.critic.parameters())
-        self.register_optimizer(
-            module_id=module_id,
-            optimizer_name=ACTOR_OPT,
-            optimizer=torch.optim.Adam(actor_params),
-            params=actor_params,
-            lr_or_lr_schedule=hp.lr_actor,
-        )
-        self.register_optimizer(
-            module_id=module_id,
-            optimizer_name=CRITIC_OPT,
-            optimizer=torch.optim.Adam(critic_params),
-            params=critic_params,
-            lr_or_lr_schedule=hp.lr_critic,
-        )
+        for name, net, lr in ((ACTOR_OPT, module.actor, hp.lr_actor), (CRITIC_OPT, module.critic, hp.lr_critic)):
+            params = list(net.parameters())
+            self.register_optimizer(
+                module_id=module_id, optimizer_name=name, optimizer=torch.optim.Adam(params), params=params, lr_or_lr_schedule=lr
+            )
 
     @override(TorchLearner)
     def compute_loss_for_module(self, *, module_id, config, batch: dict[str, Any], fwd_out: dict[str, Any]):
@@ -196,13 +181,6 @@ class COMATorchLearner(TorchLearner):
         else:
             tau = 1.0 if hard_every else hp.tau
         for module_id in self.module.keys():
-            module = self.module[module_id].unwrapped()
             if tau is not None:
-                for main, target in module.get_target_network_pairs():
-                    update_target_network(main_net=main, target_net=target, tau=tau)
+                self.update_target_networks(module_id, tau)
             self.metrics.log_value((module_id, "num_critic_updates"), self.updates, window=1)
-
-    @classmethod
-    @override(TorchLearner)
-    def rl_module_required_apis(cls) -> list[type]:
-        return [TargetNetworkAPI]

@@ -45,8 +45,8 @@ from uavlora_rllib.sim.scenario import ScenarioConfig
 class MAPPOHParams:
     """MAPPO / IPPO hyperparameters (grid YAML `algorithms.mappo:` / `algorithms.ippo:`).
 
-    Defaults: the paper's training table (docs/model.md) where it gives one, else the decision
-    in the field's description (measurements in BENCHMARKS.md)."""
+    Defaults: the paper's training table where it gives one, else this project's decision
+    (docs/model.md#training-defaults)."""
 
     lr: float = Field(1e-4, gt=0.0, le=1.0, description="Adam step size, actor and critic [1/update] (paper)")
     gamma: float = Field(0.99, ge=0.0, le=1.0, description="discount per slot [-] (paper)")
@@ -54,11 +54,8 @@ class MAPPOHParams:
         0.0,
         ge=0.0,
         le=1.0,
-        description="GAE lambda [-] (decision: 0, the one-step advantage r + gamma V(s') - V(s); a slot's action "
-        "never changes later states, so GAE's later TD errors are only noise in its advantage, which the batch "
-        "normalisation of the advantages blows up once the policy has converged: with 0.95 MAPPO reached the "
-        "optimum at V=60/U=2 and then drifted away from it (1.000 at 40k, 0.79 at 200k env steps), with 0 it "
-        "stayed at 0.998; at V=60/U=8 0.60 -> 0.96 of the greedy baseline by 22k; BENCHMARKS.md 'Learning at scale')",
+        description="GAE lambda [-]; 0: the one-step advantage, since a slot's action never changes later "
+        "states (docs/model.md#training-defaults)",
     )
     clip_param: float = Field(0.2, gt=0.0, le=1.0, description="PPO ratio clip epsilon, per agent [-] (paper)")
     num_epochs: int = Field(15, ge=1, description="passes over each train batch [epochs] (paper)")
@@ -68,14 +65,13 @@ class MAPPOHParams:
     num_minibatches: int = Field(
         4,
         ge=1,
-        description="minibatches per epoch [-]: minibatch = train batch / this (decision: one minibatch, "
-        "MAPPO's reference default, learned far less at lr 1e-4, BENCHMARKS.md)",
+        description="minibatches per epoch [-]: minibatch = train batch / this (docs/model.md#training-defaults)",
     )
     max_seq_len: int = Field(
         32,
         ge=1,
         description="GRU backprop window [slots]; each window starts from the GRU state recorded during the "
-        "rollout (decision: 151 = 4 x 32 + 23 steps per chunk, 6 % padding; 10 learned less)",
+        "rollout (docs/model.md#training-defaults)",
     )
     gru_hidden: int = Field(128, ge=1, description="GRU width of the actor [units] (paper)")
     fc_hidden: int = Field(128, ge=1, description="width of the actor's ReLU layers before and after the GRU [units]")
@@ -83,18 +79,14 @@ class MAPPOHParams:
     entropy_coeff: float = Field(
         0.001,
         ge=0.0,
-        description="weight of the mean per-agent entropy bonus [-] (decision: 0.01 -> 0.001 took greedy EE at "
-        "V=60/U=8 from 0.60 to 0.95 (MAPPO) and 0.50 to 0.85 (IPPO) of the greedy baseline at 100k env steps, "
-        "1.000 at V=60/U=4 and V=10/U=2 kept; BENCHMARKS.md 'Learning at scale')",
+        description="weight of the mean per-agent entropy bonus [-] (docs/model.md#training-defaults)",
     )
     vf_loss_coeff: float = Field(1.0, ge=0.0, description="weight of the value loss [-] (actor and critic share Adam)")
     grad_clip: float | None = Field(10.0, gt=0.0, description="global gradient-norm clip [-]; null: off (decision)")
     share_actor: bool = Field(
         False,
-        description="one actor for all UAVs (+ agent-id one-hot) [bool]; false (default): one actor per UAV "
-        "(a shared actor's argmax collapses to one action shared by every UAV, which the same-SF "
-        "interference punishes: greedy 0.23 -> 0.9998 of the greedy baseline at V=60/U=4, 100k env steps; "
-        "BENCHMARKS.md 'Learning at scale')",
+        description="one actor for all UAVs (+ agent-id one-hot) [bool]; false: one actor per UAV, so that "
+        "identical UAVs can pick different SFs (docs/model.md#training-defaults)",
     )
     actor_agent_heads: bool = Field(
         False,

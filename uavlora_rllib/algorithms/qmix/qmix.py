@@ -7,7 +7,7 @@ Q-network (inference-only module) and act decentralised: UAV u's action is the e
 argmax of its own Q-values, computed from its own observation history (GRU state carried by
 RLlib's connectors, zero at every episode start).
 
-One training iteration (`QMIX.training_step`):
+One training iteration (the common `EpisodeAlgorithm` loop, with QMIX's hooks):
   1. sample rollout_fragment_length = episode_len steps on every env of every env runner:
      num_envs_per_env_runner x max(1, num_env_runners) whole episodes;
   2. store them in the episode replay (|D| = buffer_size_episodes whole episodes);
@@ -19,7 +19,7 @@ One training iteration (`QMIX.training_step`):
   4. push the agent network's weights to the env runners.
 
 Hyperparameters: `QMIXHParams` (`--list-hparams qmix`) and `VDNHParams`, its subclass that
-differs in one default (updates_per_episode 1.0 against QMIX's 0.25, both measured); the mixer
+differs in one default (updates_per_episode 1.0 against QMIX's 0.25); the mixer
 is fixed by the name: "qmix" -> monotonic hypernetwork mixer, "vdn" -> sum; both add V(s) unless
 state_bias is false, see qmix_module.py). Defaults follow
 the paper's training table (docs/model.md); the epsilon schedule is linear from
@@ -62,15 +62,14 @@ from uavlora_rllib.sim.scenario import ScenarioConfig
 MIXERS = ("qmix", "vdn")
 
 
-def _updates_per_episode(default: float, why: str):
-    """The `updates_per_episode` field: one meaning and range; QMIX and VDN each state their default."""
+def _updates_per_episode(default: float):
+    """The `updates_per_episode` field: one meaning and range; QMIX and VDN each have their default."""
     return Field(
         default,
         gt=0,
         le=64,
-        description="gradient updates per episode added to the replay [updates/episode] (decision): the "
-        f"update-to-data ratio, independent of how many envs and env runners sample. {why}; BENCHMARKS.md "
-        "'Learning at scale'",
+        description="gradient updates per episode added to the replay [updates/episode]: the update-to-data "
+        "ratio, independent of how many envs and env runners sample (docs/model.md#training-defaults)",
     )
 
 
@@ -84,22 +83,17 @@ class QMIXHParams:
     fc_hidden: int = Field(128, ge=1, description="width of the ReLU layer before the GRU [units] (decision)")
     share_agent_net: bool = Field(
         False,
-        description="one agent network for all UAVs (+ one-hot UAV id) [bool]; false (default): one per UAV, "
-        "which breaks the symmetry between identical UAVs from the start (a shared net starts on one joint "
-        "action where every UAV uses the same SF, and VDN stays there: greedy 0.52 -> 1.00 of the greedy "
-        "baseline at V=60/U=4, 0.22 -> 1.00 of the optimum at V=10/U=2; QMIX 0.91 -> 0.96 at V=60/U=8; "
-        "BENCHMARKS.md 'Learning at scale')",
+        description="one agent network for all UAVs (+ one-hot UAV id) [bool]; false: one per UAV, which breaks "
+        "the symmetry between identical UAVs from the start (docs/model.md#training-defaults)",
     )
     mixing_embed_dim: int = Field(
         32, ge=1, description="mixing-network width of QMIX and width of V(s) [units] (Rashid et al.)"
     )
     state_bias: bool = Field(
         True,
-        description="Q_tot includes a state-value term V(s) (2-layer MLP on the global state) [bool]. QMIX: "
-        "Rashid et al.'s V(s). VDN: sum_u Q_u + V(s), Rashid et al.'s VDN-S (decision): V(s) takes the "
-        "state's value, which local Q-values cannot split, so they keep the actions' differences (VDN "
-        "greedy 0.63 -> 0.94 of the greedy baseline at V=60/U=8, 200k env steps; BENCHMARKS.md 'Learning "
-        "at scale'); false: Sunehag et al.'s plain sum. Execution (each UAV's argmax Q_u) never reads it",
+        description="Q_tot includes a state-value term V(s) (2-layer MLP on the global state) [bool]; VDN with it "
+        "is Rashid et al.'s VDN-S, without it Sunehag et al.'s plain sum; execution never reads it "
+        "(docs/model.md#training-defaults)",
     )
     hypernet_embed_dim: int = Field(
         64, ge=1, description="hidden width of the 2-layer weight hypernetworks [units]; unused by VDN"
@@ -111,27 +105,19 @@ class QMIXHParams:
     batch_size_episodes: int = Field(16, ge=1, description="whole episodes per gradient update [episodes] (paper)")
     buffer_size_episodes: int = Field(32, ge=1, description="replay capacity |D| [episodes] (paper)")
     learning_starts_episodes: int = Field(16, ge=1, description="episodes in the replay before the first update [episodes]")
-    updates_per_episode: float = _updates_per_episode(
-        0.25,
-        "0.25 (default) = one update per 4 episodes: QMIX greedy 0.918 -> 1.000 of the optimum at V=10/U=2 "
-        "(3 seeds, 200k env steps; the 1.0 ratio swings late) and 0.95 of the greedy baseline at V=60/U=8, "
-        "in a quarter to a third of the training time; 1.0 = EPyMARL's one update per episode (the "
-        "previous default)",
-    )
+    updates_per_episode: float = _updates_per_episode(0.25)
     updates_per_iteration: int | None = Field(
         None,
         ge=1,
         description="gradient updates per training iteration [updates], overriding updates_per_episode; "
-        "null (default): updates_per_episode x the episodes the iteration added (one update per 16 "
-        "episodes learned ~16x slower than EPyMARL: QMIX greedy 0.63 -> 0.998 of the greedy baseline at "
-        "V=60/U=4 with 16, 100k env steps)",
+        "null: updates_per_episode x the episodes the iteration added",
     )
     epsilon_start: float = Field(1.0, ge=0, le=1, description="exploration epsilon at t = 0 [probability]")
     epsilon_end: float = Field(
         0.05, ge=0, le=1, description="exploration epsilon after the anneal, also the sampled execution's [probability]"
     )
     epsilon_anneal_fraction: float = Field(
-        0.05, ge=0, le=1, description="share of t_max_env_steps over which epsilon anneals linearly [-] (5%)"
+        0.05, ge=0, le=1, description="share of t_max_env_steps over which epsilon anneals linearly [-] (paper)"
     )
     t_max_env_steps: int = Field(
         2_000_000,
@@ -167,12 +153,7 @@ class QMIXHParams:
 class VDNHParams(QMIXHParams):
     """VDN hyperparameters (grid YAML `algorithms.vdn:`): QMIX's fields; one default differs."""
 
-    updates_per_episode: float = _updates_per_episode(
-        1.0,
-        "1.0 (default) = EPyMARL's one update per episode: VDN-S at V=10/U=2 reached 1.000 of the optimum "
-        "on 3 seeds (200k env steps) and 1.000 by 60k, while QMIX's 0.25 left one seed at 0.741 (VDN-S "
-        "0.914 mean) and 0.67 at 40.8k; 0.25 removed VDN-S's late swing at V=60/U=2 (0.961 -> 0.999)",
-    )
+    updates_per_episode: float = _updates_per_episode(1.0)
 
 
 class QMIXConfig(HParamsConfig, AlgorithmConfig):
