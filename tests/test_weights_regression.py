@@ -25,12 +25,14 @@ RTOL = 1e-4
 ITERATIONS = 3
 SEED = 7
 # Small batches so that every algorithm learns in each of the 3 iterations (QMIX/VDN start
-# after 4 episodes in the replay, the first iteration's).
+# after 4 episodes in the replay, the first iteration's), and enough updates that a 1 % change
+# of a learning rate moves the weights beyond RTOL.
+_REPLAY = {"learning_starts_episodes": 4, "batch_size_episodes": 4, "updates_per_iteration": 8, "lr": 5e-4}
 HPARAMS: dict[str, dict] = {
     "mappo": {"batch_episodes": 8, "num_minibatches": 2},
     "ippo": {"batch_episodes": 8, "num_minibatches": 2},
-    "qmix": {"learning_starts_episodes": 4, "batch_size_episodes": 4},
-    "vdn": {"learning_starts_episodes": 4, "batch_size_episodes": 4},
+    "qmix": _REPLAY,
+    "vdn": _REPLAY,
     "coma": {"batch_episodes": 4},
 }
 
