@@ -125,7 +125,9 @@ def test_sampled_execution_differs_from_greedy():
     over 90 actions it almost never repeats the argmax, and its draws depend on the seed."""
     from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 
+    from uavlora_rllib.algorithms.common.config import hparams_model_config
     from uavlora_rllib.algorithms.common.policy import ModulePolicy
+    from uavlora_rllib.algorithms.mappo.mappo import MAPPOHParams
     from uavlora_rllib.algorithms.mappo.mappo_module import MAPPOTorchRLModule
     from uavlora_rllib.envs.team import team_action_space, team_observation_space
     from uavlora_rllib.sim.observation import state_dim
@@ -136,7 +138,7 @@ def test_sampled_execution_differs_from_greedy():
         observation_space=team_observation_space(TINY),
         action_space=team_action_space(TINY),
         inference_only=True,
-        model_config={"state_dim": state_dim(TINY)},
+        model_config=hparams_model_config(MAPPOHParams, critic="central", state_dim=state_dim(TINY)),
     ).build()
     greedy = _actions(ModulePolicy(module, "g"), TINY)
     s1 = _actions(ModulePolicy(module, "s", explore=True, seed=1), TINY)

@@ -14,6 +14,7 @@ import torch
 
 from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.algorithms.coma.coma import COMAHParams
+from uavlora_rllib.algorithms.common.config import hparams_model_config
 from uavlora_rllib.algorithms.coma.coma_module import (
     COMATorchRLModule,
     counterfactual_advantage,
@@ -72,14 +73,9 @@ def _module(inference_only: bool, n_agents=3, obs_dim=7, n_actions=4, state_dim=
         observation_space=gym.spaces.Box(-1.0, 1.0, (n_agents, obs_dim), np.float32),
         action_space=gym.spaces.MultiDiscrete([n_actions] * n_agents),
         inference_only=inference_only,
-        model_config={
-            "state_dim": state_dim,
-            "actor_hidden": 16,
-            "gru_hidden": 8,
-            "critic_hidden": [32, 32],
-            "action_factors": [2, 2],
-            "actor_agent_heads": True,
-        },
+        model_config=hparams_model_config(
+            COMAHParams, state_dim=state_dim, actor_hidden=16, gru_hidden=8, critic_hidden=[32, 32], action_factors=[2, 2]
+        ),
     )
 
 

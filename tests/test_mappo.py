@@ -12,6 +12,7 @@ import torch
 
 from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.algorithms.common.agent_net import ActionHead
+from uavlora_rllib.algorithms.common.config import hparams_model_config
 from uavlora_rllib.algorithms.common.policy import ModulePolicy
 from uavlora_rllib.algorithms.mappo.mappo import MAPPOConfig, MAPPOHParams
 from uavlora_rllib.algorithms.mappo.mappo_learner import per_agent_gae
@@ -48,7 +49,9 @@ def _module(cfg: ScenarioConfig, critic: str = "central", inference_only: bool =
         observation_space=team_observation_space(cfg),
         action_space=team_action_space(cfg),
         inference_only=inference_only,
-        model_config={"critic": critic, "state_dim": state_dim(cfg), "share_actor": share_actor, "max_seq_len": 8},
+        model_config=hparams_model_config(
+            MAPPOHParams, critic=critic, state_dim=state_dim(cfg), share_actor=share_actor, max_seq_len=8
+        ),
     )
     return spec.build()
 
@@ -229,8 +232,10 @@ def test_shared_actor_with_per_uav_heads():
         module_class=MAPPOTorchRLModule,
         observation_space=team_observation_space(SMALL),
         action_space=team_action_space(SMALL),
-        model_config={"critic": "central", "state_dim": state_dim(SMALL), "share_actor": True,
-                      "actor_agent_heads": True, "max_seq_len": 8},
+        model_config=hparams_model_config(
+            MAPPOHParams, critic="central", state_dim=state_dim(SMALL), share_actor=True, actor_agent_heads=True,
+            max_seq_len=8,
+        ),
     )
     m = spec.build()
     assert m.actor.agent_out is not None and float(m.actor.agent_out.detach().abs().sum()) == 0.0

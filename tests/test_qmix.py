@@ -17,6 +17,7 @@ from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.algorithms.common.agent_net import RecurrentAgentNet
 from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE, HIDDEN, TERMINATED
+from uavlora_rllib.algorithms.common.config import hparams_model_config
 from uavlora_rllib.algorithms.common.policy import trained_module
 from uavlora_rllib.algorithms.qmix.qmix import QMIXConfig, QMIXHParams, VDNConfig
 from uavlora_rllib.algorithms.qmix.qmix_learner import nstep_targets
@@ -182,10 +183,11 @@ def test_epsilon_schedule_and_exploration():
 
 # ---------------------------------------------------------------------- GRU unroll boundaries
 def _module(n_agents=2, obs_dim=3, n_actions=5, state_dim=4, mixer="qmix", **extra) -> QMixModule:
-    mc = {
+    mc = hparams_model_config(QMIXHParams, **{
         "n_agents": n_agents, "obs_dim": obs_dim, "n_actions": n_actions, "state_dim": state_dim,
-        "gru_hidden": 8, "fc_hidden": 8, "mixer": mixer, **extra,
-    }
+        "gru_hidden": 8, "fc_hidden": 8, "mixer": mixer,
+        "epsilon_anneal_env_steps": QMIXHParams().epsilon_anneal_env_steps, **extra,
+    })
     obs_space = gym.spaces.Box(-1, 1, (n_agents, obs_dim), np.float32)
     return QMixModule(observation_space=obs_space, action_space=gym.spaces.MultiDiscrete([n_actions] * n_agents), model_config=mc)
 
@@ -396,7 +398,7 @@ def test_result_metrics(trained):
 @pytest.mark.slow
 def test_replay_sequences_start_at_episode_starts(trained):
     algo, _, _ = trained["qmix"]
-    s = algo._replay.sample(16)
+    s = algo.replay.sample(16)
     t_feature = s[GLOBAL_STATE][..., -1]  # the global state's last feature is t / T
     np.testing.assert_allclose(t_feature, np.broadcast_to(np.arange(21) / 20, t_feature.shape), atol=1e-6)
     assert s[Columns.OBS].shape == (16, 21, 2, algo.config.model_config["obs_dim"])

@@ -379,9 +379,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
 
     import ray
-    import torch
+    from uavlora_rllib.algorithms.common.threads import set_torch_threads
 
-    torch.set_num_threads(args.torch_threads)
+    set_torch_threads(args.torch_threads)
     # A private cluster: a bare ray.init() would attach to any `ray start` cluster on the host.
     # Called from Python inside a Ray session (a notebook, a test), it uses that session and
     # leaves it running (--num-cpus then does not apply).

@@ -123,9 +123,9 @@ def main(argv: list[str] | None = None) -> int:
     except (UsageError, ConfigError) as exc:
         return fail(exc)
 
-    import torch
+    from uavlora_rllib.algorithms.common.threads import set_torch_threads
 
-    torch.set_num_threads(args.torch_threads)
+    set_torch_threads(args.torch_threads)
     import ray
 
     ray.init(num_cpus=args.num_cpus, include_dashboard=False, log_to_driver=False)

@@ -47,6 +47,7 @@ from typing import Any, Sequence
 from ray import tune
 
 from uavlora_rllib.algorithms.common import registry
+from uavlora_rllib.algorithms.common.threads import set_torch_threads
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in
 from uavlora_rllib.experiment import cluster
@@ -174,8 +175,6 @@ class UavLoraTrainable(tune.Trainable):
     """One trial: build the registry entry's algorithm, train to the budget, evaluate."""
 
     def setup(self, config: dict) -> None:
-        import torch
-
         from uavlora_rllib.sim.scenario import ScenarioConfig
 
         import uavlora_rllib.envs.multi_agent  # noqa: F401  (registers the "uavlora" env)
@@ -188,7 +187,7 @@ class UavLoraTrainable(tune.Trainable):
         self.cfg = cfg
         import_plugins(cfg.get("plugins", []))
         resources = registry.Resources(**cfg["resources"])
-        torch.set_num_threads(resources.torch_threads)
+        set_torch_threads(resources.torch_threads)
         self.entry = registry.get(cfg["algorithm"])
         self.scenario = ScenarioConfig.from_dict(cfg["scenario"])
         hparams = self.entry.hparams(cfg["overrides"])

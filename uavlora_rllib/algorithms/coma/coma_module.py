@@ -4,21 +4,20 @@ Layout of the team view (uavlora_rllib/envs/team.py): observation [U, obs_dim] (
 u's LOCAL observation), action MultiDiscrete([A] * U) with A = 90 (per_uav), shared reward,
 global state under info["state"].
 
-* Actor (the common `RecurrentAgentNet`, decentralised, shared by all UAVs): row u of the
-  observation, concatenated with the one-hot id of u, -> Linear + ReLU (actor_hidden) -> GRU
-  (gru_hidden) -> Linear -> A logits; with `actor_agent_heads` each UAV adds its own linear output layer to the shared
-  one's logits (everything before the output layer stays shared). Why: the UAVs must pick
-  DIFFERENT SFs (same-SF EDs interfere), and with a fully shared net the two argmaxes kept
-  landing on the same SF (greedy EE ~0.35x random on the small scenario, 3 seeds, up to
-  120k steps) although the sampled policy had learned to spread; with per-UAV output
-  layers greedy EE is ~2x random after 40k steps. The GRU state is [U, gru_hidden] per
-  scenario; it is the only thing env runners carry between steps. An actor never sees the
-  global state or another UAV's row.
+* Actor (the common `RecurrentAgentNet`, decentralised, shared by all UAVs; its forward passes
+  are the common `RecurrentActorForward`): row u of the observation, concatenated with the
+  one-hot id of u, -> Linear + ReLU (actor_hidden) -> GRU (gru_hidden) -> Linear -> A logits;
+  with `actor_agent_heads` each UAV adds its own linear output layer to the shared one's
+  logits (everything before the output layer stays shared), so that identical UAVs can pick
+  different SFs (same-SF EDs interfere). The GRU state is [U, gru_hidden] per scenario; it is
+  the only thing env runners carry between steps. An actor never sees the global state or
+  another UAV's row.
 * Critic (centralised, learner only): Q_u(s, a_-u, .) -> A values, one per action of UAV u.
   Input per (scenario, step, u): global state s, the one-hot actions of the OTHER U - 1
   UAVs in id order (u's own action is never an input), the one-hot id of u and, if
-  `critic_use_obs`, u's own observation row. A target copy of the critic (Polyak or hard
-  updates, see coma_learner.py) gives the TD(lambda) targets.
+  `critic_use_obs`, u's own observation row. A target copy of the critic (RLlib's
+  `TargetNetworkAPI`: made by the learner, moved by Polyak or hard updates, see
+  coma_learner.py) gives the TD(lambda) targets.
 
 `InferenceOnlyAPI`: env runners build the module with inference_only=True and hold the actor
 alone (no critic, no target critic; RLlib also drops them from the weights it syncs).
@@ -26,22 +25,24 @@ alone (no critic, no target critic; RLlib also drops them from the weights it sy
 
 from __future__ import annotations
 
-import copy
 from typing import Any
 
 import numpy as np
 import torch
 from ray.rllib.core.columns import Columns
-from ray.rllib.core.rl_module.apis import InferenceOnlyAPI
+from ray.rllib.core.learner.utils import make_target_network
+from ray.rllib.core.rl_module.apis import InferenceOnlyAPI, TargetNetworkAPI
 from ray.rllib.core.rl_module.rl_module import RLModule
 from ray.rllib.core.rl_module.torch import TorchRLModule
 from ray.rllib.utils.annotations import override
 from torch import nn
 
+from uavlora_rllib.algorithms.common.actor_module import RecurrentActorForward
 from uavlora_rllib.algorithms.common.agent_net import ActionHead, RecurrentAgentNet
-from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE, HIDDEN
+from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE
+from uavlora_rllib.algorithms.common.threads import set_torch_threads
 
-# Batch columns of the learner's episode batch (coma_learner.COMAEpisodeBatch): obs
+# Batch columns of the learner's episode batch (coma_learner.episode_batch): obs
 # [B, T + 1, U, obs_dim], actions [B, T, U] int64, rewards [B, T], GLOBAL_STATE [B, T + 1, S].
 OBS = Columns.OBS
 ACTIONS = Columns.ACTIONS
@@ -190,35 +191,35 @@ class QHead(nn.Module):
         return value + diff - diff.mean(-1, keepdim=True)
 
 
-class COMATorchRLModule(TorchRLModule, InferenceOnlyAPI):
+class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, InferenceOnlyAPI):
     """Actor on env runners; actor + critic + target critic on the learner.
 
-    model_config: COMAHParams' fields (actor_hidden, gru_hidden, actor_agent_heads,
-    critic_hidden, critic_use_obs, critic_dueling), state_dim, action_factors, torch_threads."""
+    model_config (common/config.py): COMAHParams' fields (actor_hidden, gru_hidden,
+    actor_agent_heads, critic_hidden, critic_use_obs, critic_dueling), state_dim,
+    action_factors, torch_threads."""
 
     @override(TorchRLModule)
     def setup(self) -> None:
         mc = self.model_config
-        if mc.get("torch_threads"):
-            torch.set_num_threads(int(mc["torch_threads"]))
+        set_torch_threads(mc["torch_threads"])
         self.n_agents, self.obs_dim = self.observation_space.shape
         nvec = np.asarray(self.action_space.nvec)
         if nvec.ndim != 1 or not (nvec == nvec[0]).all():
             raise ValueError(f"COMA needs MultiDiscrete([A] * U) actions (per_uav), got nvec {nvec.tolist()}")
         self.n_actions = int(nvec[0])
         self.state_dim = int(mc["state_dim"])
-        self.use_obs = bool(mc.get("critic_use_obs", True))
-        self.factors = tuple(int(f) for f in mc.get("action_factors", ()) or ())
+        self.use_obs = bool(mc["critic_use_obs"])
+        self.factors = tuple(int(f) for f in mc["action_factors"])
         if self.factors and int(np.prod(self.factors)) != self.n_actions:
             raise ValueError(f"action_factors {self.factors} do not multiply to {self.n_actions} actions")
         self.actor = RecurrentAgentNet(
             self.obs_dim,
             self.n_agents,
             self.n_actions,
-            fc_hidden=int(mc.get("actor_hidden", 128)),
-            gru_hidden=int(mc.get("gru_hidden", 128)),
+            fc_hidden=int(mc["actor_hidden"]),
+            gru_hidden=int(mc["gru_hidden"]),
             share=True,
-            agent_heads=bool(mc.get("actor_agent_heads", False)),
+            agent_heads=bool(mc["actor_agent_heads"]),
         )
         self.head = ActionHead([self.n_actions])
         if not self.inference_only:
@@ -226,46 +227,36 @@ class COMATorchRLModule(TorchRLModule, InferenceOnlyAPI):
                 self.state_dim, self.obs_dim, self.n_agents, self.n_actions, self.use_obs, self.factors
             )
             self.critic = QHead(
-                in_dim,
-                tuple(mc.get("critic_hidden", (128, 128))),
-                self.n_actions,
-                bool(mc.get("critic_dueling", True)),
-                self.factors,
+                in_dim, tuple(mc["critic_hidden"]), self.n_actions, bool(mc["critic_dueling"]), self.factors
             )
-            self.target_critic = copy.deepcopy(self.critic)
-            for p in self.target_critic.parameters():
-                p.requires_grad_(False)
 
     @override(InferenceOnlyAPI)
     def get_non_inference_attributes(self) -> list[str]:
         return ["critic", "target_critic"]
 
-    @override(RLModule)
-    def get_initial_state(self) -> dict[str, Any]:
-        return {HIDDEN: torch.zeros(self.n_agents, self.actor.gru_hidden)}
+    # -- target critic (made by the learner, RLlib's TargetNetworkAPI)
+    @override(TargetNetworkAPI)
+    def make_target_networks(self) -> None:
+        self.target_critic = make_target_network(self.critic)
 
-    def _logits(self, batch: dict[str, Any]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """Env runners: obs [N, 1, U, d] (RLlib adds the time axis for stateful modules)."""
-        obs = batch[Columns.OBS]
-        if obs.dim() == 3:  # no time axis (e.g. called by hand): add it
-            obs = obs.unsqueeze(1)
-        logits, h = self.actor(obs.float(), batch[Columns.STATE_IN][HIDDEN])
-        return logits, {HIDDEN: h}
+    @override(TargetNetworkAPI)
+    def get_target_network_pairs(self) -> list[tuple[nn.Module, nn.Module]]:
+        return [(self.critic, self.target_critic)]
 
-    @override(RLModule)
-    def _forward_inference(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
-        logits, state = self._logits(batch)
-        return {Columns.ACTIONS: self.head.greedy(logits), Columns.STATE_OUT: state}
-
-    @override(RLModule)
-    def _forward_exploration(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
-        logits, state = self._logits(batch)
-        actions, logp = self.head.sample(logits)
-        return {Columns.ACTIONS: actions, Columns.ACTION_LOGP: logp, Columns.STATE_OUT: state}
-
-    @override(RLModule)
-    def _forward(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
-        return self._forward_inference(batch, **kwargs)
+    @override(TargetNetworkAPI)
+    def forward_target(self, batch: dict[str, Any]) -> dict[str, Any]:
+        """Target-critic Qs of the taken joint actions [B, T, U, A] and the value of the final
+        state [B, U]. Truncation at T: the bootstrap is the target critic on s_T, where the
+        other UAVs play actions sampled from their policies at o_T and UAV u is averaged over
+        its own policy: V_u(s_T) = sum_a' pi_u(a' | tau_T) Q_tgt(s_T, (a_T,-u, a')). batch:
+        the train batch plus the actor's LOGITS [B, T+1, U, A]."""
+        obs, actions, state = batch[OBS], batch[ACTIONS].long(), batch[GLOBAL_STATE]
+        steps = actions.shape[1]
+        q_target = self.critic_q(self.target_critic, state[:, :steps], obs[:, :steps], actions)
+        pi_last = torch.softmax(batch[LOGITS][:, steps], dim=-1)  # [B, U, A]
+        a_last = torch.distributions.Categorical(probs=pi_last).sample()  # [B, U]
+        q_last = self.critic_q(self.target_critic, state[:, steps], obs[:, steps], a_last)
+        return {Q_TARGET: q_target, BOOTSTRAP: (pi_last * q_last).sum(-1)}
 
     # -- learner
     def critic_q(self, net: nn.Module, state: torch.Tensor, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
@@ -279,12 +270,5 @@ class COMATorchRLModule(TorchRLModule, InferenceOnlyAPI):
         logits, _ = self.actor(obs, self.actor.initial_state(obs.shape[0]).to(obs.device))
         q = self.critic_q(self.critic, state[:, :steps], obs[:, :steps], actions)
         with torch.no_grad():
-            q_target = self.critic_q(self.target_critic, state[:, :steps], obs[:, :steps], actions)
-            # Truncation at T: bootstrap with the target critic on the final state s_T; the
-            # other UAVs play actions sampled from their policies at o_T, UAV u is averaged
-            # over its own policy: V_u(s_T) = sum_a' pi_u(a' | tau_T) Q_tgt(s_T, (a_T,-u, a')).
-            pi_last = torch.softmax(logits[:, steps], dim=-1)  # [B, U, A]
-            a_last = torch.distributions.Categorical(probs=pi_last).sample()  # [B, U]
-            q_last = self.critic_q(self.target_critic, state[:, steps], obs[:, steps], a_last)
-            bootstrap = (pi_last * q_last).sum(-1)
-        return {LOGITS: logits, Q_VALUES: q, Q_TARGET: q_target, BOOTSTRAP: bootstrap}
+            target = self.forward_target({**batch, LOGITS: logits})
+        return {LOGITS: logits, Q_VALUES: q, **target}

@@ -11,14 +11,17 @@ The convention every algorithm follows:
   check lives in exactly one of those two places.
 * ONE way into RLlib: the algorithm's AlgorithmConfig subclass mixes in `HParamsConfig` and
   implements `apply_hparams`, which sets the fields RLlib's own machinery reads (lr, gamma,
-  batch sizes, grad_clip, ...). `team_config` builds every trial's config the same way: team
-  env, resources, `config.uavlora(hparams, scenario, torch_threads)` (the typed object is
-  kept as `config.hparams`, where learners read it; its fields plus the scenario's
-  dimensions become the RLModule's model_config), the episode-metric callbacks and the seed.
+  batch sizes, grad_clip, ...), and, where it samples differently from RLlib's defaults,
+  `env_runner_settings`. `team_config` builds every trial's config the same way: team env,
+  resources, `config.uavlora(hparams, scenario, torch_threads)` (the typed object is kept as
+  `config.hparams`, where learners read it; its fields plus the scenario's dimensions become
+  the RLModule's model_config, so a module reads every setting as `model_config[name]` and
+  states no default of its own), the episode-metric callbacks and the seed.
 """
 
 from __future__ import annotations
 
+import abc
 import dataclasses
 from typing import Any, ClassVar
 
@@ -41,7 +44,7 @@ def module_dims(scenario: ScenarioConfig) -> dict[str, int]:
     }
 
 
-class HParamsConfig:
+class HParamsConfig(abc.ABC):
     """Mixin for an AlgorithmConfig: the one way a typed hyperparameter object reaches RLlib."""
 
     hparams_cls: ClassVar[type]  # the typed hyperparameters
@@ -72,11 +75,15 @@ class HParamsConfig:
         )
         return self
 
+    @abc.abstractmethod
     def apply_hparams(self, hparams: Any, scenario: ScenarioConfig) -> dict[str, Any] | None:
         """Set the AlgorithmConfig fields that RLlib itself reads from `hparams`; return the
-        model_config entries the algorithm resolves itself (e.g. a default that depends on it).
-        Every algorithm's config class overrides it (`@override(HParamsConfig)`)."""
-        raise TypeError(f"{type(self).__name__} must override HParamsConfig.apply_hparams")
+        model_config entries the algorithm resolves itself (e.g. a default that depends on it)."""
+
+    def env_runner_settings(self, scenario: ScenarioConfig) -> dict[str, Any]:
+        """`AlgorithmConfig.env_runners` arguments of this algorithm's sampling (fragment
+        length, batch mode) beyond the trial's resources; none: RLlib's defaults."""
+        return {}
 
 
 def apply_resources(config: Any, resources: Any) -> Any:
@@ -88,16 +95,22 @@ def apply_resources(config: Any, resources: Any) -> Any:
     )
 
 
-def team_config(
-    config: Any, name: str, scenario: ScenarioConfig, hparams: Any, resources: Any, seed: int, **env_runner_settings: Any
-) -> Any:
+def team_config(config: Any, name: str, scenario: ScenarioConfig, hparams: Any, resources: Any, seed: int) -> Any:
     """`config` (a fresh HParamsConfig AlgorithmConfig) set up for one trial of algorithm `name`."""
     from uavlora_rllib.envs.team import sample_through_team_env
 
     hparams.check(scenario, resources, f"algorithms.{name}")
-    config = sample_through_team_env(config, scenario, resources, name, **env_runner_settings).framework("torch")
+    settings = config.env_runner_settings(scenario)
+    config = sample_through_team_env(config, scenario, resources, name, **settings).framework("torch")
     config = apply_resources(config, resources).uavlora(hparams, scenario, torch_threads=resources.torch_threads)
     return log_episode_metrics(config).debugging(seed=seed)
+
+
+def hparams_model_config(hparams_cls: type, **entries: Any) -> dict[str, Any]:
+    """The model_config of an RLModule built without an AlgorithmConfig (tests): the typed
+    hyperparameter class's defaults, one torch thread, then `entries` (the scenario's sizes
+    and the entries the algorithm's `apply_hparams` resolves)."""
+    return {**dataclasses.asdict(hparams_cls()), "torch_threads": 1, **entries}
 
 
 def describe_hparams(cls: type) -> str:

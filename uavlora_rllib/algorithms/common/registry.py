@@ -6,10 +6,12 @@ algorithm needs no change anywhere else. Modules are imported lazily (importing 
 torch costs seconds), from `MODULES`.
 
 Adding an algorithm: a typed hyperparameter class and an AlgorithmConfig that follow
-common/config.py (hparams_cls, module_class, learner_class, apply_hparams), a team-view RLModule whose forward_inference / forward_exploration return
-Columns.ACTIONS (then the default `make_policy` runs it, greedy or sampled), a `build` that
-calls `config.team_config`, and a line in `MODULES`. tests/test_algorithm_matrix.py then
-trains, checkpoints, restores and evaluates it with no new test code.
+common/config.py (hparams_cls, module_class, learner_class, apply_hparams,
+env_runner_settings), a team-view RLModule whose forward_inference / forward_exploration
+return Columns.ACTIONS (then the default `make_policy` runs it, greedy or sampled), one
+`register_algorithm(name, ConfigClass, action_modes)` call in its module, and a line in
+`MODULES`. tests/test_algorithm_matrix.py then trains, checkpoints, restores and evaluates it
+with no new test code. A plugin with a builder of its own registers an `AlgorithmEntry`.
 """
 
 from __future__ import annotations
@@ -114,6 +116,24 @@ _REGISTRY: dict[str, AlgorithmEntry] = {}
 
 def register(entry: AlgorithmEntry) -> None:
     _REGISTRY[entry.name] = entry
+
+
+def register_algorithm(name: str, config_cls: type, action_modes: tuple[str, ...]) -> AlgorithmEntry:
+    """Register algorithm `name`, whose trials are `config_cls` (an `HParamsConfig`
+    AlgorithmConfig) set up by `config.team_config`; returns its entry."""
+
+    def build(scenario: "ScenarioConfig", hparams: Any, resources: Resources, seed: int) -> "AlgorithmConfig":
+        from uavlora_rllib.algorithms.common.config import team_config
+
+        entry = get(name)
+        entry.check_scenario(scenario)
+        if not isinstance(hparams, entry.hparams_cls):
+            hparams = entry.hparams(hparams)
+        return team_config(config_cls(), name, scenario, hparams, resources, seed)
+
+    entry = AlgorithmEntry(name=name, hparams_cls=config_cls.hparams_cls, action_modes=tuple(action_modes), build=build)
+    register(entry)
+    return entry
 
 
 def available() -> list[str]:

@@ -1,6 +1,6 @@
 """MAPPO (centralised critic) and IPPO (local critics) on RLlib's new API stack.
 
-Registered as "mappo" and "ippo" (`registry.AlgorithmEntry`). Both sample through the team
+Registered as "mappo" and "ippo" (`registry.register_algorithm`). Both sample through the team
 view (`team_env`, env "uavlora_team") with RLlib's `SingleAgentEnvRunner` over ONE vectorised
 `BatchCore` per env runner (`gym_env_vectorize_mode="vector_entry_point"`), learn with
 `MAPPOTorchLearner` (per-agent clipped PPO, per-agent GAE, see `mappo_learner`) and act with
@@ -33,8 +33,8 @@ from pydantic.dataclasses import dataclass as typed_dataclass
 from ray.rllib.algorithms.ppo import PPO, PPOConfig
 from ray.rllib.utils.annotations import override
 
-from uavlora_rllib.algorithms.common.config import HParamsConfig, team_config
-from uavlora_rllib.algorithms.common.registry import AlgorithmEntry, Resources, register
+from uavlora_rllib.algorithms.common.config import HParamsConfig
+from uavlora_rllib.algorithms.common.registry import Resources, register_algorithm
 from uavlora_rllib.algorithms.mappo.mappo_learner import MAPPOTorchLearner
 from uavlora_rllib.algorithms.mappo.mappo_module import MAPPOTorchRLModule
 from uavlora_rllib.config_errors import ConfigError
@@ -45,8 +45,8 @@ from uavlora_rllib.sim.scenario import ScenarioConfig
 class MAPPOHParams:
     """MAPPO / IPPO hyperparameters (grid YAML `algorithms.mappo:` / `algorithms.ippo:`).
 
-    Defaults: the paper's training table (docs/model.md) where it gives one, else the decision
-    in the field's description (measurements in BENCHMARKS.md)."""
+    Defaults: the paper's training table where it gives one, else this project's decision
+    (docs/model.md#training-defaults)."""
 
     lr: float = Field(1e-4, gt=0.0, le=1.0, description="Adam step size, actor and critic [1/update] (paper)")
     gamma: float = Field(0.99, ge=0.0, le=1.0, description="discount per slot [-] (paper)")
@@ -54,11 +54,8 @@ class MAPPOHParams:
         0.0,
         ge=0.0,
         le=1.0,
-        description="GAE lambda [-] (decision: 0, the one-step advantage r + gamma V(s') - V(s); a slot's action "
-        "never changes later states, so GAE's later TD errors are only noise in its advantage, which the batch "
-        "normalisation of the advantages blows up once the policy has converged: with 0.95 MAPPO reached the "
-        "optimum at V=60/U=2 and then drifted away from it (1.000 at 40k, 0.79 at 200k env steps), with 0 it "
-        "stayed at 0.998; at V=60/U=8 0.60 -> 0.96 of the greedy baseline by 22k; BENCHMARKS.md 'Learning at scale')",
+        description="GAE lambda [-]; 0: the one-step advantage, since a slot's action never changes later "
+        "states (docs/model.md#training-defaults)",
     )
     clip_param: float = Field(0.2, gt=0.0, le=1.0, description="PPO ratio clip epsilon, per agent [-] (paper)")
     num_epochs: int = Field(15, ge=1, description="passes over each train batch [epochs] (paper)")
@@ -68,14 +65,13 @@ class MAPPOHParams:
     num_minibatches: int = Field(
         4,
         ge=1,
-        description="minibatches per epoch [-]: minibatch = train batch / this (decision: one minibatch, "
-        "MAPPO's reference default, learned far less at lr 1e-4, BENCHMARKS.md)",
+        description="minibatches per epoch [-]: minibatch = train batch / this (docs/model.md#training-defaults)",
     )
     max_seq_len: int = Field(
         32,
         ge=1,
         description="GRU backprop window [slots]; each window starts from the GRU state recorded during the "
-        "rollout (decision: 151 = 4 x 32 + 23 steps per chunk, 6 % padding; 10 learned less)",
+        "rollout (docs/model.md#training-defaults)",
     )
     gru_hidden: int = Field(128, ge=1, description="GRU width of the actor [units] (paper)")
     fc_hidden: int = Field(128, ge=1, description="width of the actor's ReLU layers before and after the GRU [units]")
@@ -83,18 +79,14 @@ class MAPPOHParams:
     entropy_coeff: float = Field(
         0.001,
         ge=0.0,
-        description="weight of the mean per-agent entropy bonus [-] (decision: 0.01 -> 0.001 took greedy EE at "
-        "V=60/U=8 from 0.60 to 0.95 (MAPPO) and 0.50 to 0.85 (IPPO) of the greedy baseline at 100k env steps, "
-        "1.000 at V=60/U=4 and V=10/U=2 kept; BENCHMARKS.md 'Learning at scale')",
+        description="weight of the mean per-agent entropy bonus [-] (docs/model.md#training-defaults)",
     )
     vf_loss_coeff: float = Field(1.0, ge=0.0, description="weight of the value loss [-] (actor and critic share Adam)")
     grad_clip: float | None = Field(10.0, gt=0.0, description="global gradient-norm clip [-]; null: off (decision)")
     share_actor: bool = Field(
         False,
-        description="one actor for all UAVs (+ agent-id one-hot) [bool]; false (default): one actor per UAV "
-        "(a shared actor's argmax collapses to one action shared by every UAV, which the same-SF "
-        "interference punishes: greedy 0.23 -> 0.9998 of the greedy baseline at V=60/U=4, 100k env steps; "
-        "BENCHMARKS.md 'Learning at scale')",
+        description="one actor for all UAVs (+ agent-id one-hot) [bool]; false: one actor per UAV, so that "
+        "identical UAVs can pick different SFs (docs/model.md#training-defaults)",
     )
     actor_agent_heads: bool = Field(
         False,
@@ -162,6 +154,11 @@ class MAPPOConfig(HParamsConfig, PPOConfig):
         )
         return {"critic": h.critic or self.default_critic}
 
+    @override(HParamsConfig)
+    def env_runner_settings(self, scenario: ScenarioConfig) -> dict:
+        # fragments sized by RLlib to fill the train batch evenly over runners and envs
+        return {"rollout_fragment_length": "auto"}
+
     @override(PPOConfig)
     def validate(self) -> None:
         # PPO features MAPPOTorchLearner does not implement: refuse them instead of ignoring them.
@@ -197,22 +194,7 @@ class MAPPO(PPO):
         return MAPPOConfig()
 
 
-def _build(name: str, config_cls: type):
-    def build(scenario: ScenarioConfig, hparams: MAPPOHParams, resources: Resources, seed: int) -> MAPPOConfig:
-        entry = ENTRIES[name]
-        if not isinstance(hparams, MAPPOHParams):
-            hparams = entry.hparams(hparams)
-        entry.check_scenario(scenario)
-        return team_config(config_cls(), name, scenario, hparams, resources, seed, rollout_fragment_length="auto")
+register_algorithm("mappo", MAPPOConfig, ("per_uav", "per_device"))
+register_algorithm("ippo", IPPOConfig, ("per_uav", "per_device"))
 
-    return build
-
-
-ENTRIES: dict[str, AlgorithmEntry] = {}
-for _name, _cls in (("mappo", MAPPOConfig), ("ippo", IPPOConfig)):
-    ENTRIES[_name] = AlgorithmEntry(
-        name=_name, hparams_cls=MAPPOHParams, action_modes=("per_uav", "per_device"), build=_build(_name, _cls)
-    )
-    register(ENTRIES[_name])
-
-__all__ = ["MAPPO", "MAPPOConfig", "IPPOConfig", "MAPPOHParams", "ENTRIES"]
+__all__ = ["MAPPO", "MAPPOConfig", "IPPOConfig", "MAPPOHParams"]

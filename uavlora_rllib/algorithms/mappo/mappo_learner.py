@@ -153,7 +153,7 @@ class MAPPOTorchLearner(TorchLearner):
         # Extends the learner's connector pipeline in place, the way RLlib's own PPOLearner
         # adds its GAE piece (config.learner_connector could only prepend).
         if self._learner_connector is not None and self.config.add_default_connectors_to_learner_pipeline:
-            if self.config.model_config.get("critic", "central") == "central":
+            if self.config.model_config["critic"] == "central":
                 self._learner_connector.prepend(AddGlobalStateToBatch())
             self._learner_connector.prepend(AddOneTsToEpisodesAndTruncate())
             self._learner_connector.append(PerAgentGAE(gamma=self.config.gamma, lambda_=self.config.lambda_))

@@ -35,8 +35,10 @@ from ray.rllib.core.rl_module.torch import TorchRLModule
 from ray.rllib.utils.annotations import override
 from torch import nn
 
+from uavlora_rllib.algorithms.common.actor_module import RecurrentActorForward
 from uavlora_rllib.algorithms.common.agent_net import ActionHead, RecurrentAgentNet
-from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE, HIDDEN
+from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE
+from uavlora_rllib.algorithms.common.threads import set_torch_threads
 
 
 class ValueNorm(nn.Module):
@@ -98,73 +100,45 @@ class Critic(nn.Module):
         return self.net[1:](z).squeeze(-1)
 
 
-class MAPPOTorchRLModule(TorchRLModule, ValueFunctionAPI, InferenceOnlyAPI):
-    """See module docstring. model_config: MAPPOHParams' fields (gru_hidden, fc_hidden,
-    critic_hidden, share_actor, actor_agent_heads, value_norm, max_seq_len), critic ("central" | "local", resolved
-    by the algorithm), state_dim, torch_threads."""
+class MAPPOTorchRLModule(RecurrentActorForward, TorchRLModule, ValueFunctionAPI, InferenceOnlyAPI):
+    """See module docstring. model_config (common/config.py): MAPPOHParams' fields (gru_hidden,
+    fc_hidden, critic_hidden, share_actor, actor_agent_heads, value_norm, max_seq_len), critic
+    ("central" | "local", resolved by the algorithm), state_dim, torch_threads."""
 
     @override(TorchRLModule)
     def setup(self):
         mc = self.model_config
-        if mc.get("torch_threads"):
-            torch.set_num_threads(int(mc["torch_threads"]))
+        set_torch_threads(mc["torch_threads"])
         n_agents, obs_dim = self.observation_space.shape
         nvec = np.asarray(self.action_space.nvec)
         self.n_agents, self.obs_dim = int(n_agents), int(obs_dim)
         row = nvec.reshape(self.n_agents, -1)[0]
         self.per_device = nvec.ndim == 2
         self.head = ActionHead(row.tolist())
-        fc_hidden = int(mc.get("fc_hidden", 128))
+        fc_hidden = int(mc["fc_hidden"])
         self.actor = RecurrentAgentNet(
             self.obs_dim,
             self.n_agents,
             self.head.n_logits,
             fc_hidden=fc_hidden,
-            gru_hidden=int(mc.get("gru_hidden", 128)),
-            share=bool(mc.get("share_actor", False)),
-            agent_heads=bool(mc.get("actor_agent_heads", False)),  # RecurrentAgentNet refuses it unshared
+            gru_hidden=int(mc["gru_hidden"]),
+            share=bool(mc["share_actor"]),
+            agent_heads=bool(mc["actor_agent_heads"]),  # RecurrentAgentNet refuses it unshared
             out_hidden=fc_hidden,
             out_gain=0.01,  # near-uniform initial policy (standard for PPO actors)
         )
-        self.critic_kind = mc.get("critic", "central")
+        self.critic_kind = mc["critic"]
         if not self.inference_only:  # TorchRLModule would delete it anyway (InferenceOnlyAPI)
             in_dim = int(mc["state_dim"]) if self.critic_kind == "central" else self.obs_dim
-            self.critic = Critic(in_dim, int(mc.get("critic_hidden", 128)), self.n_agents, bool(mc.get("value_norm", True)))
-
-    # ---------------------------------------------------------------- RLModule API
-    @override(RLModule)
-    def get_initial_state(self) -> Dict[str, Any]:
-        return {HIDDEN: np.zeros((self.n_agents, self.actor.gru_hidden), dtype=np.float32)}
+            self.critic = Critic(in_dim, int(mc["critic_hidden"]), self.n_agents, bool(mc["value_norm"]))
 
     @override(InferenceOnlyAPI)
     def get_non_inference_attributes(self) -> List[str]:
         return ["critic"]
 
-    def _actor(self, batch: Dict[str, Any]) -> tuple[torch.Tensor, Dict[str, torch.Tensor]]:
-        obs = batch[Columns.OBS]
-        if obs.dim() == 3:  # no time rank (direct calls): [B, U, d]
-            obs = obs.unsqueeze(1)
-        logits, h = self.actor(obs.float(), batch[Columns.STATE_IN][HIDDEN].float())
-        return logits, {HIDDEN: h}
-
-    @override(RLModule)
-    def _forward_inference(self, batch: Dict[str, Any], **kwargs) -> Dict[str, Any]:
-        logits, state = self._actor(batch)
-        return {Columns.ACTIONS: self.head.greedy(logits), Columns.STATE_OUT: state}
-
-    @override(RLModule)
-    def _forward_exploration(self, batch: Dict[str, Any], **kwargs) -> Dict[str, Any]:
-        logits, state = self._actor(batch)
-        actions, logp = self.head.sample(logits)
-        return {Columns.ACTIONS: actions, Columns.ACTION_LOGP: logp, Columns.STATE_OUT: state}
-
-    @override(RLModule)
-    def _forward(self, batch: Dict[str, Any], **kwargs) -> Dict[str, Any]:
-        return self._forward_inference(batch, **kwargs)
-
     @override(RLModule)
     def _forward_train(self, batch: Dict[str, Any], **kwargs) -> Dict[str, Any]:
-        logits, state = self._actor(batch)
+        logits, state = self.actor_logits(batch)
         return {Columns.ACTION_DIST_INPUTS: logits, Columns.STATE_OUT: state}
 
     # ---------------------------------------------------------------- critic

@@ -7,7 +7,7 @@ Q-network (inference-only module) and act decentralised: UAV u's action is the e
 argmax of its own Q-values, computed from its own observation history (GRU state carried by
 RLlib's connectors, zero at every episode start).
 
-One training iteration (`QMIX.training_step`):
+One training iteration (the common `EpisodeAlgorithm` loop, with QMIX's hooks):
   1. sample rollout_fragment_length = episode_len steps on every env of every env runner:
      num_envs_per_env_runner x max(1, num_env_runners) whole episodes;
   2. store them in the episode replay (|D| = buffer_size_episodes whole episodes);
@@ -19,7 +19,7 @@ One training iteration (`QMIX.training_step`):
   4. push the agent network's weights to the env runners.
 
 Hyperparameters: `QMIXHParams` (`--list-hparams qmix`) and `VDNHParams`, its subclass that
-differs in one default (updates_per_episode 1.0 against QMIX's 0.25, both measured); the mixer
+differs in one default (updates_per_episode 1.0 against QMIX's 0.25); the mixer
 is fixed by the name: "qmix" -> monotonic hypernetwork mixer, "vdn" -> sum; both add V(s) unless
 state_bias is false, see qmix_module.py). Defaults follow
 the paper's training table (docs/model.md); the epsilon schedule is linear from
@@ -45,41 +45,31 @@ from pydantic.dataclasses import dataclass as typed_dataclass
 from ray.rllib.algorithms.algorithm import Algorithm
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 from ray.rllib.core import DEFAULT_MODULE_ID
-from ray.rllib.execution.rollout_ops import synchronous_parallel_sample
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 from ray.rllib.utils.annotations import override
-from ray.rllib.utils.metrics import (
-    ENV_RUNNER_RESULTS,
-    ENV_RUNNER_SAMPLING_TIMER,
-    LEARNER_RESULTS,
-    LEARNER_UPDATE_TIMER,
-    NUM_ENV_STEPS_SAMPLED_LIFETIME,
-    SYNCH_WORKER_WEIGHTS_TIMER,
-    TIMERS,
-)
+from ray.rllib.utils.metrics import ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME
 
 from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE
-from uavlora_rllib.algorithms.common.config import HParamsConfig, team_config
+from uavlora_rllib.algorithms.common.config import HParamsConfig
+from uavlora_rllib.algorithms.common.episode_algorithm import EpisodeAlgorithm
 from uavlora_rllib.algorithms.qmix.qmix_learner import QMIXTorchLearner
 from uavlora_rllib.algorithms.qmix.qmix_module import QMixModule, linear_epsilon
 from uavlora_rllib.algorithms.qmix.qmix_replay import EpisodeReplay
-from uavlora_rllib.envs.multi_agent import scenario_from
 from uavlora_rllib.sim.observation import obs_dim, state_dim
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
 MIXERS = ("qmix", "vdn")
 
 
-def _updates_per_episode(default: float, why: str):
-    """The `updates_per_episode` field: one meaning and range; QMIX and VDN each state their default."""
+def _updates_per_episode(default: float):
+    """The `updates_per_episode` field: one meaning and range; QMIX and VDN each have their default."""
     return Field(
         default,
         gt=0,
         le=64,
-        description="gradient updates per episode added to the replay [updates/episode] (decision): the "
-        f"update-to-data ratio, independent of how many envs and env runners sample. {why}; BENCHMARKS.md "
-        "'Learning at scale'",
+        description="gradient updates per episode added to the replay [updates/episode]: the update-to-data "
+        "ratio, independent of how many envs and env runners sample (docs/model.md#training-defaults)",
     )
 
 
@@ -93,22 +83,17 @@ class QMIXHParams:
     fc_hidden: int = Field(128, ge=1, description="width of the ReLU layer before the GRU [units] (decision)")
     share_agent_net: bool = Field(
         False,
-        description="one agent network for all UAVs (+ one-hot UAV id) [bool]; false (default): one per UAV, "
-        "which breaks the symmetry between identical UAVs from the start (a shared net starts on one joint "
-        "action where every UAV uses the same SF, and VDN stays there: greedy 0.52 -> 1.00 of the greedy "
-        "baseline at V=60/U=4, 0.22 -> 1.00 of the optimum at V=10/U=2; QMIX 0.91 -> 0.96 at V=60/U=8; "
-        "BENCHMARKS.md 'Learning at scale')",
+        description="one agent network for all UAVs (+ one-hot UAV id) [bool]; false: one per UAV, which breaks "
+        "the symmetry between identical UAVs from the start (docs/model.md#training-defaults)",
     )
     mixing_embed_dim: int = Field(
         32, ge=1, description="mixing-network width of QMIX and width of V(s) [units] (Rashid et al.)"
     )
     state_bias: bool = Field(
         True,
-        description="Q_tot includes a state-value term V(s) (2-layer MLP on the global state) [bool]. QMIX: "
-        "Rashid et al.'s V(s). VDN: sum_u Q_u + V(s), Rashid et al.'s VDN-S (decision): V(s) takes the "
-        "state's value, which local Q-values cannot split, so they keep the actions' differences (VDN "
-        "greedy 0.63 -> 0.94 of the greedy baseline at V=60/U=8, 200k env steps; BENCHMARKS.md 'Learning "
-        "at scale'); false: Sunehag et al.'s plain sum. Execution (each UAV's argmax Q_u) never reads it",
+        description="Q_tot includes a state-value term V(s) (2-layer MLP on the global state) [bool]; VDN with it "
+        "is Rashid et al.'s VDN-S, without it Sunehag et al.'s plain sum; execution never reads it "
+        "(docs/model.md#training-defaults)",
     )
     hypernet_embed_dim: int = Field(
         64, ge=1, description="hidden width of the 2-layer weight hypernetworks [units]; unused by VDN"
@@ -120,27 +105,19 @@ class QMIXHParams:
     batch_size_episodes: int = Field(16, ge=1, description="whole episodes per gradient update [episodes] (paper)")
     buffer_size_episodes: int = Field(32, ge=1, description="replay capacity |D| [episodes] (paper)")
     learning_starts_episodes: int = Field(16, ge=1, description="episodes in the replay before the first update [episodes]")
-    updates_per_episode: float = _updates_per_episode(
-        0.25,
-        "0.25 (default) = one update per 4 episodes: QMIX greedy 0.918 -> 1.000 of the optimum at V=10/U=2 "
-        "(3 seeds, 200k env steps; the 1.0 ratio swings late) and 0.95 of the greedy baseline at V=60/U=8, "
-        "in a quarter to a third of the training time; 1.0 = EPyMARL's one update per episode (the "
-        "previous default)",
-    )
+    updates_per_episode: float = _updates_per_episode(0.25)
     updates_per_iteration: int | None = Field(
         None,
         ge=1,
         description="gradient updates per training iteration [updates], overriding updates_per_episode; "
-        "null (default): updates_per_episode x the episodes the iteration added (one update per 16 "
-        "episodes learned ~16x slower than EPyMARL: QMIX greedy 0.63 -> 0.998 of the greedy baseline at "
-        "V=60/U=4 with 16, 100k env steps)",
+        "null: updates_per_episode x the episodes the iteration added",
     )
     epsilon_start: float = Field(1.0, ge=0, le=1, description="exploration epsilon at t = 0 [probability]")
     epsilon_end: float = Field(
         0.05, ge=0, le=1, description="exploration epsilon after the anneal, also the sampled execution's [probability]"
     )
     epsilon_anneal_fraction: float = Field(
-        0.05, ge=0, le=1, description="share of t_max_env_steps over which epsilon anneals linearly [-] (5%)"
+        0.05, ge=0, le=1, description="share of t_max_env_steps over which epsilon anneals linearly [-] (paper)"
     )
     t_max_env_steps: int = Field(
         2_000_000,
@@ -176,12 +153,7 @@ class QMIXHParams:
 class VDNHParams(QMIXHParams):
     """VDN hyperparameters (grid YAML `algorithms.vdn:`): QMIX's fields; one default differs."""
 
-    updates_per_episode: float = _updates_per_episode(
-        1.0,
-        "1.0 (default) = EPyMARL's one update per episode: VDN-S at V=10/U=2 reached 1.000 of the optimum "
-        "on 3 seeds (200k env steps) and 1.000 by 60k, while QMIX's 0.25 left one seed at 0.741 (VDN-S "
-        "0.914 mean) and 0.67 at 40.8k; 0.25 removed VDN-S's late swing at V=60/U=2 (0.961 -> 0.999)",
-    )
+    updates_per_episode: float = _updates_per_episode(1.0)
 
 
 class QMIXConfig(HParamsConfig, AlgorithmConfig):
@@ -203,6 +175,11 @@ class QMIXConfig(HParamsConfig, AlgorithmConfig):
         self.training(lr=h.lr, gamma=h.gamma, grad_clip=h.grad_clip, grad_clip_by="global_norm")
         return {"mixer": self.mixer, "epsilon_anneal_env_steps": h.epsilon_anneal_env_steps}
 
+    @override(HParamsConfig)
+    def env_runner_settings(self, scenario: ScenarioConfig) -> dict:
+        # one episode per env and sampling round: the replay stores whole episodes
+        return {"rollout_fragment_length": scenario.episode_len, "batch_mode": "truncate_episodes"}
+
 
 class VDNConfig(QMIXConfig):
     """QMIX's algorithm with the sum mixer (plus V(s) with state_bias: VDN-S); hyperparameters: VDNHParams."""
@@ -215,18 +192,21 @@ class VDNConfig(QMIXConfig):
         self.hparams = VDNHParams()
 
 
-class QMIX(Algorithm):
+class QMIX(EpisodeAlgorithm):
+    """EpisodeAlgorithm over the episode replay: one sampling round of every env per
+    iteration, updates_per_episode updates per episode added, each on batch_size_episodes
+    episodes drawn from the replay."""
+
     @classmethod
     @override(Algorithm)
     def get_default_config(cls) -> QMIXConfig:
         return QMIXConfig()
 
-    @override(Algorithm)
+    @override(EpisodeAlgorithm)
     def setup(self, config) -> None:
         super().setup(config)
-        cfg = scenario_from(self.config.env_config)
-        self._scenario = cfg
-        self._replay = EpisodeReplay(
+        cfg = self.scenario
+        self.replay = EpisodeReplay(
             self.config.hparams.buffer_size_episodes,
             cfg.episode_len,
             cfg.n_uavs,
@@ -240,6 +220,34 @@ class QMIX(Algorithm):
         # iteration, every second iteration runs one update. Not checkpointed: a restore forgets < 1 update.
         self._update_credit = 0.0
 
+    @override(EpisodeAlgorithm)
+    def episodes_per_runner(self) -> int:
+        return self.config.num_envs_per_env_runner
+
+    @override(EpisodeAlgorithm)
+    def add_episodes(self, episodes: list) -> int:
+        added = self._store(episodes)
+        c = self.config.hparams
+        env_steps = int(self.metrics.peek((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0))
+        self.metrics.log_dict(
+            {
+                "epsilon": linear_epsilon(env_steps, c.epsilon_start, c.epsilon_end, c.epsilon_anneal_env_steps),
+                "replay_episodes": len(self.replay),
+                "replay_episodes_added_lifetime": self.replay.added,
+                "episodes_dropped_lifetime": self._episodes_dropped,
+            },
+            window=1,
+        )
+        if len(self.replay) < c.learning_starts_episodes:
+            return 0
+        return c.updates_per_iteration if c.updates_per_iteration is not None else self._updates_due(added)
+
+    @override(EpisodeAlgorithm)
+    def next_batch(self) -> MultiAgentBatch:
+        n = self.config.hparams.batch_size_episodes
+        data = self.replay.sample(n)
+        return MultiAgentBatch({DEFAULT_MODULE_ID: SampleBatch(data)}, env_steps=n * self.scenario.episode_len)
+
     def _updates_due(self, episodes_added: int) -> int:
         """Gradient updates this iteration, updates_per_episode per episode added (see setup)."""
         self._update_credit += episodes_added * self.config.hparams.updates_per_episode
@@ -247,11 +255,10 @@ class QMIX(Algorithm):
         self._update_credit = max(self._update_credit - n, 0.0)
         return n
 
-    # ------------------------------------------------------------------ episodes -> replay
     def _store(self, episodes) -> int:
         """Add every complete episode to the replay (chunks of a cut episode are joined first);
         returns how many were added."""
-        t_len = self._scenario.episode_len
+        t_len = self.scenario.episode_len
         added = 0
         for ep in episodes:
             chunks = self._pending.pop(ep.id_, []) + [ep]
@@ -269,57 +276,11 @@ class QMIX(Algorithm):
                 self._episodes_dropped += 1
                 continue
             state = np.stack([np.asarray(i[GLOBAL_STATE]) for i in infos])
-            self._replay.add(obs, actions, rewards, state, terminated=bool(ep.is_terminated))
+            self.replay.add(obs, actions, rewards, state, terminated=bool(ep.is_terminated))
             added += 1
         if len(self._pending) > 4 * self.config.hparams.buffer_size_episodes:  # chunks of abandoned episodes
             self._pending.clear()
         return added
-
-    # ------------------------------------------------------------------ the loop
-    @override(Algorithm)
-    def training_step(self) -> None:
-        with self.metrics.log_time((TIMERS, ENV_RUNNER_SAMPLING_TIMER)):
-            episodes, runner_results = synchronous_parallel_sample(
-                worker_set=self.env_runner_group,
-                concat=True,
-                sample_timeout_s=self.config.sample_timeout_s,
-                _uses_new_env_runners=True,
-                _return_metrics=True,
-            )
-        self.metrics.aggregate(runner_results, key=ENV_RUNNER_RESULTS)
-        added = self._store(episodes)
-        env_steps = int(self.metrics.peek((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0))
-        c = self.config.hparams
-        self.metrics.log_dict(
-            {
-                "epsilon": linear_epsilon(env_steps, c.epsilon_start, c.epsilon_end, c.epsilon_anneal_env_steps),
-                "replay_episodes": len(self._replay),
-                "replay_episodes_added_lifetime": self._replay.added,
-                "episodes_dropped_lifetime": self._episodes_dropped,
-            },
-            window=1,
-        )
-        if len(self._replay) < max(c.learning_starts_episodes, 1):
-            self.metrics.log_value("num_gradient_updates_lifetime", 0, reduce="lifetime_sum")
-            return
-        t_len = self._scenario.episode_len
-        n_updates = c.updates_per_iteration if c.updates_per_iteration is not None else self._updates_due(added)
-        for _ in range(n_updates):
-            data = self._replay.sample(c.batch_size_episodes)
-            batch = MultiAgentBatch({DEFAULT_MODULE_ID: SampleBatch(data)}, env_steps=c.batch_size_episodes * t_len)
-            with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
-                learner_results = self.learner_group.update(
-                    batch=batch, timesteps={NUM_ENV_STEPS_SAMPLED_LIFETIME: env_steps}
-                )
-            self.metrics.aggregate(learner_results, key=LEARNER_RESULTS)
-        # lifetime counter in the metrics logger, which checkpoints keep
-        self.metrics.log_value("num_gradient_updates_lifetime", n_updates, reduce="lifetime_sum")
-        with self.metrics.log_time((TIMERS, SYNCH_WORKER_WEIGHTS_TIMER)):
-            self.env_runner_group.sync_weights(
-                from_worker_or_learner_group=self.learner_group,
-                policies=[DEFAULT_MODULE_ID],
-                inference_only=True,
-            )
 
 
 class VDN(QMIX):
@@ -329,30 +290,5 @@ class VDN(QMIX):
         return VDNConfig()
 
 
-# ---------------------------------------------------------------------- registry
-def _build(name: str, config_cls: type):
-    def build(scenario: ScenarioConfig, hparams: QMIXHParams, resources: registry.Resources, seed: int) -> QMIXConfig:
-        entry = registry.get(name)
-        entry.check_scenario(scenario)
-        if not isinstance(hparams, entry.hparams_cls):
-            hparams = entry.hparams(hparams)
-        return team_config(
-            config_cls(),
-            name,
-            scenario,
-            hparams,
-            resources,
-            seed,
-            rollout_fragment_length=scenario.episode_len,
-            batch_mode="truncate_episodes",
-        )
-
-    return build
-
-
-for _name, _cls in (("qmix", QMIXConfig), ("vdn", VDNConfig)):
-    registry.register(
-        registry.AlgorithmEntry(
-            name=_name, hparams_cls=_cls.hparams_cls, action_modes=("per_uav",), build=_build(_name, _cls)
-        )
-    )
+registry.register_algorithm("qmix", QMIXConfig, ("per_uav",))
+registry.register_algorithm("vdn", VDNConfig, ("per_uav",))

@@ -16,11 +16,11 @@ import torch
 
 from ray.rllib.core.columns import Columns
 from ray.rllib.core.learner.torch.torch_learner import TorchLearner
-from ray.rllib.core.rl_module.apis import QNetAPI, TargetNetworkAPI
+from ray.rllib.core.rl_module.apis import QNetAPI
 from ray.rllib.utils.annotations import override
-from ray.rllib.utils.torch_utils import update_target_network
 
 from uavlora_rllib.algorithms.common.columns import TERMINATED
+from uavlora_rllib.algorithms.common.target_learner import TargetNetworkLearner
 from uavlora_rllib.algorithms.qmix.qmix_module import Q_TAKEN, Q_TOT, TARGET_Q_TOT_NEXT
 
 TD_LOSS = "td_loss"
@@ -45,15 +45,8 @@ def nstep_targets(
     return ret + torch.pow(torch.full_like(m, gamma), m).view(1, t) * boot * (~done).to(rewards.dtype)
 
 
-class QMIXTorchLearner(TorchLearner):
+class QMIXTorchLearner(TargetNetworkLearner):
     """TD loss above; hyperparameters from the typed config.hparams (QMIXHParams)."""
-
-    @override(TorchLearner)
-    def build(self) -> None:
-        super().build()
-        self.module.foreach_module(
-            lambda mid, mod: mod.make_target_networks() if isinstance(mod, TargetNetworkAPI) else None
-        )
 
     @override(TorchLearner)
     def configure_optimizers_for_module(self, module_id, config=None) -> None:
@@ -90,15 +83,10 @@ class QMIXTorchLearner(TorchLearner):
     def after_gradient_based_update(self, *, timesteps: Dict[str, Any]) -> None:
         super().after_gradient_based_update(timesteps=timesteps)
         for module_id in self.module.keys():
-            mod = self.module[module_id].unwrapped()
-            if not isinstance(mod, TargetNetworkAPI):
-                continue
-            tau = self.config.get_config_for_module(module_id).hparams.tau
-            for main, target in mod.get_target_network_pairs():
-                update_target_network(main_net=main, target_net=target, tau=tau)
+            self.update_target_networks(module_id, self.config.get_config_for_module(module_id).hparams.tau)
             self.metrics.log_value((module_id, NUM_TARGET_UPDATES), 1, reduce="lifetime_sum")
 
     @classmethod
-    @override(TorchLearner)
+    @override(TargetNetworkLearner)
     def rl_module_required_apis(cls) -> list[type]:
-        return [QNetAPI, TargetNetworkAPI]
+        return [QNetAPI, *super().rl_module_required_apis()]

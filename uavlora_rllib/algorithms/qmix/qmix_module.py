@@ -42,6 +42,7 @@ from ray.rllib.utils.annotations import override
 
 from uavlora_rllib.algorithms.common.agent_net import RecurrentAgentNet
 from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE, HIDDEN
+from uavlora_rllib.algorithms.common.threads import set_torch_threads
 
 Q_ALL = "q_all"  # [B, T+1, U, A] online Qs over the whole sequence
 Q_TAKEN = "q_taken"  # [B, T, U] online Q of the action taken
@@ -122,35 +123,29 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
     @override(TorchRLModule)
     def setup(self) -> None:
         mc = self.model_config
-        threads = mc.get("torch_threads")
-        if threads:
-            torch.set_num_threads(int(threads))
+        set_torch_threads(mc["torch_threads"])
         self.n_agents = int(mc["n_agents"])
         self.n_actions = int(mc["n_actions"])
-        self.gru_hidden = int(mc.get("gru_hidden", 128))
-        self.double_q = bool(mc.get("double_q", True))
+        self.gru_hidden = int(mc["gru_hidden"])
+        self.double_q = bool(mc["double_q"])
         self.agent = RecurrentAgentNet(
             int(mc["obs_dim"]),
             self.n_agents,
             self.n_actions,
-            fc_hidden=int(mc.get("fc_hidden", 128)),
+            fc_hidden=int(mc["fc_hidden"]),
             gru_hidden=self.gru_hidden,
-            share=bool(mc.get("share_agent_net", False)),
+            share=bool(mc["share_agent_net"]),
         )
         # The mixer is built here and removed again on inference-only (env runner) copies.
         self.mixer = make_mixer(
-            str(mc.get("mixer", "qmix")),
+            str(mc["mixer"]),
             self.n_agents,
             int(mc["state_dim"]),
-            int(mc.get("mixing_embed_dim", 32)),
-            int(mc.get("hypernet_embed_dim", 64)),
-            state_bias=bool(mc.get("state_bias", True)),
+            int(mc["mixing_embed_dim"]),
+            int(mc["hypernet_embed_dim"]),
+            state_bias=bool(mc["state_bias"]),
         )
-        self._eps = (
-            float(mc.get("epsilon_start", 1.0)),
-            float(mc.get("epsilon_end", 0.05)),
-            float(mc.get("epsilon_anneal_env_steps", 100_000)),
-        )
+        self._eps = (float(mc["epsilon_start"]), float(mc["epsilon_end"]), float(mc["epsilon_anneal_env_steps"]))
 
     # ------------------------------------------------------------------ recurrent state
     @override(RLModule)
