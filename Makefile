@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test bench
+.PHONY: install demo test test-slow test-all bench
 
 $(STAMP): pyproject.toml constraints.txt
 	python3 -m venv $(VENV)
@@ -19,7 +19,15 @@ demo: install
 	$(PY) -m uavlora_rllib.tune tune_configs/smoke.yaml
 	$(PY) -m analysis.report --experiment smoke --tracking-uri sqlite:///mlflow.db --out reports/smoke
 
+# What a contributor runs before every commit: everything but the tests marked `slow`
+# (learning runs, whole grids, clusters). test-slow runs those; test-all runs both at once.
 test: install
+	$(PY) -m pytest -q -m "not slow"
+
+test-slow: install
+	$(PY) -m pytest -q -m slow
+
+test-all: install
 	$(PY) -m pytest -q
 
 bench: install
