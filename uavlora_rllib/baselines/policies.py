@@ -395,6 +395,10 @@ def make_baseline(name: str, cfg: ScenarioConfig, seed: int = 0, objective: str 
         return FixedPolicy(cfg)
     if name == "adr":
         return AdrPolicy(cfg)
+    if name in ("greedy", "optimal") and cfg.action_mode == "per_device":
+        from uavlora_rllib.baselines.per_device import PerDeviceGreedy, PerDeviceOptimal
+
+        return (PerDeviceGreedy if name == "greedy" else PerDeviceOptimal)(cfg, objective)
     if name == "greedy":
         return GreedyPolicy(cfg, objective)
     if name == "optimal":
