@@ -92,6 +92,18 @@ class BestFixedPolicy:
         return np.broadcast_to(self.action, (core.n,) + self.action.shape).copy()
 
 
+def _best_entry(vec: np.ndarray, i: int, n_values: int, keys, p0: float, q0: float):
+    """(vec, p, q, moved): entry i of vec set to its best value in range(n_values), scored by
+    keys(candidates [n_values, ...]) -> (p, q) arrays, if that strictly improves on (p0, q0)."""
+    cand = np.repeat(vec[None], n_values, axis=0)
+    cand[:, i] = np.arange(n_values)
+    p, q = keys(cand)
+    j = int(lex_argmax(p, q))
+    if lex_better(p[j], q[j], p0, q0):
+        return cand[j], p[j], q[j], True
+    return vec, p0, q0, False
+
+
 def _mean_keys(m: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """(mean EE_sys, mean r) over the slot axis (the last) of slot metrics."""
     return m["ee_sys"].mean(axis=-1), m["reward"].mean(axis=-1)
@@ -135,12 +147,8 @@ class _PerUavSearch:
             for _ in range(BEST_FIXED_MAX_ROUNDS):
                 moved = False
                 for agent in range(n_u):  # Gauss-Seidel over the UAVs, all 90 actions at once
-                    cand = np.repeat(joint[None], n_a, axis=0)
-                    cand[:, agent] = np.arange(n_a)
-                    p, q = self.keys(cand)
-                    i = int(lex_argmax(p, q))
-                    if lex_better(p[i], q[i], p0, q0):
-                        joint, p0, q0, moved = cand[i], p[i], q[i], True
+                    joint, p0, q0, m = _best_entry(joint, agent, n_a, self.keys, p0, q0)
+                    moved |= m
                 if not moved:
                     break
             if best is None or lex_better(p0, q0, best[1], best[2]):
@@ -169,6 +177,11 @@ class _PerDeviceSearch:
         setting, bw = self.allocation(const_set, const_bw)
         return tuple(float(k) for k in _mean_keys(self.scorer.metrics(setting, bw, self.slots)))
 
+    def bw_keys(self, const_set: np.ndarray, bws: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Mean keys of the constant with each BW vector of bws [C, U] -> two [C]."""
+        keys = [self.keys(const_set, b) for b in bws]
+        return np.array([k[0] for k in keys]), np.array([k[1] for k in keys])
+
     def run(self, rng: np.random.Generator) -> tuple[np.ndarray, float]:
         cfg, sc = self.cfg, self.scorer
         n_u, q_ = cfg.n_uavs, cfg.quota
@@ -189,13 +202,8 @@ class _PerDeviceSearch:
                     p0, q0, m = self._row(const_set, const_bw, uu, kk, p0, q0)
                     moved |= m
                 for uu in range(n_u):
-                    cand = np.repeat(const_bw[None], cfg.n_bw, axis=0)
-                    cand[:, uu] = np.arange(cfg.n_bw)
-                    keys = [self.keys(const_set, c) for c in cand]
-                    p, q = np.array([x[0] for x in keys]), np.array([x[1] for x in keys])
-                    i = int(lex_argmax(p, q))
-                    if lex_better(p[i], q[i], p0, q0):
-                        const_bw, p0, q0, moved = cand[i], p[i], q[i], True
+                    const_bw, p0, q0, m = _best_entry(const_bw, uu, cfg.n_bw, lambda c: self.bw_keys(const_set, c), p0, q0)
+                    moved |= m
                 if not moved:
                     break
             if best is None or lex_better(p0, q0, best[2], best[3]):
