@@ -1,6 +1,6 @@
 """Episode animation: a GIF of the ED-UAV association, one frame per slot.
 
-    python -m analysis.animate --policy {random,fixed,adr,greedy,optimal|CHECKPOINT_DIR}
+    python -m analysis.animate --policy {random,fixed,adr,best_fixed,greedy,optimal|CHECKPOINT_DIR}
         [--n-eds V] [--n-uavs U] [--seed S] [--steps K] [--fps F] [--out file.gif]
 
 Plays K slots (default: the whole episode, T = episode_len) of one episode of the

@@ -17,6 +17,7 @@ import numpy as np
 
 from analysis import stats
 from analysis.runs import EE_KEY, RunRecord, metric_history
+from uavlora_rllib.experiment.evaluation import BOUND_METRIC
 
 PAPER_SCENARIO = (10, 2)  # Fig. 2 and Fig. 3a: V = 10 EDs, U = 2 UAVs
 PAPER_FIXED_U = 2  # Fig. 3b
@@ -25,6 +26,8 @@ MIN_SEEDS = 3  # below this a cell's statistics are flagged as weak
 KINDS = ("train", "baseline")
 OPTIMAL, GREEDY = "optimal", "greedy"
 REFERENCE_BASELINES = (OPTIMAL, GREEDY)  # the "share of reference" denominator, first present wins
+BEST_FIXED = "best_fixed"  # the open-loop check: the best constant action
+BOUND_KEY = f"eval/{BOUND_METRIC}"  # the references' upper bound on the per-slot optimum
 RETURN_METRIC = "episode_return_mean"  # training return of the sampled (exploring) policy
 # params whose values must agree inside a cell (n_eds / n_uavs are the cell's key already)
 _IDENTITY_PARAMS = ("stop.env_steps", "eval.episodes")
@@ -74,10 +77,13 @@ class Reference:
 
     name: str  # "optimal" or "greedy"
     mean: float  # its seed-mean execution EE
+    mode: str = "per_uav"  # the action mode its runs searched (param scenario.action_mode)
+    bound: float = math.nan  # seed-mean upper bound on the per-slot optimum of the same slots
 
     @property
     def label(self) -> str:
-        return "per-slot optimum" if self.name == OPTIMAL else "greedy baseline"
+        what = "per-slot optimum" if self.name == OPTIMAL else "greedy baseline"
+        return f"{what} ({self.mode})"
 
 
 @dataclass
@@ -100,13 +106,14 @@ class Organised:
 
     def reference(self, scenario: tuple[int, int]) -> Reference | None:
         """The optimum where the scenario has `optimal` baseline runs, else the greedy baseline,
-        else None."""
+        else None; in either action mode (its runs' scenario.action_mode labels it)."""
         for name in REFERENCE_BASELINES:
             cell = self.cells.get((*scenario, name))
             if cell is not None and cell.kind == "baseline" and cell.runs:
                 m = cell.summary().mean
                 if math.isfinite(m) and m > 0:
-                    return Reference(name, m)
+                    modes = sorted({r.params.get("scenario.action_mode", "per_uav") for r in cell.runs})
+                    return Reference(name, m, "/".join(modes), cell.mean_of(BOUND_KEY))
         return None
 
     def find_train(self, name: str) -> str | None:

@@ -23,7 +23,9 @@ is read, so a sweep split over experiments or clusters gets its Fig. 3b/3c. Writ
   the best learner by execution EE (or --fig2-algorithm), from its best seed's checkpoint when
   that loads, else by a baseline.
 * table_ee.{csv,md}, table_improvement.{csv,md}, table_paper.{csv,md} (the paper's numbers
-  beside ours, analysis.paper), results_marl_eval.json (analysis.export), and report.md linking
+  beside ours, analysis.paper), table_open_loop.{csv,md} (per scenario: the reference and its
+  action mode, the upper bound on the optimum, best_fixed's share and whether a constant is
+  optimal there), results_marl_eval.json (analysis.export), and report.md linking
   all of it with the source, a WARNING line for every weak or mixed cell, and notes (overlapping
   series, skipped figures, truncations).
 
@@ -62,10 +64,14 @@ from analysis.runs import SUMMARY_KIND, ReportError, RunRecord, Source, load_run
 from analysis.tables import (
     TABLE_EE_COLUMNS,
     TABLE_IMP_COLUMNS,
+    OPEN_LOOP_SHARE,
+    TABLE_OPEN_LOOP_COLUMNS,
     ee_table,
     ee_table_md,
     improvement_md,
     improvement_table,
+    open_loop_md,
+    open_loop_table,
     write_csv,
 )
 from uavlora_rllib.cli_args import Parser, UsageError, fail, float_in, int_in, seed
@@ -74,7 +80,8 @@ from uavlora_rllib.cli_args import Parser, UsageError, fail, float_in, int_in, s
 OUTPUT_FILES = tuple(
     [f"{stem}.{ext}" for stem in ("fig2", "fig3a", "fig3a_all", "fig3b", "fig3c") for ext in ("png", "svg")]
     + ["fig3a_curves.csv", "table_ee.csv", "table_ee.md", "table_improvement.csv", "table_improvement.md",
-       "table_paper.csv", "table_paper.md", "results_marl_eval.json", "report.md"]
+       "table_paper.csv", "table_paper.md", "table_open_loop.csv", "table_open_loop.md", "results_marl_eval.json",
+       "report.md"]
 )
 MARL_EVAL_FILE = "results_marl_eval.json"
 
@@ -127,8 +134,10 @@ STATS_TEXT = """\
 - improvement of {ref} over X: 100 (EE_{ref} - EE_X) / EE_X on the seed means, as in the paper;
   "second best" is the best other learning algorithm (kind=train) of the scenario.
 - share of reference: seed-mean EE / seed-mean EE of the scenario's reference baseline, the
-  `optimal` one (the exact per-slot optimum, docs/model.md) where it ran, else `greedy`; the
-  column names which.
+  `optimal` one (the exact per-slot optimum, docs/model.md) where it ran, else `greedy`, in
+  whichever action mode the scenario's runs use (per_uav or per_device; the open-loop table
+  names it); the column names which. Open-loop check: `best_fixed`'s share of that reference;
+  at {open_loop} or above a constant action counts as optimal.
 - paper table: ratio of seed means mappo / other with a 95% Fieller interval over seeds
   (independent samples, t with min(n_a, n_b) - 1 degrees of freedom); improvement = 100 (ratio - 1).
 - Fig. 3a (a): each run's `eval/ee_sys_mean` history (the greedy policy evaluated every
@@ -211,21 +220,23 @@ def _build_report(sources: list[Source], out_dir: str, args) -> dict[str, Any]:
         fh.write(report_markdown(sources, records, org, notes, figures, captions, tables, reference, args))
     return {"report": report_path, "figures": figures, "warnings": org.warnings, "notes": notes,
             "summaries": summaries, "rows": tables["rows"], "improvements": tables["improvements"],
-            "paper": tables["paper"], "n_runs": len(records)}
+            "paper": tables["paper"], "open_loop": tables["open_loop"], "n_runs": len(records)}
 
 
 def write_tables(org, reference: str | None, requested: str, out_dir: str) -> dict[str, Any]:
     """table_ee, table_improvement and table_paper as CSV and Markdown; their rows and Markdown."""
     rows, imp_rows, p_rows = ee_table(org, reference), improvement_table(org, reference), paper_rows(org)
+    ol_rows = open_loop_table(org)
+    write_csv(os.path.join(out_dir, "table_open_loop.csv"), TABLE_OPEN_LOOP_COLUMNS, ol_rows)
     write_csv(os.path.join(out_dir, "table_ee.csv"), TABLE_EE_COLUMNS, rows)
     write_csv(os.path.join(out_dir, "table_improvement.csv"), TABLE_IMP_COLUMNS, imp_rows)
     write_csv(os.path.join(out_dir, "table_paper.csv"), PAPER_COLUMNS, p_rows)
     md = {"table_ee.md": ee_table_md(rows, reference), "table_improvement.md": improvement_md(imp_rows, reference or requested),
-          "table_paper.md": paper_md(p_rows)}
+          "table_paper.md": paper_md(p_rows), "table_open_loop.md": open_loop_md(ol_rows)}
     for name, text in md.items():
         with open(os.path.join(out_dir, name), "w") as fh:
             fh.write(text + "\n")
-    return {"rows": rows, "improvements": imp_rows, "paper": p_rows, "md": md}
+    return {"rows": rows, "improvements": imp_rows, "paper": p_rows, "open_loop": ol_rows, "md": md}
 
 
 def draw_figures(org, history, out_dir: str, args) -> tuple[dict[str, list[str]], dict[str, str], list[str]]:
@@ -290,6 +301,11 @@ def report_markdown(sources, records, org, notes, figures, captions, tables, ref
     md = tables["md"]
     lines += ["", "## Execution-phase EE per scenario and algorithm", "",
               f"CSV: [table_ee.csv](table_ee.csv). `(!)`: fewer than {MIN_SEEDS} seeds.", "", md["table_ee.md"], "",
+              "## Open-loop check and the reference", "",
+              "Per scenario: the reference (the exact per-slot optimum where `optimal` ran, else `greedy`, a lower "
+              "bound on it), the upper bound on the per-slot optimum of the same slots (docs/model.md), so the "
+              "optimum lies between the two, and `best_fixed`, the best constant action, as a share of the "
+              "reference. CSV: [table_open_loop.csv](table_open_loop.csv).", "", md["table_open_loop.md"], "",
               f"## Improvement of {reference or args.reference}", "",
               "CSV: [table_improvement.csv](table_improvement.csv).", "", md["table_improvement.md"], "",
               "## The paper side by side (Fig. 3b, U = 2)", "",
@@ -300,6 +316,7 @@ def report_markdown(sources, records, org, notes, figures, captions, tables, ref
               "one run per seed; steps = the periodic greedy-policy evaluations, absolute_metrics = the final one).", "",
               "## Statistics", "",
               STATS_TEXT.format(ref=reference or args.reference, smooth=args.smooth, points=args.points,
+                                open_loop=OPEN_LOOP_SHARE,
                                 boot=stats.BOOTSTRAP_RESAMPLES), ""]
     return "\n".join(lines)
 

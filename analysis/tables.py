@@ -10,7 +10,7 @@ from collections import defaultdict
 from typing import Any, Sequence
 
 from analysis import stats
-from analysis.data import KINDS, MIN_SEEDS, Cell, Organised
+from analysis.data import BEST_FIXED, KINDS, MIN_SEEDS, OPTIMAL, Cell, Organised
 from analysis.runs import SAMPLED_EE_KEY
 
 TABLE_EE_COLUMNS = (
@@ -34,6 +34,21 @@ TABLE_EE_COLUMNS = (
     "reference_improvement_pct",
     "n_unfinished",
     "n_without_eval",
+)
+# best_fixed's share of the reference from which a constant counts as optimal (the issue's
+# threshold: learners cannot be told apart there)
+OPEN_LOOP_SHARE = 0.98
+TABLE_OPEN_LOOP_COLUMNS = (
+    "n_eds",
+    "n_uavs",
+    "action_mode",
+    "reference_baseline",
+    "ee_reference",
+    "ee_upper_bound",  # seed mean of the reference's eval/ee_sys_upper_bound
+    "reference_share_of_bound",  # the optimum lies between the reference and the bound
+    "ee_best_fixed",
+    "best_fixed_share_of_reference",
+    "constant_is_optimal",  # share >= OPEN_LOOP_SHARE
 )
 TABLE_IMP_COLUMNS = (
     "n_eds",
@@ -229,3 +244,52 @@ def improvement_md(rows: list[dict[str, Any]], reference: str | None) -> str:
             + [fmt(imp.get(o, math.nan), "+.2f") for o in others]
         )
     return md_table(header, body)
+
+
+def open_loop_table(org: Organised) -> list[dict[str, Any]]:
+    """Per scenario with a reference: the reference, its upper bound, and best_fixed's share."""
+    rows = []
+    for scen in org.scenarios():
+        ref = org.reference(scen)
+        if ref is None:
+            continue
+        cell = org.cells.get((*scen, BEST_FIXED))
+        bf = cell.summary().mean if cell is not None and cell.kind == "baseline" and cell.runs else math.nan
+        share = bf / ref.mean
+        rows.append({
+            "n_eds": scen[0], "n_uavs": scen[1], "action_mode": ref.mode, "reference_baseline": ref.name,
+            "ee_reference": ref.mean, "ee_upper_bound": ref.bound, "reference_share_of_bound": ref.mean / ref.bound,
+            "ee_best_fixed": bf, "best_fixed_share_of_reference": share,
+            "constant_is_optimal": "" if not math.isfinite(share) else str(share >= OPEN_LOOP_SHARE).lower(),
+        })  # fmt: skip
+    return rows
+
+
+def open_loop_verdict(r: dict[str, Any]) -> str:
+    """One plain sentence on the open-loop check of a scenario."""
+    where = f"V={r['n_eds']} U={r['n_uavs']} ({r['action_mode']})"
+    share = r["best_fixed_share_of_reference"]
+    if not math.isfinite(share):
+        return f"{where}: no best_fixed run, so no open-loop check."
+    if share >= OPEN_LOOP_SHARE:
+        return (f"{where}: a constant action is optimal here (best_fixed reaches {share:.3f} of the "
+                f"{r['reference_baseline']} reference): the observations are not needed, and learners cannot be "
+                "told apart on this scenario.")
+    return (f"{where}: best_fixed reaches {share:.3f} of the {r['reference_baseline']} reference: acting on the "
+            "observations pays, so this scenario can rank learners.")
+
+
+def open_loop_md(rows: list[dict[str, Any]]) -> str:
+    if not rows:
+        return "_No open-loop check: it needs a reference baseline run (optimal or greedy) of a scenario._"
+    header = ["V", "U", "mode", "reference", "reference EE (bit/J)", "upper bound (bit/J)", "reference / bound",
+              "best_fixed EE (bit/J)", "best_fixed share", f"constant optimal (>= {OPEN_LOOP_SHARE})"]
+    body = []
+    for r in rows:
+        exact = r["reference_baseline"] == OPTIMAL
+        body.append([str(r["n_eds"]), str(r["n_uavs"]), r["action_mode"],
+                     r["reference_baseline"] + (" (exact)" if exact else " (lower bound on the optimum)"),
+                     fmt(r["ee_reference"]), fmt(r["ee_upper_bound"]), fmt(r["reference_share_of_bound"], ".3f"),
+                     fmt(r["ee_best_fixed"]), fmt(r["best_fixed_share_of_reference"], ".3f"),
+                     r["constant_is_optimal"] or "n/a"])  # fmt: skip
+    return md_table(header, body) + "\n\n" + "\n".join(f"- {open_loop_verdict(r)}" for r in rows)

@@ -5,7 +5,8 @@ Store (sqlite in tmp_path), scenarios S1 = (V=10, U=2) and S2 = (V=20, U=2):
                    S2 seeds 0/42/2021/7 -> 50/60/70/200 (mean 95, IQM 65)
             vdn    S1 -> 80/85/90;  S2 seeds 0/42 -> 40/44 (2 seeds) + seed 2021 FAILED, no eval
             hyper_mix (a "new" algorithm) S1 -> 88/90/92 (second best in S1)
-  baselines optimal 200 (S1) / 190 (S2), greedy 150 / 140 (3 seeds each), random 10/20/30 (S1), 5 (S2, 1 seed)
+  baselines optimal 200 (S1) / 190 (S2), greedy 150 / 140 (3 seeds each), random 10/20/30 (S1), 5 (S2, 1 seed),
+            best_fixed 196 (S1) / 95 (S2)
 Training curves (train runs, step = env steps 0..10000): value = seed_offset + slope * step.
 Execution curves (the periodic greedy evaluation, train runs with eval): eval/ee_sys_mean at env
 steps 0, 2500, 5000, 7500 = EE * (0.5 + 0.5 step / 10000), and the final evaluation EE at 10000.
@@ -48,6 +49,8 @@ BASE = {
     ("greedy", S2): dict(zip(SEEDS, (140.0,) * 3)),
     ("random", S1): dict(zip(SEEDS, (10.0, 20.0, 30.0))),
     ("random", S2): {"0": 5.0},
+    ("best_fixed", S1): dict(zip(SEEDS, (196.0,) * 3)),  # 0.98 of the optimum: a constant is optimal
+    ("best_fixed", S2): dict(zip(SEEDS, (95.0,) * 3)),  # 0.5
 }
 SLOPE = {"mappo": 0.01, "vdn": 0.005, "hyper_mix": 0.002}
 STEPS = np.arange(0, 10_001, 500)
@@ -199,6 +202,17 @@ def test_improvements_and_share_of_optimum(store):
     assert second == {10: "hyper_mix", 20: "vdn"}  # best OTHER learner; baselines never count
     md = (store["out"] / "table_improvement.md").read_text()
     assert "+22.22" in md and "+126.19" in md
+
+
+def test_open_loop_table_and_statement(store):
+    rows = {(int(r["n_eds"]), int(r["n_uavs"])): r for r in _rows(store["out"] / "table_open_loop.csv")}
+    assert float(rows[S1]["best_fixed_share_of_reference"]) == pytest.approx(0.98)
+    assert rows[S1]["constant_is_optimal"] == "true" and rows[S2]["constant_is_optimal"] == "false"
+    assert rows[S1]["reference_baseline"] == "optimal" and rows[S1]["action_mode"] == "per_uav"
+    text = (store["out"] / "report.md").read_text()
+    assert "## Open-loop check and the reference" in text
+    assert "V=10 U=2 (per_uav): a constant action is optimal here" in text
+    assert "V=20 U=2 (per_uav): best_fixed reaches 0.500" in text
 
 
 def test_figures_and_curves(store):

@@ -29,17 +29,17 @@ def slot_ee(core: BatchCore, actions: np.ndarray, key: str = "ee_sys") -> np.nda
 
 
 def test_names_and_factory_errors():
-    assert BASELINES == ("random", "fixed", "adr", "greedy", "optimal")
+    assert BASELINES == ("random", "fixed", "adr", "best_fixed", "greedy", "optimal")
     for name in BASELINES:
         assert make_baseline(name, PAPER).name == name
-    with pytest.raises(ConfigError, match=r"unknown baseline 'nope'.*random.*fixed.*adr.*greedy.*optimal"):
+    with pytest.raises(ConfigError, match=r"unknown baseline 'nope'.*random.*fixed.*adr.*best_fixed.*greedy.*optimal"):
         make_baseline("nope", PAPER)
     with pytest.raises(ConfigError, match="objective"):
         make_baseline("greedy", PAPER, objective="bits")
     per_device = PAPER.replace(action_mode="per_device")
-    for name in ("greedy", "optimal"):
-        with pytest.raises(ConfigError, match=r"action_mode.*per_uav"):
-            make_baseline(name, per_device)
+    assert make_baseline("greedy", per_device).name == "greedy"  # per_device references: tests/test_references.py
+    with pytest.raises(ConfigError, match=r"^scenario\.n_eds: baseline 'optimal' in per_device mode"):
+        make_baseline("optimal", per_device)
 
 
 def test_optimal_refuses_too_many_uavs():

@@ -33,6 +33,19 @@ def test_json_in_process(capsys, tmp_path):
     assert out["ee_sys_episode_sum"] == pytest.approx(5 * out["ee_sys_mean"])
 
 
+def test_references_print_the_upper_bound_and_best_fixed_runs(capsys, tmp_path):
+    yaml_file = tmp_path / "s.yaml"
+    yaml_file.write_text("episode_len: 4\nn_eds: 5\naction_mode: per_device\n")
+    assert main(["--policy", "greedy", "--episodes", "2", "--json", "--scenario-yaml", str(yaml_file)]) == 0
+    out = _check_json(capsys.readouterr().out, 2)
+    assert out["ee_sys_upper_bound"] >= out["ee_sys_mean"] > 0
+    assert main(["--policy", "greedy", "--episodes", "2", "--scenario-yaml", str(yaml_file)]) == 0
+    assert "EE_sys upper bound" in capsys.readouterr().out
+    assert main(["--policy", "best_fixed", "--episodes", "2", "--json", "--scenario-yaml", str(yaml_file)]) == 0
+    out = _check_json(capsys.readouterr().out, 2)
+    assert out["ee_sys_mean"] > 0 and "ee_sys_upper_bound" not in out
+
+
 def test_table_in_process(capsys, tmp_path):
     yaml_file = tmp_path / "s.yaml"
     yaml_file.write_text("episode_len: 3\n")
@@ -143,6 +156,9 @@ def test_cost_estimate_grows_with_the_search():
     assert evaluation_seconds("optimal", ScenarioConfig(n_uavs=1), 10) < LONG_SECONDS  # quick: no bar
     assert evaluation_seconds("random", u2, 100_000) > LONG_SECONDS  # many episodes of a cheap policy
     assert evaluation_seconds("greedy", u3, 10) < evaluation_seconds("optimal", u3, 10)
+    pd = ScenarioConfig(n_eds=3, n_uavs=1, action_mode="per_device")
+    assert evaluation_seconds("optimal", pd, 10) > evaluation_seconds("greedy", pd, 10)
+    assert evaluation_seconds("best_fixed", ScenarioConfig(n_uavs=2), 10) > evaluation_seconds("fixed", u2, 10)
 
 
 def test_long_evaluation_prints_estimate_and_progress_same_numbers(capsys, monkeypatch):

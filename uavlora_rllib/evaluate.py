@@ -1,11 +1,13 @@
 """Execution-phase CLI: evaluate a baseline or a trained checkpoint on fresh episodes.
 
-    python -m uavlora_rllib.evaluate --policy {random,fixed,adr,greedy,optimal|CHECKPOINT_DIR}
+    python -m uavlora_rllib.evaluate --policy {random,fixed,adr,best_fixed,greedy,optimal|CHECKPOINT_DIR}
         [--n-eds V] [--n-uavs U] [--episodes K] [--seed S] [--json]
         [--scenario-yaml FILE] [--objective ee|reward] [--execution greedy|sampled]
 
 Prints the paper's execution metrics (evaluation.run_episodes), each as the mean over
-episodes with its 95% CI half-width; `--json` prints one JSON object instead. A checkpoint
+episodes with its 95% CI half-width; `--json` prints one JSON object instead. The references
+(greedy, optimal) also print an upper bound on the per-slot optimum of the same slots
+(baselines.bound), so their EE is bracketed. A checkpoint
 runs greedy (argmax per UAV: the paper's execution phase) or, with `--execution sampled`, with
 actions drawn from its trained distribution (seeded by --seed). Bad input
 (a flag, the scenario YAML, a checkpoint that cannot be restored or that was trained for a
@@ -25,7 +27,8 @@ import os
 import sys
 from typing import Any, Mapping, Sequence
 
-from uavlora_rllib.baselines.policies import BASELINES, OBJECTIVES, evaluation_seconds, make_baseline
+from uavlora_rllib.baselines.policies import BASELINES, OBJECTIVES, REFERENCES, evaluation_seconds, make_baseline
+from uavlora_rllib.experiment.evaluation import BOUND_METRIC
 from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in, positive_int, seed
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.experiment.grid import parse_yaml, read_yaml_text
@@ -46,6 +49,7 @@ REPORTED = (
     ("p_total_w", "P_total", "W"),
     ("reward_mean", "reward per slot", ""),
 )
+BOUND_ROW = (BOUND_METRIC, "EE_sys upper bound", "bit/J")  # references only
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -175,14 +179,15 @@ def format_table(name: str, cfg: ScenarioConfig, summary: Mapping[str, Any]) -> 
         f"{summary['episodes']} episodes, mean +- 95% CI"
     )
     lines = [head, "-" * len(head)]
-    for key, label, unit in REPORTED:
+    for key, label, unit in REPORTED + ((BOUND_ROW,) if BOUND_METRIC in summary else ()):
         lines.append(f"{label:<24}{summary[key]:>16.4f}  +- {summary['ci95'][key]:<12.4f}{unit}")
     return "\n".join(lines)
 
 
 def json_summary(summary: Mapping[str, Any]) -> dict[str, Any]:
-    out: dict[str, Any] = {k: float(summary[k]) for k, _, _ in REPORTED}
-    out["ci95"] = {k: float(summary["ci95"][k]) for k, _, _ in REPORTED}
+    keys = [k for k, _, _ in REPORTED] + ([BOUND_METRIC] if BOUND_METRIC in summary else [])
+    out: dict[str, Any] = {k: float(summary[k]) for k in keys}
+    out["ci95"] = {k: float(summary["ci95"][k]) for k in keys}
     out["episodes"] = int(summary["episodes"])
     return out
 
@@ -210,18 +215,20 @@ class _Progress:
 
 
 def run_with_progress(
-    policy: Any, cfg: ScenarioConfig, episodes: int, seed: int, kind: str, label: str, prefix: str = "", out: Any = None
+    policy: Any, cfg: ScenarioConfig, episodes: int, seed: int, kind: str, label: str, prefix: str = "", out: Any = None,
+    bound: Any = None,
 ):
     """evaluation.run_episodes, plus, when the run is estimated to take more than LONG_SECONDS
     (baselines.policies.evaluation_seconds; `kind` a baseline name, or anything else for a
     learned policy), one line with the estimate and a tqdm progress bar on `out` (stderr).
     The bar only watches: the episodes, seeds and metrics are those of run_episodes. Usable
-    by any driver that evaluates (e.g. the baseline phase of tune: `kind` = the baseline)."""
+    by any driver that evaluates (e.g. the baseline phase of tune: `kind` = the baseline).
+    `bound`: run_episodes' per-slot bound (None: not computed)."""
     from uavlora_rllib.experiment.evaluation import run_episodes
 
     estimate = evaluation_seconds(kind, cfg, episodes)
     if estimate <= LONG_SECONDS:
-        return run_episodes(policy, cfg, episodes=episodes, seed=seed)
+        return run_episodes(policy, cfg, episodes=episodes, seed=seed, bound=bound)
     from tqdm import tqdm
 
     out = out or sys.stderr
@@ -230,7 +237,7 @@ def run_with_progress(
         what += f", {cfg.n_joint_actions}^{cfg.n_uavs} = {cfg.n_joint_actions**cfg.n_uavs:,} joint actions per slot"
     print(f"{prefix}{label} on {what}: estimated {_duration(estimate)} on one core", file=out, flush=True)
     with tqdm(total=episodes * cfg.episode_len, unit="slot", desc=label, file=out, dynamic_ncols=True) as bar:
-        return run_episodes(_Progress(policy, cfg, episodes, bar), cfg, episodes=episodes, seed=seed)
+        return run_episodes(_Progress(policy, cfg, episodes, bar), cfg, episodes=episodes, seed=seed, bound=bound)
 
 
 def _duration(seconds: float) -> str:
@@ -247,7 +254,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         policy, cfg = _resolve(args)
         kind = args.policy if args.policy in BASELINES else "learned"
         label = args.policy if args.policy in BASELINES else f"checkpoint ({args.execution})"
-        result = run_with_progress(policy, cfg, args.episodes, args.seed, kind, label, prefix=f"{PROG}: ")
+        from uavlora_rllib.baselines.bound import upper_bound_of_core
+
+        bound = upper_bound_of_core if args.policy in REFERENCES else None
+        result = run_with_progress(policy, cfg, args.episodes, args.seed, kind, label, prefix=f"{PROG}: ", bound=bound)
     except (UsageError, ConfigError) as exc:
         return fail(exc, PROG)
     except ActionError as exc:  # a policy whose actions do not fit the scenario's action space

@@ -1,4 +1,5 @@
-"""Non-learning policies for the execution phase: random, fixed, LoRaWAN ADR, greedy, per-slot optimum."""
+"""Non-learning policies for the execution phase: random, fixed, LoRaWAN ADR, the best constant
+(best_fixed), greedy, per-slot optimum; and an upper bound on the per-slot optimum (bound)."""
 
 from uavlora_rllib.baselines.policies import BASELINES, OBJECTIVES, make_baseline
 

@@ -1,4 +1,6 @@
-"""Non-learning baselines: random, fixed, ADR, greedy (coordinate ascent) and the per-slot optimum.
+"""Non-learning baselines: random, fixed, ADR, greedy (coordinate ascent) and the per-slot optimum;
+best_fixed (baselines/best_fixed.py) and the per_device greedy and optimal (baselines/per_device.py)
+are made by the same factory, `make_baseline`.
 
 Every baseline implements `evaluation.Policy`: `reset(core)` after `core.reset()`, and
 `act(core)` returns the actions of all N scenarios of the batch core at once. No Python loop
@@ -37,8 +39,9 @@ from uavlora_rllib.sim.actions import decode_joint_action, encode_joint_action, 
 from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
-BASELINES = ("random", "fixed", "adr", "greedy", "optimal")
+BASELINES = ("random", "fixed", "adr", "best_fixed", "greedy", "optimal")
 OBJECTIVES = ("ee", "reward")
+REFERENCES = ("greedy", "optimal")  # the per-slot references (docs/model.md#per-slot-optimum)
 
 # `optimal` refuses joint-action spaces larger than this (90^U with the paper's sets):
 # U <= 3 is accepted (729,000 candidates; ~1-2 s per slot and scenario at V = 10 on one core,
@@ -369,11 +372,32 @@ STEP_SECONDS_PER_ED = 1e-6
 def evaluation_seconds(name: str, cfg: ScenarioConfig, episodes: int) -> float:
     """Rough single-core wall-clock estimate of `episodes` episodes of baseline `name` on `cfg`.
 
-    optimal searches A^U joint actions per slot; greedy at least 2 rounds of U x A (one sweep
-    that moves and one that confirms; up to GREEDY_MAX_ROUNDS)."""
+    per_uav: optimal searches A^U joint actions per slot; greedy at least 2 rounds of U x A (one
+    sweep that moves and one that confirms; up to GREEDY_MAX_ROUNDS). per_device: greedy about
+    V / 2 + 2 sweeps of V x n_sf n_tp single moves (its second start); optimal every candidate.
+    best_fixed: its one-off selection (exhaustive or ~3 rounds x 3 starts of coordinate ascent on
+    the selection episodes' slots), then constant actions."""
     slots = episodes * cfg.episode_len
     searched = 0
-    if name == "optimal":
+    if name == "best_fixed":
+        from uavlora_rllib.baselines.best_fixed import BEST_FIXED_EPISODES, BEST_FIXED_EXHAUSTIVE, BEST_FIXED_RESTARTS
+
+        sel_slots = BEST_FIXED_EPISODES * cfg.episode_len
+        if cfg.action_mode == "per_uav":
+            total = cfg.n_joint_actions**cfg.n_uavs
+            cand = total if total <= BEST_FIXED_EXHAUSTIVE else 3 * BEST_FIXED_RESTARTS * cfg.n_uavs * cfg.n_joint_actions
+        else:
+            cand = 3 * BEST_FIXED_RESTARTS * (cfg.n_uavs * cfg.quota * cfg.n_sf * cfg.n_tp + cfg.n_uavs * cfg.n_bw)
+        return sel_slots * cfg.n_eds * cand / SEARCH_RATE + slots * cfg.n_eds * STEP_SECONDS_PER_ED
+    if cfg.action_mode == "per_device" and name in REFERENCES:
+        from uavlora_rllib.baselines.per_device import optimal_candidates
+
+        if name == "optimal":
+            searched = optimal_candidates(cfg)
+        else:
+            # (its single-move scoring evaluates candidate-EDs ~10x faster than slot_metrics)
+            searched = (cfg.n_eds // 2 + 2) * cfg.n_eds * cfg.n_sf * cfg.n_tp // 10
+    elif name == "optimal":
         searched = cfg.n_joint_actions**cfg.n_uavs
     elif name == "greedy":
         searched = 2 * cfg.n_uavs * cfg.n_joint_actions
@@ -384,9 +408,10 @@ def evaluation_seconds(name: str, cfg: ScenarioConfig, episodes: int) -> float:
 def make_baseline(name: str, cfg: ScenarioConfig, seed: int = 0, objective: str = "ee"):
     """The baseline policy `name` (one of BASELINES) for scenario `cfg`.
 
-    `seed` drives `random` only; `objective` ("ee" or "reward") applies to greedy and optimal
-    (and is validated for every name). Raises ConfigError for an unknown name or objective,
-    and for greedy/optimal outside per_uav mode or optimal with too many UAVs.
+    `seed` drives `random`, and picks `best_fixed`'s selection episodes; `objective` ("ee" or
+    "reward") applies to greedy and optimal (and is validated for every name). In per_device
+    mode greedy and optimal are baselines/per_device.py's. Raises ConfigError for an unknown
+    name or objective, and for optimal beyond its candidate limit.
     """
     _check_objective(objective)
     if name == "random":
@@ -395,6 +420,14 @@ def make_baseline(name: str, cfg: ScenarioConfig, seed: int = 0, objective: str 
         return FixedPolicy(cfg)
     if name == "adr":
         return AdrPolicy(cfg)
+    if name == "best_fixed":
+        from uavlora_rllib.baselines.best_fixed import BestFixedPolicy
+
+        return BestFixedPolicy(cfg, seed)
+    if name in ("greedy", "optimal") and cfg.action_mode == "per_device":
+        from uavlora_rllib.baselines.per_device import PerDeviceGreedy, PerDeviceOptimal
+
+        return (PerDeviceGreedy if name == "greedy" else PerDeviceOptimal)(cfg, objective)
     if name == "greedy":
         return GreedyPolicy(cfg, objective)
     if name == "optimal":

@@ -23,12 +23,15 @@ BASELINE_CPUS = 1.0  # the simulator and every baseline are single-threaded NumP
 
 def evaluate_baseline(spec: BaselineSpec, episodes: int) -> dict[str, Any]:
     """The evaluation summary of one baseline run (runs inside a Ray task)."""
-    from uavlora_rllib.baselines.policies import make_baseline
+    from uavlora_rllib.baselines.bound import upper_bound_of_core
+    from uavlora_rllib.baselines.policies import REFERENCES, make_baseline
     from uavlora_rllib.experiment.evaluation import run_episodes
 
     t0 = time.perf_counter()
     policy = make_baseline(spec.baseline, spec.scenario, seed=spec.seed)
-    summary = run_episodes(policy, spec.scenario, episodes, spec.seed).summary()
+    # the references also log the upper bound of the same slots, so the report can bracket the optimum
+    bound = upper_bound_of_core if spec.baseline in REFERENCES else None
+    summary = run_episodes(policy, spec.scenario, episodes, spec.seed, bound=bound).summary()
     summary["_wall_s"] = time.perf_counter() - t0
     return summary
 

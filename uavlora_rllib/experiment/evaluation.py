@@ -9,7 +9,7 @@ training seeds (which are small integers and RLlib's offsets of them).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Callable, Protocol
 
 import numpy as np
 from scipy import stats
@@ -30,6 +30,9 @@ EPISODE_METRICS = (
     "reward_mean",  # shared reward per slot
     "episode_return",  # undiscounted sum of rewards
 )
+# Logged only when asked for (run_episodes' `bound`): an upper bound on the per-slot optimum of
+# EE_sys, averaged over the slots (bit/J; docs/model.md#an-upper-bound-on-the-per-slot-optimum).
+BOUND_METRIC = "ee_sys_upper_bound"
 
 
 class Policy(Protocol):
@@ -67,16 +70,24 @@ class EvalResult:
         return t_half_width_95(x) if len(x) >= 2 else 0.0
 
     def summary(self) -> dict:
-        out: dict = {k: self.mean(k) for k in EPISODE_METRICS}
-        out["ci95"] = {k: self.ci95(k) for k in EPISODE_METRICS}
+        keys = [k for k in (*EPISODE_METRICS, BOUND_METRIC) if k in self.per_episode]
+        out: dict = {k: self.mean(k) for k in keys}
+        out["ci95"] = {k: self.ci95(k) for k in keys}
         out["episodes"] = self.episodes
         return out
 
 
 def run_episodes(
-    policy: Policy, cfg: ScenarioConfig, episodes: int = 10, seed: int = 0, n_envs: int | None = None
+    policy: Policy,
+    cfg: ScenarioConfig,
+    episodes: int = 10,
+    seed: int = 0,
+    n_envs: int | None = None,
+    bound: Callable[[BatchCore], np.ndarray] | None = None,
 ) -> EvalResult:
-    """Play `episodes` full episodes (seeds EVAL_SEED_BASE + seed * 10_000 + k) in batches."""
+    """Play `episodes` full episodes (seeds EVAL_SEED_BASE + seed * 10_000 + k) in batches.
+    `bound`: core -> [N] bit/J of each slot (e.g. baselines.bound.upper_bound_of_core), averaged
+    per episode as BOUND_METRIC."""
     if episodes < 1:
         raise ValueError(f"episodes: must be >= 1, got {episodes}")
     n_envs = min(episodes, 32) if n_envs is None else n_envs
@@ -88,7 +99,10 @@ def run_episodes(
         core.reset([first + done + i for i in range(n_envs)])
         policy.reset(core)
         sums = {k: np.zeros(n_envs) for k in ("ee_sys", "success_rate", "mean_sinr_db", "n_unassociated", "p_total_w", "reward")}
+        bound_sum = np.zeros(n_envs)
         for _ in range(cfg.episode_len):
+            if bound is not None:
+                bound_sum += bound(core)
             res = core.step(policy.act(core))
             for k in sums:
                 sums[k] += res.metrics[k]
@@ -102,5 +116,7 @@ def run_episodes(
         per_ep["p_total_w"] += list(sums["p_total_w"][:take] / t)
         per_ep["reward_mean"] += list(sums["reward"][:take] / t)
         per_ep["episode_return"] += list(sums["reward"][:take])
+        if bound is not None:
+            per_ep.setdefault(BOUND_METRIC, []).extend(bound_sum[:take] / t)
         done += take
     return EvalResult({k: np.asarray(v) for k, v in per_ep.items()}, episodes, seed)

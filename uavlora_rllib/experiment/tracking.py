@@ -14,7 +14,8 @@ The analysis step reads exactly this schema:
   and every numeric learner stat as ``learner/<stat>`` (one policy module) or
   ``learner/<module>/<stat>`` (several), the all-modules stats as ``learner/all_modules/<stat>``.
 * execution-phase evaluation (end of a trial, and baseline runs): ``eval/<k>`` and
-  ``eval/<k>_ci95`` for k in `evaluation.EPISODE_METRICS`, and ``eval/episodes``; train runs
+  ``eval/<k>_ci95`` for k in `evaluation.EPISODE_METRICS`, and ``eval/episodes``; the
+  reference baselines (greedy, optimal) also ``eval/ee_sys_upper_bound``; train runs
   also log them during training, step = env steps (experiment/periodic_eval.py), so the final
   evaluation is the last point of each series; ``eval_sampled/<k>`` likewise for algorithms
   with a sampled policy.
@@ -59,7 +60,7 @@ from typing import Any, Iterable, Mapping
 
 from ray.tune import Callback
 
-from uavlora_rllib.experiment.evaluation import EPISODE_METRICS
+from uavlora_rllib.experiment.evaluation import BOUND_METRIC, EPISODE_METRICS
 
 try:  # the limits of the installed mlflow; the values below are mlflow 3's
     from mlflow.utils.validation import MAX_ENTITY_KEY_LENGTH, MAX_PARAM_VAL_LENGTH
@@ -182,7 +183,7 @@ def eval_metrics(summary: Mapping[str, Any]) -> dict[str, float]:
     """`EvalResult.summary()` -> {"eval/<k>", "eval/<k>_ci95", "eval/episodes"}."""
     out: dict[str, float] = {}
     ci = summary.get("ci95", {}) or {}
-    for k in EPISODE_METRICS:
+    for k in (*EPISODE_METRICS, BOUND_METRIC):
         if k in summary:
             out[f"{EVAL_PREFIX}{k}"] = float(summary[k])
         if k in ci:
