@@ -8,7 +8,7 @@ import itertools
 import numpy as np
 import pytest
 
-from uavlora_rllib.baselines.best_fixed import BestFixedPolicy, record_slots, selection_seeds
+from uavlora_rllib.baselines.best_fixed import BEST_FIXED_SLOTS, BestFixedPolicy, record_slots, selection_seeds
 from uavlora_rllib.baselines.bound import upper_bound_ee, upper_bound_of_core, water_filled_log_sum
 from uavlora_rllib.baselines.per_device import PerDeviceGreedy, PerDeviceOptimal
 from uavlora_rllib.baselines.policies import make_baseline
@@ -124,10 +124,10 @@ def test_selection_seeds_are_not_evaluation_episodes():
 
 def test_best_fixed_per_uav_is_the_best_constant():
     cfg = ScenarioConfig(n_eds=6, n_uavs=2, sf_set=(7, 8), tp_dbm=(2.0, 14.0), bw_khz=(125, 500), episode_len=5)
-    policy = BestFixedPolicy(cfg, seed=4)
+    policy = BestFixedPolicy(cfg, seed=4, episodes=2)  # 2 episodes: the brute force stays cheap
     action = policy.select()
     means = {}
-    seeds = selection_seeds(4)
+    seeds = selection_seeds(4, 2)
     core = BatchCore(cfg, len(seeds))
     for joint in itertools.product(range(cfg.n_joint_actions), repeat=2):
         core.reset(seeds)
@@ -148,7 +148,8 @@ def test_best_fixed_per_device_beats_simple_constants():
     policy = BestFixedPolicy(cfg, seed=0)
     action = policy.select()
     assert action.shape == (2, 2 * cfg.quota + 1)
-    seeds = selection_seeds(0)
+    assert policy.episodes * cfg.episode_len >= BEST_FIXED_SLOTS  # short episodes: more of them
+    seeds = selection_seeds(0, policy.episodes)
     one_sf = np.array([[u, cfg.n_tp - 1] * cfg.quota + [cfg.n_bw - 1] for u in range(2)])
 
     def mean_ee(const):

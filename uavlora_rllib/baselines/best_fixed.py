@@ -24,7 +24,7 @@ from uavlora_rllib.sim.actions import decode_joint_action, encode_joint_action
 from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
-BEST_FIXED_EPISODES = 2  # selection episodes (full length)
+BEST_FIXED_SLOTS = 300  # selection slots: whole episodes until at least this many (2 episodes at T = 150)
 # Last entropy word of the selection seeds: a non-zero third 32-bit word makes the entropy an
 # integer >= 2^64, which no evaluation or training seed reaches (docs/model.md#seeds).
 BEST_FIXED_STREAM = 0x0BE57F1D
@@ -34,7 +34,13 @@ BEST_FIXED_MAX_ROUNDS = 10
 CHUNK_ELEMENTS = 1 << 20  # candidate-slot-ED evaluations per chunk (bounds memory)
 
 
-def selection_seeds(seed: int, episodes: int = BEST_FIXED_EPISODES) -> list[np.random.SeedSequence]:
+def selection_episodes(cfg: ScenarioConfig) -> int:
+    """Selection episodes of a scenario: enough whole episodes for BEST_FIXED_SLOTS slots, so that
+    short episodes do not leave the choice to a handful of slots (docs/model.md#baselines)."""
+    return max(1, -(-BEST_FIXED_SLOTS // cfg.episode_len))
+
+
+def selection_seeds(seed: int, episodes: int) -> list[np.random.SeedSequence]:
     """Seeds of the selection episodes of evaluation seed `seed`: entropy (seed, k, BEST_FIXED_STREAM)."""
     return [np.random.SeedSequence([int(seed), k, BEST_FIXED_STREAM]) for k in range(episodes)]
 
@@ -64,11 +70,11 @@ def _subset(slots: Slots, rows: np.ndarray) -> Slots:
 class BestFixedPolicy:
     """Plays the constant chosen for evaluation seed `seed` (chosen at the first reset)."""
 
-    def __init__(self, cfg: ScenarioConfig, seed: int = 0, episodes: int = BEST_FIXED_EPISODES):
+    def __init__(self, cfg: ScenarioConfig, seed: int = 0, episodes: int | None = None):
         self.name = "best_fixed"
         self.cfg = cfg
         self.seed = int(seed)
-        self.episodes = episodes
+        self.episodes = selection_episodes(cfg) if episodes is None else episodes
         self.action: np.ndarray | None = None  # [U] (per_uav) or [U, 2 quota + 1]
         self.selection_ee: float | None = None  # its mean EE_sys on the selection episodes, bit/J
 

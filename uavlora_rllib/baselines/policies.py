@@ -380,9 +380,9 @@ def evaluation_seconds(name: str, cfg: ScenarioConfig, episodes: int) -> float:
     slots = episodes * cfg.episode_len
     searched = 0
     if name == "best_fixed":
-        from uavlora_rllib.baselines.best_fixed import BEST_FIXED_EPISODES, BEST_FIXED_EXHAUSTIVE, BEST_FIXED_RESTARTS
+        from uavlora_rllib.baselines.best_fixed import BEST_FIXED_EXHAUSTIVE, BEST_FIXED_RESTARTS, selection_episodes
 
-        sel_slots = BEST_FIXED_EPISODES * cfg.episode_len
+        sel_slots = selection_episodes(cfg) * cfg.episode_len
         if cfg.action_mode == "per_uav":
             total = cfg.n_joint_actions**cfg.n_uavs
             cand = total if total <= BEST_FIXED_EXHAUSTIVE else 3 * BEST_FIXED_RESTARTS * cfg.n_uavs * cfg.n_joint_actions
