@@ -25,7 +25,8 @@ is read, so a sweep split over experiments or clusters gets its Fig. 3b/3c. Writ
 * table_ee.{csv,md}, table_improvement.{csv,md}, table_paper.{csv,md} (the paper's numbers
   beside ours, analysis.paper), table_open_loop.{csv,md} (per scenario: the reference and its
   action mode, the upper bound on the optimum, best_fixed's share and whether a constant is
-  optimal there), results_marl_eval.json (analysis.export), and report.md linking
+  optimal there), table_learning.{csv,md} (analysis.verdicts: each learner's share of the reference
+  and of best_fixed, and whether its last evaluations had settled), results_marl_eval.json (analysis.export), and report.md linking
   all of it with the source, a WARNING line for every weak or mixed cell, and notes (overlapping
   series, skipped figures, truncations).
 
@@ -74,13 +75,15 @@ from analysis.tables import (
     open_loop_table,
     write_csv,
 )
+from analysis.verdicts import LAST_EVALS, SWING_LIMIT, TABLE_LEARNING_COLUMNS, learning_md, learning_table
 from uavlora_rllib.cli_args import Parser, UsageError, fail, float_in, int_in, seed
 
 # Every file the report may write (nothing else in --out is touched or logged).
 OUTPUT_FILES = tuple(
     [f"{stem}.{ext}" for stem in ("fig2", "fig3a", "fig3a_all", "fig3b", "fig3c") for ext in ("png", "svg")]
     + ["fig3a_curves.csv", "table_ee.csv", "table_ee.md", "table_improvement.csv", "table_improvement.md",
-       "table_paper.csv", "table_paper.md", "table_open_loop.csv", "table_open_loop.md", "results_marl_eval.json",
+       "table_paper.csv", "table_paper.md", "table_open_loop.csv", "table_open_loop.md", "table_learning.csv",
+       "table_learning.md", "results_marl_eval.json",
        "report.md"]
 )
 MARL_EVAL_FILE = "results_marl_eval.json"
@@ -199,6 +202,7 @@ def _build_report(sources: list[Source], out_dir: str, args) -> dict[str, Any]:
         notes.append(f"No training runs of the reference algorithm {args.reference!r}: no improvement table.")
     bar = progress(2 * sum(1 for r in records if r.kind == "train") + 4, "report")
     tables = write_tables(org, reference, args.reference, out_dir)
+    tables.update(write_learning_table(org, history, out_dir))
     bar.update(1)
 
     def counted(record, key):
@@ -220,7 +224,8 @@ def _build_report(sources: list[Source], out_dir: str, args) -> dict[str, Any]:
         fh.write(report_markdown(sources, records, org, notes, figures, captions, tables, reference, args))
     return {"report": report_path, "figures": figures, "warnings": org.warnings, "notes": notes,
             "summaries": summaries, "rows": tables["rows"], "improvements": tables["improvements"],
-            "paper": tables["paper"], "open_loop": tables["open_loop"], "n_runs": len(records)}
+            "paper": tables["paper"], "open_loop": tables["open_loop"], "learning": tables["learning"],
+            "n_runs": len(records)}
 
 
 def write_tables(org, reference: str | None, requested: str, out_dir: str) -> dict[str, Any]:
@@ -237,6 +242,16 @@ def write_tables(org, reference: str | None, requested: str, out_dir: str) -> di
         with open(os.path.join(out_dir, name), "w") as fh:
             fh.write(text + "\n")
     return {"rows": rows, "improvements": imp_rows, "paper": p_rows, "open_loop": ol_rows, "md": md}
+
+
+def write_learning_table(org, history, out_dir: str) -> dict[str, Any]:
+    """table_learning (CSV and Markdown): the learning verdicts, which read each run's evaluation curve."""
+    rows = learning_table(org, history)
+    write_csv(os.path.join(out_dir, "table_learning.csv"), TABLE_LEARNING_COLUMNS, rows)
+    md = learning_md(rows)
+    with open(os.path.join(out_dir, "table_learning.md"), "w") as fh:
+        fh.write(md + "\n")
+    return {"learning": rows, "md_learning": md}
 
 
 def draw_figures(org, history, out_dir: str, args) -> tuple[dict[str, list[str]], dict[str, str], list[str]]:
@@ -306,6 +321,11 @@ def report_markdown(sources, records, org, notes, figures, captions, tables, ref
               "bound on it), the upper bound on the per-slot optimum of the same slots (docs/model.md), so the "
               "optimum lies between the two, and `best_fixed`, the best constant action, as a share of the "
               "reference. CSV: [table_open_loop.csv](table_open_loop.csv).", "", md["table_open_loop.md"], "",
+              "## Learning verdicts", "",
+              "Per learner: its share of the reference, its multiple of the open-loop `best_fixed` (a result "
+              "means something only above 1), and whether each seed's greedy policy had settled (its last "
+              f"{LAST_EVALS} periodic evaluations within {SWING_LIMIT:.0%} of each other). "
+              "CSV: [table_learning.csv](table_learning.csv).", "", tables["md_learning"], "",
               f"## Improvement of {reference or args.reference}", "",
               "CSV: [table_improvement.csv](table_improvement.csv).", "", md["table_improvement.md"], "",
               "## The paper side by side (Fig. 3b, U = 2)", "",

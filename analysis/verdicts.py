@@ -1,0 +1,93 @@
+"""The learning benchmark's verdicts per scenario and learner, from the runs' execution metrics:
+the share of the reference, the margin over the open-loop `best_fixed`, and whether the greedy
+policy had settled (its last periodic evaluations agree). No drawing and no file writing here.
+
+A learner's result means something only above `best_fixed` (docs/model.md#decisions); the
+share target and the swing limit are the learning benchmark's (docs/model.md#learning-verdicts).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable
+
+import numpy as np
+
+from analysis.data import BEST_FIXED, Organised
+from analysis.runs import EE_KEY, RunRecord
+from analysis.tables import fmt, md_table
+
+SHARE_TARGET = 0.9  # seed-mean greedy EE / the reference's, the benchmark's target for MAPPO
+SWING_LIMIT = 0.05  # the last LAST_EVALS periodic evaluations of a seed lie within this (max - min) / max
+LAST_EVALS = 3
+
+TABLE_LEARNING_COLUMNS = (
+    "n_eds",
+    "n_uavs",
+    "action_mode",
+    "algorithm",
+    "n_seeds",
+    "env_steps",  # the runs' budget (stop.env_steps)
+    "reference_baseline",
+    "share_of_reference",
+    "best_fixed_share_of_reference",
+    "share_of_best_fixed",  # > 1: the learner uses its observations
+    "above_best_fixed",
+    "max_last_evals_spread",  # over seeds: (max - min) / max of a seed's last LAST_EVALS evaluations
+    "settled",  # max_last_evals_spread <= SWING_LIMIT
+    "meets_share_target",  # share_of_reference >= SHARE_TARGET
+)
+
+History = Callable[[RunRecord, str], tuple[list[float], list[float]]]
+
+
+def last_evals_spread(values: list[float] | np.ndarray, last: int = LAST_EVALS) -> float:
+    """(max - min) / max of the last `last` values; NaN with fewer values or a non-positive max."""
+    tail = np.asarray(values, dtype=float)[-last:]
+    if tail.size < last or not np.all(np.isfinite(tail)) or tail.max() <= 0:
+        return math.nan
+    return float((tail.max() - tail.min()) / tail.max())
+
+
+def learning_table(org: Organised, history: History) -> list[dict[str, Any]]:
+    """One row per learner (kind=train) of each scenario that has a reference baseline."""
+    rows = []
+    for scen in org.scenarios():
+        ref = org.reference(scen)
+        if ref is None:
+            continue
+        bf_cell = org.cells.get((*scen, BEST_FIXED))
+        bf = bf_cell.summary().mean if bf_cell is not None and bf_cell.kind == "baseline" and bf_cell.runs else math.nan
+        for cell in sorted(org.cells_of(scen), key=lambda c: c.algorithm):
+            if cell.kind != "train" or not cell.runs:
+                continue
+            ee = cell.summary().mean
+            spreads = [last_evals_spread(history(r, EE_KEY)[1]) for r in cell.runs]
+            spread = max(spreads) if spreads and all(math.isfinite(s) for s in spreads) else math.nan
+            budgets = sorted({r.params.get("stop.env_steps", "") for r in cell.runs})
+            share = ee / ref.mean
+            rows.append({
+                "n_eds": scen[0], "n_uavs": scen[1], "action_mode": ref.mode, "algorithm": cell.algorithm,
+                "n_seeds": len(cell.runs), "env_steps": "/".join(b for b in budgets if b) or "",
+                "reference_baseline": ref.name, "share_of_reference": share,
+                "best_fixed_share_of_reference": bf / ref.mean, "share_of_best_fixed": ee / bf,
+                "above_best_fixed": "" if not math.isfinite(bf) else str(ee > bf).lower(),
+                "max_last_evals_spread": spread,
+                "settled": "" if not math.isfinite(spread) else str(spread <= SWING_LIMIT).lower(),
+                "meets_share_target": "" if not math.isfinite(share) else str(share >= SHARE_TARGET).lower(),
+            })  # fmt: skip
+    return rows
+
+
+def learning_md(rows: list[dict[str, Any]]) -> str:
+    if not rows:
+        return "_No learning verdicts: they need training runs and a reference baseline run of the same scenario._"
+    header = ["V", "U", "mode", "learner", "seeds", "env steps", "share of reference", "best_fixed share",
+              "x best_fixed", "above best_fixed", f"last {LAST_EVALS} evals spread (max over seeds)",
+              f"settled (<= {SWING_LIMIT})", f">= {SHARE_TARGET} of reference"]
+    body = [[str(r["n_eds"]), str(r["n_uavs"]), r["action_mode"], r["algorithm"], str(r["n_seeds"]), r["env_steps"] or "n/a",
+             fmt(r["share_of_reference"], ".3f"), fmt(r["best_fixed_share_of_reference"], ".3f"),
+             fmt(r["share_of_best_fixed"], ".3f"), r["above_best_fixed"] or "n/a",
+             fmt(r["max_last_evals_spread"], ".3f"), r["settled"] or "n/a (too few evaluations)",
+             r["meets_share_target"] or "n/a"] for r in rows]  # fmt: skip
+    return md_table(header, body)

@@ -1,0 +1,67 @@
+"""The report's learning verdicts (analysis.verdicts) on hand-made run records and curves."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from analysis.data import organise
+from analysis.runs import EE_KEY, RunRecord
+from analysis.verdicts import SHARE_TARGET, SWING_LIMIT, last_evals_spread, learning_md, learning_table
+
+
+def _run(i, alg, ee, kind="train", seed="0", scen=(10, 2)):
+    return RunRecord(run_id=f"r{i}", run_name="", status="FINISHED", start_time=i, kind=kind, algorithm=alg, seed=seed,
+                     n_eds=scen[0], n_uavs=scen[1], params={"scenario.action_mode": "per_device", "stop.env_steps": "200000"},
+                     metrics={EE_KEY: ee})
+
+
+CURVES = {
+    "r2": [50.0, 90.0, 95.0, 94.0, 96.0],  # settled: spread 2/96
+    "r3": [50.0, 99.0, 80.0, 97.0, 98.0],  # swings: spread 18/98
+    "r4": [60.0, 70.0, 72.0],
+    "r5": [10.0, 20.0],  # too few evaluations
+}
+
+
+def _history(record, key):
+    assert key == EE_KEY
+    vals = CURVES[record.run_id]
+    return list(range(len(vals))), vals
+
+
+def test_last_evals_spread():
+    assert last_evals_spread([1.0, 100.0, 95.0, 100.0]) == pytest.approx(0.05)
+    assert math.isnan(last_evals_spread([1.0, 2.0]))
+    assert math.isnan(last_evals_spread([0.0, 0.0, 0.0]))
+
+
+def test_learning_rows_shares_best_fixed_and_swings():
+    runs = [
+        _run(0, "greedy", 100.0, kind="baseline"),
+        _run(1, "best_fixed", 80.0, kind="baseline"),
+        _run(2, "mappo", 95.0, seed="0"),
+        _run(3, "mappo", 97.0, seed="1"),
+        _run(4, "ippo", 72.0),
+        _run(5, "coma", 85.0, scen=(60, 4)),  # no reference in that scenario: no row
+    ]
+    rows = {r["algorithm"]: r for r in learning_table(organise(runs), _history)}
+    assert set(rows) == {"mappo", "ippo"}
+    m = rows["mappo"]
+    assert m["share_of_reference"] == pytest.approx(0.96) and m["n_seeds"] == 2
+    assert m["share_of_best_fixed"] == pytest.approx(96 / 80) and m["above_best_fixed"] == "true"
+    assert m["max_last_evals_spread"] == pytest.approx(18 / 98)  # the worse seed counts
+    assert m["settled"] == "false" and m["meets_share_target"] == "true" and m["env_steps"] == "200000"
+    i = rows["ippo"]
+    assert i["above_best_fixed"] == "false" and i["meets_share_target"] == str(0.72 >= SHARE_TARGET).lower()
+    assert i["max_last_evals_spread"] == pytest.approx(12 / 72) and i["settled"] == str(12 / 72 <= SWING_LIMIT).lower()
+    md = learning_md(list(rows.values()))
+    assert "| 10 | 2 | per_device | mappo | 2 | 200000 | 0.960 | 0.800 | 1.200 | true | 0.184 | false | true |" in md
+
+
+def test_a_seed_without_enough_evaluations_leaves_settled_open():
+    runs = [_run(0, "greedy", 100.0, kind="baseline"), _run(5, "vdn", 50.0)]
+    (row,) = learning_table(organise(runs), _history)
+    assert row["settled"] == "" and math.isnan(row["max_last_evals_spread"]) and row["above_best_fixed"] == ""
+    assert "n/a (too few evaluations)" in learning_md([row])
