@@ -5,7 +5,7 @@ trial's config, run one training iteration on a tiny scenario (V=10, U=2, 10-slo
 the algorithm's default hyperparameters), check the paper's training metrics, run the greedy
 and the sampled policy, save a checkpoint, restore it and get the same greedy actions, and
 evaluate the checkpoint with the evaluate CLI (its `main`, in this process: a subprocess would
-start its own Ray, ~40 s per case on 2 cores; tests/test_evaluate_cli.py covers the
+start its own Ray for every case; tests/test_evaluate_cli.py covers the
 subprocess path). A new algorithm registered in
 `registry.MODULES` is covered without new test code.
 

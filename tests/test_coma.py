@@ -1,8 +1,7 @@
 """COMA (issue 5): the counterfactual maths by hand, the critic's inputs, the module split
 between learner and env runners, learning on a small scenario, checkpoints and config errors.
 
-The learning test trains on V=4, U=2, T=25 (budget in LEARN_ITERS below) on 2 CPUs; the whole
-file stays well under 4 minutes on an idle 2-core machine.
+The learning test trains on V=4, U=2, T=25 (budget in LEARN_ITERS below) on 2 CPUs.
 """
 
 from __future__ import annotations
@@ -155,12 +154,11 @@ def test_bad_configs_raise_clear_config_errors():
 # ------------------------------------------------------------------ training (Ray)
 SMALL = {"n_eds": 4, "n_uavs": 2, "episode_len": 25}
 LEARN_SEED = 0
-LEARN_ITERS = 100  # x 16 episodes x 25 steps = 40,000 env steps, ~15 s of training here
+LEARN_ITERS = 100  # x 16 episodes x 25 steps = 40,000 env steps
 LEARN_HPARAMS = {"lr_actor": 3e-4, "lr_critic": 1e-3, "critic_steps": 4}
 EVAL_EPISODES = 20
-# Per-slot EE over the random policy's (20 evaluation episodes), these settings, training
-# seeds 0 / 42 / 2021: greedy 1.99 / 2.08 / 2.03, sampled 1.73 / 1.78 / 1.70 (the greedy
-# oracle baseline reaches 2.16). The margins leave room below the worst seed.
+# Per-slot EE over the random policy's (20 evaluation episodes) [-]; the margins leave room
+# below the worst of the seeds measured (results: BENCHMARKS.md#learning-tests-margins).
 MARGIN = 1.5
 SAMPLED_MARGIN = 1.35
 

@@ -2,8 +2,8 @@
 mirror reflection): exact recursion, bounds, and the statistics of the process.
 
 Statistics are pooled over many independent scenarios of one BatchCore (scenario i seeded
-s + i), after a burn-in that forgets the initial velocity (0.85^100 ~ 1e-7). Measured values
-are quoted next to each tolerance (several disjoint seeds, this code).
+s + i), after a burn-in that forgets the initial velocity (0.85^100 ~ 1e-7). The measured
+values behind each tolerance: BENCHMARKS.md#model-checks.
 """
 
 from __future__ import annotations
@@ -146,8 +146,8 @@ def test_actions_change_neither_mobility_nor_association():
 def test_gm_statistics_where_the_clip_never_binds():
     """Unclipped Eq. (gm) is an AR(1) around v-bar: lag-1 autocorrelation eth, per-axis std sigma.
 
-    Measured over 6 disjoint seeds: autocorrelation 0.8493..0.8504, std 0.4989..0.5004; the
-    estimator's spread is ~5e-4 (1.28 M samples, effective ~0.2 M), so 0.004 and 1% are ~8 sd.
+    The estimator's spread is ~5e-4 (1.28 M samples, effective ~0.2 M), so 0.004 and 1% are
+    ~8 sd (measured values: BENCHMARKS.md#model-checks).
     """
     cfg = make_cfg(**UNCLIPPED)
     vel, mean, _ = simulate(cfg, n=128, steps=600, seed=1000, burn=100)
@@ -171,7 +171,7 @@ def test_gm_statistics_follow_the_config():
 def test_gm_statistics_with_the_paper_defaults_are_biased_by_the_clip():
     """With v_max = 1 and sigma = 0.5 the clip binds often (P(|v| > 1) = e^-2 = 13.5% for the
     unclipped law) and v-bar is re-drawn in [-1, 1]^2; reflections also flip velocities.
-    Measured (3 seeds): autocorrelation of v - v-bar 0.832, per-axis std 0.458 (vs 0.85, 0.5).
+    (Measured values: BENCHMARKS.md#model-checks.)
     The test pins that bias loosely, so a missing clip (or a broken recursion) still fails."""
     vel, mean, _ = simulate(make_cfg(), n=128, steps=600, seed=2000, burn=100)
     x = vel - mean
@@ -221,8 +221,8 @@ def test_mean_velocity_redraw_rate_and_law():
     cfg = make_cfg(n_eds=20, mobility={"mean_resample_prob": p, "v_max_mps": v_max})
     _, mean, _ = simulate(cfg, n=50, steps=101, seed=11)
     changed = (mean[1:] != mean[:-1]).any(axis=-1)  # [100, 50, 20]
-    # 100 000 Bernoulli(0.2) trials: sd of the rate 0.0013; 5 sd = 0.0063 (measured: 0.1981 at this
-    # seed, 0.1982-0.2011 over six disjoint seeds, mean 0.1998).
+    # 100 000 Bernoulli(0.2) trials: sd of the rate 0.0013; 5 sd = 0.0063 (measured values:
+    # BENCHMARKS.md#model-checks).
     assert abs(changed.mean() - p) < 0.0063
     # Every step sees re-draws (the lazily drawn values land on the step their test fired).
     assert changed.any(axis=(1, 2)).all()
@@ -240,7 +240,7 @@ def test_noise_is_standard_normal_pairs():
     """mobility.gaussian_pairs (Box-Muller in float32, the noise w of Eq. (gm)): N(0, 1) marginals
     (Kolmogorov-Smirnov on 4M draws), x and y uncorrelated and independent of each other's
     magnitude (Box-Muller's pair), the 24-bit tail bound, and the exact formula at hand-picked
-    uniforms. Measured: KS p = 0.38 (seed 1), |corr| < 2e-4."""
+    uniforms (measured values: BENCHMARKS.md#model-checks)."""
     from scipy import stats
 
     from uavlora_rllib.sim.mobility import gaussian_pairs

@@ -123,7 +123,7 @@ def measure(cases: list[Case], repeats: int, report: Callable[[Row], None] | Non
     """Each case's best wall and CPU time over `repeats` timed runs, after a warm-up run each.
     The repeats are sweeps over all the cases, not back-to-back runs of one: on a shared
     machine a slow spell of a few seconds then costs one sweep's runs, not every run of one
-    row (it did: the best of 3 back-to-back runs of a row came out 10-20% low in some full runs)."""
+    row."""
     for case in cases:
         case.run()  # warm-up (allocations, caches, first reset)
     best = [(np.inf, np.inf)] * len(cases)
@@ -260,8 +260,8 @@ def main(argv: list[str] | None = None) -> int:
         return fail(exc)
     m = machine()
     print(f"machine: {m['nproc']} CPUs ({m['cpu']}), Python {m['python']}, NumPy {m['numpy']}, {m['threads']}")
-    # 5: this shared machine has slow spells of several seconds, and the best of 3 runs of
-    # ~0.6 s each (the V=100 N=1024 row) fell into one in some full runs
+    # 5 sweeps by default: on a shared machine a slow spell of a few seconds can span several
+    # runs of one row (see measure)
     repeats = args.repeats or (2 if args.quick else 5)
     rows = run_env_bench(args.quick, repeats)
     if args.write:

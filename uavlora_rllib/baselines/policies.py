@@ -44,8 +44,8 @@ OBJECTIVES = ("ee", "reward")
 REFERENCES = ("greedy", "optimal")  # the per-slot references (docs/model.md#per-slot-optimum)
 
 # `optimal` refuses joint-action spaces larger than this (90^U with the paper's sets):
-# U <= 3 is accepted (729,000 candidates; ~1-2 s per slot and scenario at V = 10 on one core,
-# see BENCHMARKS.md), U >= 4 (65.6 M) is refused.
+# U <= 3 is accepted (729,000 candidates; cost: BENCHMARKS.md#cost-of-the-reference-baselines),
+# U >= 4 (65.6 M) is refused.
 OPTIMAL_MAX_CANDIDATES = 1_000_000
 # Candidate-ED evaluations per chunk of `optimal` (bounds memory: ~ 60 bytes each).
 OPTIMAL_CHUNK_ELEMENTS = 1 << 19
@@ -361,9 +361,9 @@ def _max_uavs(n_actions: int, max_candidates: int) -> int:
 
 
 # ---------------------------------------------------------------- cost of an evaluation
-# Candidate-ED evaluations per second of greedy's and optimal's search on one core: measured
-# 0.6-2.6e6 on the project's shared 2-core machine (V = 10-40, N = 1-8 scenarios, U = 1-2);
-# an estimate only (the evaluate CLI's progress bar shows the real rate).
+# Candidate-ED evaluations per second of greedy's and optimal's search on one core [1/s]: an
+# estimate only (results: BENCHMARKS.md#cost-of-the-reference-baselines; the evaluate CLI's
+# progress bar shows the real rate).
 SEARCH_RATE = 2e6
 # Everything else per scenario-slot (simulator step, observations, a cheap policy), per ED.
 STEP_SECONDS_PER_ED = 1e-6

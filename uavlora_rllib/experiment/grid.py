@@ -31,8 +31,7 @@ Schema (see tune_configs/smoke.yaml for a complete example)::
 
 `t_max_env_steps` (QMIX/VDN: the epsilon schedule is a fraction of T_max) is NOT tied to
 `stop.env_steps`: it stays at the paper's 2M unless the YAML sets it, so a short grid explores
-as the paper's first env steps do (a 60k budget as T_max annealed epsilon within 3k env steps,
-and VDN then stayed on one SF for both UAVs, BENCHMARKS.md "Learning at scale").
+as the paper's first env steps do (why: docs/model.md#training-defaults).
 A plugin module registers entries with `registry.register(...)` and adds each name to
 `registry.MODULES` (name -> its own module) so that workers can import it too.
 

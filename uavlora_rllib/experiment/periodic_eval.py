@@ -69,7 +69,8 @@ class PeriodicEvalCallback(RLlibCallback):
     def __init__(self) -> None:
         super().__init__()
         self._next_env_steps = 0  # evaluate at the first iteration, then every interval
-        self.seconds_total = 0.0  # wall time spent evaluating (the cost BENCHMARKS.md states)
+        # wall time spent evaluating [s]; results: BENCHMARKS.md#cost-of-the-periodic-evaluation-and-of-the-report
+        self.seconds_total = 0.0
         self.evaluations = 0
 
     @override(RLlibCallback)

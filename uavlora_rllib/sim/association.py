@@ -78,7 +78,7 @@ def group_sort(
     ascending or descending, and the groups [N, V] (int, 0 .. n_groups - 1; None: one group)
     in that order. Ties keep the index order, as a stable sort.
 
-    Usually one np.sort (SIMD; an argsort costs ~3.5x more) of an int64 key that carries the
+    Usually one np.sort (SIMD; an argsort costs more) of an int64 key that carries the
     index in its low bits: (group, rank part of the value, index). A float64's bit pattern,
     read as an int64, increases with the value for values >= 0 (and, with its low 63 bits
     flipped, for negative ones), so (bits - min) or (max - bits) orders the values; it is
@@ -152,7 +152,7 @@ def _deferred_acceptance(
     # Priority: descending best in-range key; ties by ED index (stable sort).
     order = group_sort(best, descending=True)[0]  # [N, V] ED ids, best first
     row_base = (np.arange(n) * n_eds)[:, None]
-    order += row_base  # flat indices into [N, V] (flat takes: much faster than fancy indexing here)
+    order += row_base  # flat indices into [N, V] (flat takes: faster than fancy indexing)
     order = order.reshape(-1)
     # The state, per priority position p = row V + j (j-th ED of the row's priority order):
     # the UAV it proposes to / is held by, and that (row, UAV) group, row U + UAV (n U: none).

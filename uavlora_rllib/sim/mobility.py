@@ -27,8 +27,8 @@ NOISE_CHUNK = 32  # steps of mobility noise drawn per refill
 def scenario_rng(seed: Any = None) -> np.random.Generator:
     """The random-number generator of one scenario: NumPy's SFC64 bit generator (seeded
     through a SeedSequence, like default_rng). It draws the mobility noise's uniforms (see
-    gaussian_pairs) and the v-bar re-draws, ~1.8x faster than default_rng's PCG64 for uniforms
-    on this machine (BENCHMARKS.md)."""
+    gaussian_pairs) and the v-bar re-draws: cheaper per uniform than default_rng's PCG64
+    (results: docs/history/benchmarks-2026.md#simulator-profile-optimisations-and-the-targets)."""
     return np.random.Generator(np.random.SFC64(seed))
 
 
@@ -58,8 +58,8 @@ def gaussian_pairs(uniform: np.ndarray, out: np.ndarray, scale: float, scratch: 
 
 
 def clip_speed(vel: np.ndarray, v_max: float) -> np.ndarray:
-    """vel [2, ...] scaled (in place) to speed <= v_max. (Dense: scaling only the ~12% of
-    EDs above the limit, through flatnonzero and fancy indexing, measured 20% slower.)"""
+    """vel [2, ...] scaled (in place) to speed <= v_max. (Dense: scaling only the EDs above
+    the limit, through flatnonzero and fancy indexing, is slower.)"""
     speed = np.multiply(vel[0], vel[0])
     speed += vel[1] * vel[1]
     np.sqrt(speed, out=speed)
@@ -209,7 +209,7 @@ class GaussMarkovMobility:
         buffer's contiguous rows, is cheaper than testing an [N, V] slice of it every step."""
         mob = self.cfg.mobility
         tests = self._tests if rows is None else self._tests[rows]  # [N', chunk V]
-        j, kv = np.divmod(np.flatnonzero(tests < mob.mean_resample_prob), tests.shape[1])  # (3-D nonzero: 10x slower)
+        j, kv = np.divmod(np.flatnonzero(tests < mob.mean_resample_prob), tests.shape[1])  # (a 3-D nonzero is slower)
         k, v = np.divmod(kv, self.cfg.n_eds)
         e = j if rows is None else rows[j]
         ev = e * self.cfg.n_eds + v

@@ -77,8 +77,7 @@ class Observer:
         if not links.all_associated:
             start = np.where(links.associated, start, self._obs_garbage)
         # np.zeros, not a copy of a template: a buffer of this size comes zeroed from the OS
-        # (calloc), so this skips reading and copying one (0.05-0.5 ms of ~10 per step at
-        # V=100/U=8/N=1024 in A/B runs); the extras are written below.
+        # (calloc), so this skips reading and copying one; the extras are written below.
         buf = np.zeros(self._obs_buf_shape, dtype=np.float32)
         pairs = buf.reshape(-1).view(np.complex64)
         if self._obs_scratch is None or self._obs_scratch[0].shape != start.shape:

@@ -88,8 +88,8 @@ CLIP_MIN = 16384  # elements from which `at_least` / `clip` use np.clip (see at_
 
 def at_least(x: np.ndarray, low: float, out: np.ndarray | None = None) -> np.ndarray:
     """max(x, low) elementwise (NaN stays NaN). np.clip with an infinite upper bound gives
-    the same values ~2x faster per element than np.maximum on this CPU, but its Python-level
-    wrapper costs ~3 us a call: it is used from CLIP_MIN elements on."""
+    the same values faster per element than np.maximum, but its Python-level wrapper costs
+    more per call: it is used from CLIP_MIN elements on."""
     if x.size >= CLIP_MIN:
         return np.clip(x, low, np.inf, out=out)
     return np.maximum(x, low, out=out)
@@ -437,7 +437,7 @@ def _points_of_margin(m: np.ndarray) -> np.ndarray:
     below = m < 0.0
     clip(m, -20.0, 20.0, out=m)
     divisor = np.multiply(below, 2.0 - 20.0)  # 2 where below, 20 elsewhere (exact; np.where with
-    divisor += 20.0  # two scalars is ~3x slower here)
+    divisor += 20.0  # two scalars is slower)
     m /= divisor
     return m
 
@@ -496,7 +496,7 @@ def allocation_values(
     sf_idx: np.ndarray, tp_idx: np.ndarray, bw_idx: np.ndarray, tables: Tables
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(transmit power in W, bandwidth in Hz, rho_thr(SF, BW) in dB) of allocations given as
-    indices into the tables (take: ~2x faster than fancy indexing)."""
+    indices into the tables (take: faster than fancy indexing)."""
     thr_db = tables.threshold_db.reshape(-1).take(sf_idx * tables.threshold_db.shape[1] + bw_idx)
     return tables.tp_w.take(tp_idx), tables.bw_hz.take(bw_idx), thr_db
 

@@ -28,7 +28,7 @@ class SlotScorer:
         self.decoder = decoder
         self.tables = tables
         self.shared = cfg.action_mode == "per_uav" and cfg.interference == "paper" and cfg.rate_model == "shannon"
-        # (chosen once: a single-env step is dominated by per-call costs, ~1 us each)
+        # (chosen once: a single-env step is dominated by per-call costs)
         self.score = self._score_shared if self.shared else self._score_per_ed
         # per_uav action index -> the allocation its UAV's EDs share (slot_metrics_shared)
         sf_a, tp_a, bw_a = decoder.joint_table.T

@@ -166,7 +166,7 @@ class MAPPOTorchLearner(TorchLearner):
     @override(TorchLearner)
     def configure_optimizers_for_module(self, module_id, config=None) -> None:
         # RLlib's default Adam, but with the multi-tensor ("foreach") step: on CPU torch picks
-        # the per-parameter loop, ~1 ms of small ops per minibatch update here (60 per batch).
+        # the per-parameter loop, many small ops per minibatch update.
         params = self.get_parameters(self.module[module_id])
         self.register_optimizer(
             module_id=module_id, optimizer=torch.optim.Adam(params, foreach=True), params=params, lr_or_lr_schedule=config.lr

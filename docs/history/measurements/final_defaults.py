@@ -1,6 +1,6 @@
 """Select the rows of learning.jsonl that ran the current registry defaults, for the seed-mean table.
 
-    python measurements/final_defaults.py > /tmp/final.jsonl
+    python docs/history/measurements/final_defaults.py > /tmp/final.jsonl
     python -m uavlora_rllib.bench_learn --table /tmp/final.jsonl
 
 Tags name the defaults of their time, and a later session's tag does not re-run learners whose
