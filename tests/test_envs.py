@@ -214,8 +214,8 @@ def test_render_rgb_array():
     first = env.render()
     _check_image(first)
     assert UavLoraParallelEnv({}).render() is None  # no render_mode: nothing to draw
-    with pytest.raises(ValueError, match="render_mode"):
-        UavLoraParallelEnv({}, render_mode="human")
+    with pytest.raises(ValueError, match="render_mode"):  # "human" prints lines: tests/test_env_conventions.py
+        UavLoraParallelEnv({}, render_mode="ansi")
     rl = UavLoraMultiAgentEnv({"scenario": {"n_eds": 20}})
     rl.reset(seed=0)
     rl.step({a: 7 for a in AGENTS})

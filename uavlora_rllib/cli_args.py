@@ -14,8 +14,19 @@ class UsageError(Exception):
     """Bad command-line input; the tools print its message as one line and exit 2."""
 
 
+# (old, new) prog prefix: ("python -m uavlora_rllib.tune", "uavlora tune") while the `uavlora`
+# command runs a tool (cli.main), so that its usage lines name the command that was typed
+PROG_ALIAS: tuple[str, str] | None = None
+
+
 class Parser(argparse.ArgumentParser):
     """An ArgumentParser whose errors raise UsageError instead of printing usage and exiting."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        prog = kwargs.get("prog")
+        if PROG_ALIAS is not None and isinstance(prog, str) and prog.startswith(PROG_ALIAS[0]):
+            kwargs["prog"] = PROG_ALIAS[1] + prog[len(PROG_ALIAS[0]) :]
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str) -> None:
         raise UsageError(message)

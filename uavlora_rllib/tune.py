@@ -14,7 +14,7 @@
 * Baselines (``baselines:``) run as Ray tasks in parallel with the trials
   (`experiment.baseline_tasks`); each is one MLflow run (kind=baseline) written by the
   driver; a FINISHED run with the same scenario is not redone.
-* Training: one `UavLoraTrainable` trial per `grid.trials` entry, resources per trial from
+* Training: one `UavLoraTrainable` (experiment.trainable) trial per `grid.trials` entry, resources per trial from
   ``resources:`` (1 learner bundle + one bundle per env runner), a checkpoint every
   ``checkpoint_every`` iterations and at the end, stop at ``stop.env_steps`` env steps
   sampled, then the execution-phase evaluation (the entry's greedy policy, the trial's seed,
@@ -44,10 +44,7 @@ import sys
 import time
 from typing import Any, Sequence
 
-from ray import tune
-
 from uavlora_rllib.algorithms.common import registry
-from uavlora_rllib.algorithms.common.threads import set_torch_threads
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in
 from uavlora_rllib.experiment import cluster
@@ -60,13 +57,21 @@ from uavlora_rllib.experiment.grid import (
     hparams_dict,
     check_local_resources,
     check_storage,
-    import_plugins,
     load_grid,
     run_name,
     trials,
 )
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+
+def __getattr__(name: str) -> Any:
+    """`UavLoraTrainable` lives in experiment.trainable (imports Ray Tune): loaded on first use."""
+    if name == "UavLoraTrainable":
+        from uavlora_rllib.experiment.trainable import UavLoraTrainable
+
+        return UavLoraTrainable
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -171,84 +176,6 @@ def trial_config(spec: TrialSpec, grid: GridConfig) -> dict[str, Any]:
     }
 
 
-class UavLoraTrainable(tune.Trainable):
-    """One trial: build the registry entry's algorithm, train to the budget, evaluate."""
-
-    def setup(self, config: dict) -> None:
-        from uavlora_rllib.sim.scenario import ScenarioConfig
-
-        import uavlora_rllib.envs.multi_agent  # noqa: F401  (registers the "uavlora" env)
-        from uavlora_rllib.experiment import periodic_eval
-
-        from uavlora_rllib.experiment.quiet import quiet_known_warnings
-
-        quiet_known_warnings()
-        cfg = config.get("trial", config)
-        self.cfg = cfg
-        import_plugins(cfg.get("plugins", []))
-        resources = registry.Resources(**cfg["resources"])
-        set_torch_threads(resources.torch_threads)
-        self.entry = registry.get(cfg["algorithm"])
-        self.scenario = ScenarioConfig.from_dict(cfg["scenario"])
-        hparams = self.entry.hparams(cfg["overrides"])
-        algo_config = self.entry.build(self.scenario, hparams, resources, int(cfg["seed"]))
-        periodic_eval.attach(algo_config, periodic_eval.PeriodicEvalSettings(
-            self.scenario, int(cfg.get("eval_interval_env_steps", 0)), int(cfg["eval_episodes"]), int(cfg["seed"])))
-        self.algo = algo_config.build_algo()
-        self._last_steps: int | None = 0
-        self._node_id = cluster.node_id()  # which raylet ran it (two may share a host)
-
-    def step(self) -> dict:
-        from uavlora_rllib.experiment import periodic_eval
-        from uavlora_rllib.experiment.tracking import ENV_STEPS, _lookup, _number, training_summary
-
-        t0 = time.perf_counter()
-        result = self.algo.train()
-        dt = max(time.perf_counter() - t0, 1e-9)
-        out = training_summary(result)
-        out.update(periodic_eval.metrics_from_result(result))  # the greedy-policy curve's points
-        steps = out[ENV_STEPS]
-        if self._last_steps is not None:
-            sampled = steps - self._last_steps
-        else:  # first iteration after a restore
-            sampled = _number(_lookup(result, "env_runners/num_env_steps_sampled")) or 0
-        out["env_steps_per_s"] = float(sampled) / dt
-        out["node_id"] = self._node_id
-        self._last_steps = steps
-        if steps >= int(self.cfg["budget_env_steps"]):
-            out.update(self.evaluate())
-            out["done"] = True
-        return out
-
-    def evaluate(self) -> dict:
-        from uavlora_rllib.experiment.evaluation import run_episodes
-        from uavlora_rllib.experiment.tracking import eval_metrics
-
-        policy = self.entry.greedy_policy(self.algo, self.scenario)
-        res = run_episodes(policy, self.scenario, int(self.cfg["eval_episodes"]), int(self.cfg["seed"]))
-        return eval_metrics(res.summary())
-
-    def save_checkpoint(self, checkpoint_dir: str) -> None:
-        self.algo.save_to_path(checkpoint_dir)
-
-    def load_checkpoint(self, checkpoint: Any) -> None:
-        path = checkpoint if isinstance(checkpoint, (str, os.PathLike)) else checkpoint.get("checkpoint_dir")
-        self.algo.restore_from_path(os.fspath(path))
-        self._last_steps = None
-
-    def reset_config(self, new_config: dict) -> bool:
-        """Reuse this actor for the next trial (saves a process start and the RLlib import)."""
-        self.cleanup()
-        self.setup(new_config)
-        return True
-
-    def cleanup(self) -> None:
-        algo = getattr(self, "algo", None)
-        if algo is not None:
-            algo.stop()
-            self.algo = None
-
-
 def trial_resources(grid: GridConfig):
     from ray.tune import PlacementGroupFactory
 
@@ -323,7 +250,10 @@ def status_reporter():
 
 
 def make_tuner(grid: GridConfig, specs: list[TrialSpec], storage: str, uri: str, grid_file: str, commit: str):
+    from ray import tune
+
     from uavlora_rllib.experiment.tracking import MlflowTrialCallback
+    from uavlora_rllib.experiment.trainable import UavLoraTrainable
 
     callback = MlflowTrialCallback(uri, grid.experiment, grid_file, commit, retry_timeout_s=grid.mlflow.retry_timeout_s)
     return tune.Tuner(
@@ -391,8 +321,10 @@ def _run_locked(grid: GridConfig, grid_file: str, args: argparse.Namespace, spec
                 exp_path: str, uri: str) -> int:
     """Connect, check, then run the baselines and the trials (the driver lock is held)."""
     import ray
+    from ray import tune
 
     from uavlora_rllib.experiment.baseline_tasks import BASELINE_CPUS, BaselinePool
+    from uavlora_rllib.experiment.trainable import UavLoraTrainable
     from uavlora_rllib.experiment.tracking import Tracker, TrackingUnavailable
 
     restorable = tune.Tuner.can_restore(exp_path)

@@ -13,6 +13,10 @@ through the vectorised core (config.env_runners(num_envs_per_env_runner=N,
 gym_env_vectorize_mode="vector_entry_point")). It follows Gymnasium's NEXT_STEP autoreset,
 which RLlib's SingleAgentEnvRunner expects: the step after an episode ends resets that
 scenario and ignores its action.
+
+Ray-free: `gymnasium.make("UavLora-v0", n_eds=..., n_uavs=...)` and
+`gymnasium.make_vec("UavLora-v0", num_envs=N, vectorization_mode="vector_entry_point")` build
+them without importing Ray (docs/model.md#environments).
 """
 
 from __future__ import annotations
@@ -21,14 +25,27 @@ from typing import Any, Mapping
 
 import gymnasium as gym
 import numpy as np
-from ray.tune.registry import register_env
 
+from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.sim.actions import per_device_action_len
 from uavlora_rllib.sim.core import BatchCore
-from uavlora_rllib.envs.multi_agent import STATE_KEY, observation_space, scenario_from, state_space
+from uavlora_rllib.envs.parallel import (
+    RENDER_FPS,
+    RENDER_MODES,
+    STATE_KEY,
+    check_render_mode,
+    env_metadata,
+    human_line,
+    observation_space,
+    render_rgb,
+    scenario_from,
+    scenario_with,
+    state_space,
+)
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
-TEAM_ENV_NAME = "uavlora_team"
+TEAM_ENV_NAME = "uavlora_team"  # its name in Tune's registry (registered by envs.multi_agent, which imports Ray)
+GYM_ID = "UavLora-v0"  # its Gymnasium id (registered by `import uavlora_rllib`)
 
 
 def team_observation_space(cfg: ScenarioConfig) -> gym.spaces.Box:
@@ -58,7 +75,7 @@ class UavLoraTeamEnv(gym.Env):
     keeps working across Ray sessions in one process, where Tune's env registry does not.
     """
 
-    metadata = {"render_modes": []}
+    metadata = {"render_modes": RENDER_MODES, "render_fps": RENDER_FPS}
 
     def __new__(cls, config: Mapping[str, Any] | ScenarioConfig | None = None, *args: Any, **kwargs: Any):
         if isinstance(config, Mapping) and config.get("num_envs") is not None:
@@ -66,23 +83,41 @@ class UavLoraTeamEnv(gym.Env):
             return UavLoraTeamVectorEnv(settings, num_envs=int(settings.pop("num_envs")))
         return super().__new__(cls)
 
-    def __init__(self, config: Mapping[str, Any] | ScenarioConfig | None = None):
+    def __init__(self, config: Mapping[str, Any] | ScenarioConfig | None = None, render_mode: str | None = None):
+        self.render_mode = check_render_mode(render_mode)
         self.scenario = scenario_from(config)
+        self.metadata = env_metadata(type(self).metadata, self.scenario)
         self.core = BatchCore(self.scenario, 1)
         self.observation_space = team_observation_space(self.scenario)
         self.action_space = team_action_space(self.scenario)
         self.state_space = state_space(self.scenario)
+        self._last_metrics: dict[str, float] = {}
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         obs = self.core.reset(seed)
+        self._last_metrics = {}
+        self._show_human()
         return _obs32(obs[0]), {STATE_KEY: self.core.state()[0].astype(np.float32)}
 
     def step(self, action):
         res = self.core.step(np.asarray(action, dtype=np.int64)[None])
         info = {k: float(v[0]) for k, v in res.metrics.items()}
+        self._last_metrics = dict(info)
+        self._show_human()
         info[STATE_KEY] = self.core.state()[0].astype(np.float32)
         return _obs32(res.obs[0]), float(res.reward[0]), False, bool(res.truncated[0]), info
+
+    def render(self) -> np.ndarray | None:
+        """The association map as an [H, W, 3] uint8 frame (render_mode "rgb_array"), else None
+        ("human" printed its line in reset/step)."""
+        if self.render_mode != "rgb_array":
+            return None
+        return render_rgb(self.core, self._last_metrics)
+
+    def _show_human(self) -> None:
+        if self.render_mode == "human":
+            print(human_line(self.core, self._last_metrics), flush=True)
 
 
 class UavLoraTeamVectorEnv(gym.vector.VectorEnv):
@@ -100,7 +135,7 @@ class UavLoraTeamVectorEnv(gym.vector.VectorEnv):
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, self.num_envs)
         self.state_space = state_space(self.scenario)
         self._needs_reset = np.zeros(self.num_envs, dtype=bool)
-        self._seeds = np.random.SeedSequence()
+        self._seeds = np.random.SeedSequence()  # episodes' seeds after the first reset (docs/model.md#seeds)
 
     def _infos(self, metrics: Mapping[str, np.ndarray] | None, live: np.ndarray) -> dict[str, np.ndarray]:
         """Gymnasium's dict-of-arrays infos; metrics only for scenarios that really stepped."""
@@ -113,8 +148,13 @@ class UavLoraTeamVectorEnv(gym.vector.VectorEnv):
         return infos
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        self._seeds = np.random.SeedSequence(seed) if seed is not None else np.random.SeedSequence()
-        obs = self.core.reset(seed)
+        """seed s: scenario i gets s + i, and later episodes children of SeedSequence(s); None
+        continues that stream (Gymnasium's seeding contract; fresh entropy before any seed)."""
+        if seed is not None:
+            self._seeds = np.random.SeedSequence(seed)
+            obs = self.core.reset(seed)
+        else:
+            obs = self.core.reset(list(self._seeds.spawn(self.num_envs)))
         self._needs_reset[:] = False
         return _obs32(obs), self._infos(None, np.zeros(self.num_envs, dtype=bool))
 
@@ -150,7 +190,20 @@ def make_team_env(config: Mapping[str, Any] | None = None):
     return UavLoraTeamEnv(dict(config or {}))
 
 
-register_env(TEAM_ENV_NAME, make_team_env)
+def gym_env(scenario: Mapping[str, Any] | ScenarioConfig | None = None, render_mode: str | None = None,
+            **fields: Any) -> UavLoraTeamEnv:
+    """`gymnasium.make("UavLora-v0", ...)`'s entry point: ScenarioConfig fields as keywords or
+    `scenario` (docs/model.md#environments); a bad field is one ConfigError naming it."""
+    return UavLoraTeamEnv(scenario_with(scenario, fields), render_mode=render_mode)
+
+
+def gym_vector_env(num_envs: int = 1, scenario: Mapping[str, Any] | ScenarioConfig | None = None,
+                   render_mode: str | None = None, **fields: Any) -> "UavLoraTeamVectorEnv":
+    """`gymnasium.make_vec("UavLora-v0", num_envs=N, vectorization_mode="vector_entry_point")`:
+    N scenarios in one BatchCore (docs/model.md#environments); frames are not drawn for N > 1."""
+    if render_mode is not None:
+        raise ConfigError(f"render_mode: the vector env draws no frames; allowed: None, got {render_mode!r}")
+    return UavLoraTeamVectorEnv(scenario_with(scenario, fields), num_envs=num_envs)
 
 
 def sample_through_team_env(config: Any, scenario: ScenarioConfig, resources: Any, algorithm: str, **env_runner_settings: Any) -> Any:

@@ -98,7 +98,8 @@ class BatchCore:
     # ------------------------------------------------------------------ reset
     def reset(self, seed: int | Sequence[int | None] | None = None, mask: np.ndarray | None = None) -> np.ndarray:
         """Start new episodes. `seed` int s -> scenario i gets s + i; a sequence gives one seed
-        per scenario; None draws fresh entropy. `mask` [N] bool resets only those scenarios."""
+        per scenario; None continues the stream of the last integer seed (fresh entropy before
+        any). `mask` [N] bool resets only those scenarios."""
         mask = np.ones(self.n, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
         if not self._ready and not mask.all():
             raise ValueError("the first reset must reset every scenario (mask=None)")
@@ -114,9 +115,14 @@ class BatchCore:
         return self.obs
 
     def _seeds_for(self, seed: int | Sequence[int | None] | None) -> list:
+        """Each scenario's seed. An integer seed s also restarts the stream of the unseeded resets
+        that follow (children spawned from SeedSequence(s), as the team vector env's autoresets
+        are): Gymnasium's contract that reset() after reset(seed=s) continues the seeded stream
+        (docs/model.md#seeds)."""
         if seed is None:
             return [s for s in self._seed_source.spawn(self.n)]
         if isinstance(seed, (int, np.integer)):
+            self._seed_source = np.random.SeedSequence(int(seed))
             return [int(seed) + i for i in range(self.n)]
         seeds = list(seed)
         if len(seeds) != self.n:
