@@ -189,7 +189,7 @@ def test_mappo_per_device_mode_beats_random(trained_per_device):
         (["--learners", "nope"], "--learners: unknown algorithm 'nope'"),
         (["--learners", "mappo", "--set", "mappo.nope=1"], "--set mappo.nope: unknown field"),
         (["--learners", "mappo", "--set", "qmix.lr=1"], "--set: 'qmix' is not one of the learners run"),
-        (["--learners", "qmix", "--action-mode", "per_device"], "--action-mode: algorithm 'qmix' supports action modes"),
+        (["--learners", "coma", "--action-mode", "per_device"], "--action-mode: algorithm 'coma' supports action modes"),
         (["--target", "1.5"], "--target: expected a number in (0, 1]"),
         (["--env-steps", "0"], "--env-steps: must be a positive integer"),
     ],
