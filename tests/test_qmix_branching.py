@@ -84,6 +84,17 @@ def test_shapes_and_head_parameters(slot_head, share):
     assert (mod.quota, mod.n_pairs, mod.n_bw) == (K, P, N_BW)
 
 
+@pytest.mark.parametrize("dueling", [True, False])
+def test_dueling_branches_share_the_uav_state_value(dueling):
+    torch.manual_seed(7)
+    mod = _module(dueling=dueling)
+    q = mod.compute_q_values({Columns.OBS: _obs(3, 4)})
+    assert (mod.agent.value_head is not None) == dueling
+    means = torch.cat((q[Q_SLOTS].mean(-1), q[Q_BW].mean(-1, keepdim=True)), dim=-1)  # [B, T, U, K + 1]
+    same = torch.allclose(means, means[..., :1].expand_as(means), atol=1e-5)
+    assert same == dueling  # dueling: every branch's mean utility is V_u
+
+
 def test_action_encoding_round_trips():
     rng = np.random.default_rng(0)
     actions = torch.as_tensor(rng.integers(0, [N_SF, N_TP] * K + [N_BW], size=(10, U, L)))

@@ -11,7 +11,10 @@ action branch (docs/model.md#qmix-and-vdn-per-device):
     slot k:  Q_k(o_u, .) = head_k([f_u ; row_k(o_u)])  over the n_sf n_tp (SF, TP) pairs
     BW:      Q_bw(o_u, .) = head_bw(f_u)                over the n_bw bandwidths
 
-Each head is Linear -> ReLU -> Linear (BDQ's per-branch hidden layer). `slot_head: per_slot`
+Each head is Linear -> ReLU -> Linear (BDQ's per-branch hidden layer). With `dueling` (BDQ's
+dueling form) the heads give advantages A_d and a state-value head V_u(f_u) the level shared by
+all branches of the UAV: Q_d(o_u, a) = V_u + A_d(a) - mean_a' A_d(a'); the argmax of a branch is
+the argmax of its advantage. `slot_head: per_slot`
 gives every slot its own head parameters; `shared` uses one head for all slots, told apart by
 the slot's own observation row (its ED's x, y, d, G), which every slot head reads. Without a
 shared network (`share_agent_net: false`) every UAV also has its own heads.
@@ -151,6 +154,7 @@ class BranchingAgentNet(nn.Module):
         head_hidden: int,
         share: bool,
         slot_head: str,
+        dueling: bool,
     ):
         super().__init__()
         if slot_head not in SLOT_HEADS:
@@ -163,10 +167,15 @@ class BranchingAgentNet(nn.Module):
         groups = 1 if share else n_agents
         self.slot_heads = BranchHeads(groups, quota if slot_head == "per_slot" else 1, fc_hidden, OBS_ROW, head_hidden, n_pairs)
         self.bw_head = BranchHeads(groups, 1, fc_hidden, 0, head_hidden, n_bw)
+        self.value_head = BranchHeads(groups, 1, fc_hidden, 0, head_hidden, 1) if dueling else None
 
     def forward(self, obs: torch.Tensor, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         f, h_out = self.torso(obs, h)
         f = torch.relu(f)
         slot_q = self.slot_heads(f, slot_rows(obs, self.quota), self.quota)
         bw_q = self.bw_head(f).squeeze(-2)
+        if self.value_head is not None:  # dueling: Q_d(a) = V_u + A_d(a) - mean_a' A_d(a')
+            v = self.value_head(f)  # [B, T, U, 1, 1]
+            slot_q = v + slot_q - slot_q.mean(-1, keepdim=True)
+            bw_q = v.squeeze(-2) + bw_q - bw_q.mean(-1, keepdim=True)
         return slot_q, bw_q, h_out

@@ -54,6 +54,7 @@ class BranchingQMixModule(QMixModule):
             head_hidden=int(mc["head_hidden"]),
             share=bool(mc["share_agent_net"]),
             slot_head=str(mc["slot_head"]),
+            dueling=bool(mc["dueling"]),
         )
 
     # ------------------------------------------------------------------ acting (env runners)

@@ -104,6 +104,11 @@ class QMIXHParams:
         description="per_device only: hidden width of every branch head (each slot's and the BW's) [units] "
         "(docs/model.md#qmix-and-vdn-per-device)",
     )
+    dueling: bool = Field(
+        True,
+        description="per_device only: the branch heads give advantages around a per-UAV state value V_u, "
+        "BDQ's dueling form [bool] (docs/model.md#qmix-and-vdn-per-device)",
+    )
     mixing_embed_dim: int = Field(
         32, ge=1, description="mixing-network width of QMIX and width of V(s) [units] (Rashid et al.)"
     )
