@@ -20,7 +20,7 @@ def _one_line(err: str) -> bool:
         (["mappo", "--n-eds", "x"], "--n-eds: expected an integer, got 'x'"),
         (["mappo", "--seed", "-1"], "--seed: must be an integer in [0, 4294967295], got -1"),
         (["mappo", "--action-mode", "joint"], "--action-mode: invalid choice: 'joint'"),
-        (["qmix", "--action-mode", "per_device"], "--action-mode: algorithm 'qmix' supports action modes ['per_uav']"),
+        (["coma", "--action-mode", "per_device"], "--action-mode: algorithm 'coma' supports action modes ['per_uav']"),
         (["mappo", "--set", "lr"], "--set: expected key=value, got 'lr'"),
         (["mappo", "--set", "lr=1", "lr=2"], "--set: 'lr' given twice"),
         (["mappo", "--set", "lr=true"], "--set.lr: expected a number in (0, 1], got True (bool)"),

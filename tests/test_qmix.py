@@ -59,7 +59,7 @@ def test_hparams_defaults_follow_spec():
     assert VDNConfig().hparams == registry.get("vdn").hparams({}) and QMIXConfig().hparams == QMIXHParams()
     for name in ("qmix", "vdn"):
         entry = registry.get(name)
-        assert entry.action_modes == ("per_uav",)
+        assert entry.action_modes == ("per_uav", "per_device")  # per_device: tests/test_qmix_branching.py
         assert entry.hparams({"n_step": 3}).n_step == 3
 
 
@@ -71,10 +71,8 @@ def test_bad_config_errors_name_the_field():
         registry.get("vdn").hparams({"tau": 0.0})
     with pytest.raises(ConfigError, match=r"epsilon_end"):
         entry.hparams({"epsilon_end": 0.5, "epsilon_start": 0.1})
-    per_device = SMALL.replace(action_mode="per_device")
-    for name in ("qmix", "vdn"):
-        with pytest.raises(ConfigError, match=r"scenario\.action_mode: algorithm '(qmix|vdn)' supports action modes \['per_uav'\], got 'per_device'"):
-            registry.get(name).build(per_device, QMIXHParams(), registry.Resources(), 0)
+    with pytest.raises(ConfigError, match=r"algorithms\.qmix\.slot_head"):
+        entry.hparams({"slot_head": "per_ed"})
 
 
 @pytest.mark.parametrize(

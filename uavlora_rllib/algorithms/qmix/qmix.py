@@ -1,11 +1,12 @@
 """QMIX and VDN (value decomposition) on RLlib 2.60's new API stack, through the team view.
 
 Sampling: env "uavlora_team" (envs/team.py): one RLlib "agent" = the whole UAV team, obs
-[U, obs_dim] (row u = UAV u's LOCAL observation), action MultiDiscrete([A] * U) (per_uav mode
-only), the shared reward, the global state in info["state"]. Env runners hold only the agent
-Q-network (inference-only module) and act decentralised: UAV u's action is the epsilon-greedy
-argmax of its own Q-values, computed from its own observation history (GRU state carried by
-RLlib's connectors, zero at every episode start).
+[U, obs_dim] (row u = UAV u's LOCAL observation), action MultiDiscrete([A] * U) in per_uav mode
+or MultiDiscrete [U, 2 quota + 1] in per_device mode, the shared reward, the global state in
+info["state"]. Env runners hold only the agent Q-network (inference-only module) and act
+decentralised: UAV u's action is the epsilon-greedy argmax of its own Q-values (per_device: of
+each action branch, branching.py), computed from its own observation history (GRU state
+carried by RLlib's connectors, zero at every episode start).
 
 One training iteration (the common `EpisodeAlgorithm` loop, with QMIX's hooks):
   1. sample rollout_fragment_length = episode_len steps on every env of every env runner:
@@ -26,7 +27,7 @@ the paper's training table (docs/model.md); the epsilon schedule is linear from
 epsilon_start to epsilon_end over epsilon_anneal_fraction x t_max_env_steps env steps (5% of
 T_max = 2M).
 
-Execution (common/policy.py): greedy = each UAV's argmax Q. Sampled = epsilon-greedy at
+Execution (common/policy.py): greedy = each UAV's argmax Q (per_device: per branch). Sampled = epsilon-greedy at
 epsilon_end, the behaviour policy training converges to: a softmax over Q would need a
 temperature on the scale of the returns, which nothing in the paper fixes, while epsilon_end
 is the paper's own exploration setting (see `QMixModule._forward_exploration`).
@@ -39,12 +40,15 @@ restored run refills it (learning resumes after learning_starts_episodes new epi
 from __future__ import annotations
 
 import numpy as np
+from typing import Literal
+
 from pydantic import Field, model_validator
 from pydantic.dataclasses import dataclass as typed_dataclass
 
 from ray.rllib.algorithms.algorithm import Algorithm
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 from ray.rllib.core import DEFAULT_MODULE_ID
+from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 from ray.rllib.utils.annotations import override
 from ray.rllib.utils.metrics import ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME
@@ -53,9 +57,11 @@ from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE
 from uavlora_rllib.algorithms.common.config import HParamsConfig
 from uavlora_rllib.algorithms.common.episode_algorithm import EpisodeAlgorithm
+from uavlora_rllib.algorithms.qmix.branching_module import BranchingQMixModule
 from uavlora_rllib.algorithms.qmix.qmix_learner import QMIXTorchLearner
 from uavlora_rllib.algorithms.qmix.qmix_module import QMixModule, linear_epsilon
 from uavlora_rllib.algorithms.qmix.qmix_replay import EpisodeReplay
+from uavlora_rllib.sim.actions import per_device_action_len
 from uavlora_rllib.sim.observation import obs_dim, state_dim
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
@@ -85,6 +91,23 @@ class QMIXHParams:
         False,
         description="one agent network for all UAVs (+ one-hot UAV id) [bool]; false: one per UAV, which breaks "
         "the symmetry between identical UAVs from the start (docs/model.md#training-defaults)",
+    )
+    slot_head: Literal["per_slot", "shared"] = Field(
+        "per_slot",
+        description="per_device only: each ED slot's (SF, TP) utility head has its own parameters (per_slot) or one "
+        "head serves every slot, told apart by the slot's observation row (shared) [-] "
+        "(docs/model.md#qmix-and-vdn-per-device)",
+    )
+    head_hidden: int = Field(
+        64,
+        ge=1,
+        description="per_device only: hidden width of every branch head (each slot's and the BW's) [units] "
+        "(docs/model.md#qmix-and-vdn-per-device)",
+    )
+    dueling: bool = Field(
+        True,
+        description="per_device only: the branch heads give advantages around a per-UAV state value V_u, "
+        "BDQ's dueling form [bool] (docs/model.md#qmix-and-vdn-per-device)",
     )
     mixing_embed_dim: int = Field(
         32, ge=1, description="mixing-network width of QMIX and width of V(s) [units] (Rashid et al.)"
@@ -171,9 +194,19 @@ class QMIXConfig(HParamsConfig, AlgorithmConfig):
         self.batch_mode = "truncate_episodes"
 
     @override(HParamsConfig)
+    def get_default_rl_module_spec(self) -> RLModuleSpec:
+        """QMixModule in per_uav mode, BranchingQMixModule (factored agent network) in per_device mode."""
+        per_device = self.model_config.get("action_mode") == "per_device"
+        return RLModuleSpec(module_class=BranchingQMixModule if per_device else QMixModule)
+
+    @override(HParamsConfig)
     def apply_hparams(self, h: QMIXHParams, scenario: ScenarioConfig) -> dict:
         self.training(lr=h.lr, gamma=h.gamma, grad_clip=h.grad_clip, grad_clip_by="global_norm")
-        return {"mixer": self.mixer, "epsilon_anneal_env_steps": h.epsilon_anneal_env_steps}
+        return {
+            "mixer": self.mixer,
+            "epsilon_anneal_env_steps": h.epsilon_anneal_env_steps,
+            "action_mode": scenario.action_mode,
+        }
 
     @override(HParamsConfig)
     def env_runner_settings(self, scenario: ScenarioConfig) -> dict:
@@ -213,6 +246,7 @@ class QMIX(EpisodeAlgorithm):
             obs_dim(cfg),
             state_dim(cfg),
             seed=self.config.seed,
+            action_len=per_device_action_len(cfg) if cfg.action_mode == "per_device" else None,
         )
         self._pending: dict[str, list] = {}  # episode id -> chunks (only if a runner cut an episode)
         self._episodes_dropped = 0
@@ -290,5 +324,5 @@ class VDN(QMIX):
         return VDNConfig()
 
 
-registry.register_algorithm("qmix", QMIXConfig, ("per_uav",))
-registry.register_algorithm("vdn", VDNConfig, ("per_uav",))
+registry.register_algorithm("qmix", QMIXConfig, ("per_uav", "per_device"))
+registry.register_algorithm("vdn", VDNConfig, ("per_uav", "per_device"))

@@ -8,7 +8,9 @@ Shapes (one team = one row of the batch; U UAVs, d = obs_dim, A = actions per UA
 
 Agent network: the common `RecurrentAgentNet` (one per UAV by default; shared with share_agent_net=True):
   [o_u ; one-hot(u)] -> Linear(fc_hidden) -> ReLU -> GRU(gru_hidden) -> Linear(A)
-The one-hot id is only appended when the network is shared.
+The one-hot id is only appended when the network is shared. This module acts in per_uav mode;
+per_device mode (an action vector per UAV) is `BranchingQMixModule` (branching_module.py), the
+same mixers over a factored agent network.
 
 Mixers (Rashid et al. 2018/2020):
   vdn:  Q_tot = sum_u Q_u + V(s)
@@ -128,14 +130,7 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
         self.n_actions = int(mc["n_actions"])
         self.gru_hidden = int(mc["gru_hidden"])
         self.double_q = bool(mc["double_q"])
-        self.agent = RecurrentAgentNet(
-            int(mc["obs_dim"]),
-            self.n_agents,
-            self.n_actions,
-            fc_hidden=int(mc["fc_hidden"]),
-            gru_hidden=self.gru_hidden,
-            share=bool(mc["share_agent_net"]),
-        )
+        self.agent = self._make_agent()
         # The mixer is built here and removed again on inference-only (env runner) copies.
         self.mixer = make_mixer(
             str(mc["mixer"]),
@@ -146,6 +141,18 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
             state_bias=bool(mc["state_bias"]),
         )
         self._eps = (float(mc["epsilon_start"]), float(mc["epsilon_end"]), float(mc["epsilon_anneal_env_steps"]))
+
+    def _make_agent(self) -> nn.Module:
+        """The agent network (built before the mixer): one Q-value per joint per_uav action."""
+        mc = self.model_config
+        return RecurrentAgentNet(
+            int(mc["obs_dim"]),
+            self.n_agents,
+            self.n_actions,
+            fc_hidden=int(mc["fc_hidden"]),
+            gru_hidden=self.gru_hidden,
+            share=bool(mc["share_agent_net"]),
+        )
 
     # ------------------------------------------------------------------ recurrent state
     @override(RLModule)

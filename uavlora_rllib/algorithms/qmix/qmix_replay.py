@@ -5,7 +5,8 @@ their own ring buffer of |D| episodes (the paper: 32). Every episode of a scenar
 length T (truncation at episode_len, never termination), so one episode is one row:
 
   obs        [T+1, U, d]   o_0 .. o_T (o_T is the final observation after the last step)
-  actions    [T, U]
+  actions    [T, U]        per_uav: one joint action index per UAV
+             [T, U, L]     per_device: the action vector of each UAV (L = action_len = 2 quota + 1)
   rewards    [T]
   state      [T+1, S]      s_0 .. s_T (s_T: final state, bootstrapped through at truncation)
   terminated []            True only if the env terminated (never in this project)
@@ -27,13 +28,23 @@ from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE, TERMINATED
 
 
 class EpisodeReplay:
-    def __init__(self, capacity: int, episode_len: int, n_agents: int, obs_dim: int, state_dim: int, seed: int | None = None):
+    def __init__(
+        self,
+        capacity: int,
+        episode_len: int,
+        n_agents: int,
+        obs_dim: int,
+        state_dim: int,
+        seed: int | None = None,
+        action_len: int | None = None,
+    ):
+        """action_len: None stores one action per UAV (per_uav), an int a vector of that length (per_device)."""
         if capacity < 1:
             raise ValueError(f"capacity: must be >= 1, got {capacity}")
         c, t, u = capacity, episode_len, n_agents
         self.capacity, self.episode_len = c, t
         self.obs = np.zeros((c, t + 1, u, obs_dim), np.float32)
-        self.actions = np.zeros((c, t, u), np.int64)
+        self.actions = np.zeros((c, t, u) if action_len is None else (c, t, u, int(action_len)), np.int64)
         self.rewards = np.zeros((c, t), np.float32)
         self.state = np.zeros((c, t + 1, state_dim), np.float32)
         self.terminated = np.zeros(c, bool)
