@@ -56,7 +56,8 @@ from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE
 from uavlora_rllib.algorithms.common.target_learner import TargetNetworkLearner
 
 ACTOR_OPT, CRITIC_OPT = "actor", "critic"
-SAMPLED_LOGP = "coma_sampled_logp"  # [B, T, U] log pi_u(a_t,u) of the policy that sampled the batch ([B, T, U, L] per branch, per_device)
+# [B, T, U] log pi_u(a_t,u) of the policy that sampled the batch (per_device: [B, T, U, L], per branch)
+SAMPLED_LOGP = "coma_sampled_logp"
 
 
 def lambda_returns(
