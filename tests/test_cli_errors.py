@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import pytest
 
+import tune_stock_ppo  # noqa: F401  (registers stock_ppo, a per_uav-only plugin)
+
 from uavlora_rllib import bench, bench_train
 
 
@@ -20,7 +22,8 @@ def _one_line(err: str) -> bool:
         (["mappo", "--n-eds", "x"], "--n-eds: expected an integer, got 'x'"),
         (["mappo", "--seed", "-1"], "--seed: must be an integer in [0, 4294967295], got -1"),
         (["mappo", "--action-mode", "joint"], "--action-mode: invalid choice: 'joint'"),
-        (["coma", "--action-mode", "per_device"], "--action-mode: algorithm 'coma' supports action modes ['per_uav']"),
+        # a plugin registered for per_uav only (tests/tune_stock_ppo.py): every learner here acts in both modes
+        (["stock_ppo", "--action-mode", "per_device"], "--action-mode: algorithm 'stock_ppo' supports action modes ['per_uav']"),
         (["mappo", "--set", "lr"], "--set: expected key=value, got 'lr'"),
         (["mappo", "--set", "lr=1", "lr=2"], "--set: 'lr' given twice"),
         (["mappo", "--set", "lr=true"], "--set.lr: expected a number in (0, 1], got True (bool)"),

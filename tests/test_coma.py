@@ -1,7 +1,9 @@
 """COMA (issue 5): the counterfactual maths by hand, the critic's inputs, the module split
 between learner and env runners, learning on a small scenario, checkpoints and config errors.
+per_device mode: tests/test_coma_per_device.py.
 
-The learning test trains on V=4, U=2, T=25 (budget in LEARN_ITERS below) on 2 CPUs.
+The learning tests train on V=4, U=2, T=25 (budget in LEARN_ITERS below) on 2 CPUs in a module
+fixture that takes minutes: they are marked slow (`make test-slow`); the unit tests stay fast.
 """
 
 from __future__ import annotations
@@ -136,10 +138,7 @@ def test_actor_input_and_inference_only_module():
 # ------------------------------------------------------------------ config errors (no Ray)
 def test_bad_configs_raise_clear_config_errors():
     entry = registry.get("coma")
-    assert entry.action_modes == ("per_uav",)
-    per_device = ScenarioConfig.from_dict({"n_eds": 4, "n_uavs": 2, "action_mode": "per_device"})
-    with pytest.raises(ConfigError, match=r"supports action modes \['per_uav'\], got 'per_device'"):
-        entry.build(per_device, entry.hparams({}), registry.Resources(), 0)
+    assert entry.action_modes == ("per_uav", "per_device")
     with pytest.raises(ConfigError, match=r"algorithms\.coma\.lr_criticc: unknown field; allowed: .*lr_critic"):
         entry.hparams({"lr_criticc": 1e-3})
     with pytest.raises(ConfigError, match=r"algorithms\.coma\.td_lambda"):
@@ -183,6 +182,7 @@ def trained(tmp_path_factory):
         ray.shutdown()
 
 
+@pytest.mark.slow
 def test_result_dict_and_runner_module(trained):
     first, last = trained["results"][0], trained["results"][-1]
     assert first["num_env_steps_sampled_lifetime"] == 16 * 25
@@ -199,6 +199,7 @@ def test_result_dict_and_runner_module(trained):
     assert not any(k.startswith(("critic", "target_critic")) for k in runner_module.state_dict())
 
 
+@pytest.mark.slow
 def test_learns_to_beat_random(trained):
     """The registry's greedy policy (argmax, decentralised, GRU state carried), run by
     evaluation.run_episodes on evaluation seeds, beats uniform random on EE by MARGIN."""
@@ -218,6 +219,7 @@ def test_learns_to_beat_random(trained):
     assert train_ee > SAMPLED_MARGIN * rnd.mean("ee_sys_mean")
 
 
+@pytest.mark.slow
 def test_updates_per_iteration_reuse_the_batch_with_a_clipped_ratio(trained):
     """updates_per_iteration = 3: three learner updates (each moving the target critic) on
     every sampled batch, the actor's term PPO's clipped surrogate around the sampling policy:
@@ -238,6 +240,7 @@ def test_updates_per_iteration_reuse_the_batch_with_a_clipped_ratio(trained):
         algo.stop()
 
 
+@pytest.mark.slow
 def test_checkpoint_round_trip(trained):
     from ray.rllib.algorithms.algorithm import Algorithm
 

@@ -2,7 +2,8 @@
 Algorithm on the new API stack, registered as "coma".
 
 Sampling goes through the team view ("uavlora_team": observation [U, obs_dim], action
-MultiDiscrete([90] * U), shared reward, global state in info["state"]); each env runner steps
+MultiDiscrete([90] * U) per_uav or [U, 2 quota + 1] per_device, shared reward, global state in
+info["state"]); each env runner steps
 N scenarios through one vectorised BatchCore. One training iteration (the common
 `EpisodeAlgorithm` loop):
   1. sample `batch_episodes` whole episodes (T = episode_len steps each) with the current
@@ -15,8 +16,9 @@ N scenarios through one vectorised BatchCore. One training iteration (the common
 Networks: coma_module.py. Hyperparameters: `COMAHParams` (grid YAML `algorithms.coma`,
 `--list-hparams coma`). Execution (common/policy.py): greedy = argmax of each UAV's actor
 logits; sampled = a draw from the actor's softmax, the stochastic policy COMA trains.
-Only the per_uav action mode is supported (the critic outputs one Q per action of a UAV,
-which needs a single Discrete action per agent).
+Both action modes: per_uav (the critic outputs one Q per action of a UAV) and per_device, a
+factored policy with a per-branch counterfactual baseline (branching.py,
+docs/model.md#coma-per-device).
 
 Choices beyond the paper (each a COMAHParams field, documented there): the critic trains
 `critic_steps` = 4 extra steps on each batch before the joint actor + critic step (the paper
@@ -79,8 +81,9 @@ class COMAHParams:
     critic_use_obs: bool = Field(True, description="also give the critic UAV u's own observation row [bool]")
     critic_factored_actions: bool = Field(
         True,
-        description="use the (SF, TP, BW) structure of an action in the critic: other UAVs' actions also as "
-        "one-hot SF/TP/BW, and u's outputs share per-SF/TP/BW terms [bool]",
+        description="per_uav: use the (SF, TP, BW) structure of an action in the critic: other UAVs' actions "
+        "also as one-hot SF/TP/BW, and u's outputs share per-SF/TP/BW terms [bool] (per_device actions are "
+        "factored already: no effect there, docs/model.md#coma-per-device)",
     )
     critic_dueling: bool = Field(
         True, description="Q = V + (D - mean D) head: untried actions start at the state's value [bool]"
@@ -103,7 +106,13 @@ class COMAHParams:
     reward_scale: float = Field(1.0, gt=0, description="factor on the rewards in the critic targets [-]")
 
     def check(self, scenario: ScenarioConfig, resources: Resources, path: str) -> None:
-        """COMA learns from whole episodes, sampled in whole rounds of all envs of all runners."""
+        """COMA learns from whole episodes, sampled in whole rounds of all envs of all runners;
+        the per_device critic (branching.BranchQCritic) needs a hidden layer."""
+        if scenario.action_mode == "per_device" and not self.critic_hidden:
+            raise ConfigError(
+                f"{path}.critic_hidden: per_device needs at least one critic layer (the per-branch critic "
+                "sums its action inputs in the first layer)"
+            )
         runners = max(1, resources.num_env_runners)
         if self.batch_episodes % (runners * resources.num_envs_per_env_runner):
             raise ConfigError(
@@ -136,7 +145,8 @@ class COMAConfig(HParamsConfig, AlgorithmConfig):
             grad_clip_by="global_norm",
             train_batch_size_per_learner=h.batch_episodes * scenario.episode_len,
         )
-        factors = [scenario.n_sf, scenario.n_tp, scenario.n_bw] if h.critic_factored_actions else []
+        per_uav_factors = h.critic_factored_actions and scenario.action_mode == "per_uav"
+        factors = [scenario.n_sf, scenario.n_tp, scenario.n_bw] if per_uav_factors else []
         return {"action_factors": factors, "critic_hidden": list(h.critic_hidden)}
 
 
@@ -181,4 +191,4 @@ class COMA(EpisodeAlgorithm):
         return super().update_learners(batch, timesteps)
 
 
-register_algorithm(NAME, COMAConfig, ("per_uav",))
+register_algorithm(NAME, COMAConfig, ("per_uav", "per_device"))

@@ -22,6 +22,10 @@ updates_per_iteration = K > 1: the algorithm runs K such updates on one batch; f
 the batch is off-policy, so the actor term becomes PPO's clipped surrogate
 min(r A, clip(r, 1 -+ ratio_clip) A) with r = pi_u / pi_u,sampling per UAV and step (gradient
 A grad log pi at r = 1, as COMA's); the critic's targets are recomputed each update.
+per_device (branching.py, docs/model.md#coma-per-device): every branch l of every UAV u is a row
+of its own: the critic loss over all rows (u, l), A_t,u,l with the baseline over pi_u,l, the
+actor loss -mean_{b,t,u} sum_l A_t,u,l log pi_u,l(a_t,u,l), the entropy of the product policy
+(summed over a UAV's branches) and, when the batch is reused, one clipped ratio per branch.
 Counters (`updates`: warm-up, hard-update period) restart at 0 after a checkpoint restore.
 """
 
@@ -36,6 +40,7 @@ from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 from ray.rllib.policy.sample_batch import MultiAgentBatch
 from ray.rllib.utils.annotations import override
 
+from uavlora_rllib.algorithms.coma.branching import BRANCH_LOGP, taken
 from uavlora_rllib.algorithms.coma.coma_module import (
     ACTIONS,
     BOOTSTRAP,
@@ -51,7 +56,18 @@ from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE
 from uavlora_rllib.algorithms.common.target_learner import TargetNetworkLearner
 
 ACTOR_OPT, CRITIC_OPT = "actor", "critic"
-SAMPLED_LOGP = "coma_sampled_logp"  # [B, T, U] log pi_u(a_t,u) of the policy that sampled the batch
+# [B, T, U] log pi_u(a_t,u) of the policy that sampled the batch (per_device: [B, T, U, L], per branch)
+SAMPLED_LOGP = "coma_sampled_logp"
+
+
+def lambda_returns(
+    rewards: torch.Tensor, q_target_taken: torch.Tensor, bootstrap: torch.Tensor, gamma: float, lam: float
+) -> torch.Tensor:
+    """`td_lambda_targets` for every critic row: q_target_taken [B, T, ...] (per UAV, or per UAV
+    and branch in per_device) with bootstrap [B, ...]; the trailing axes are flattened into the
+    agent axis and restored."""
+    out = td_lambda_targets(rewards, q_target_taken.flatten(2), bootstrap.flatten(1), gamma, lam)
+    return out.view_as(q_target_taken)
 
 
 def episode_batch(episodes: list) -> dict[str, np.ndarray]:
@@ -70,7 +86,9 @@ def episode_batch(episodes: list) -> dict[str, np.ndarray]:
     rewards = np.stack([np.asarray(ep.get_rewards(), dtype=np.float32) for ep in episodes])
     # the sampling policy's per-UAV log-probabilities: the ratio's denominator when the
     # batch is reused (updates_per_iteration > 1)
-    logp = np.stack([np.asarray(ep.get_extra_model_outputs(Columns.ACTION_LOGP), dtype=np.float32) for ep in episodes])
+    # (per_device, actions [B, T, U, L]: per branch, the per-branch ratio's denominator)
+    logp_column = BRANCH_LOGP if actions.ndim == 4 else Columns.ACTION_LOGP
+    logp = np.stack([np.asarray(ep.get_extra_model_outputs(logp_column), dtype=np.float32) for ep in episodes])
     state = np.stack(
         [np.stack([np.asarray(i[GLOBAL_STATE], dtype=np.float32) for i in ep.get_infos()]) for ep in episodes]
     )
@@ -99,14 +117,14 @@ class COMATorchLearner(TargetNetworkLearner):
             actions = cols[ACTIONS].long()
             with torch.no_grad():
                 fwd = module.forward_train(cols)
-                q_target_taken = torch.gather(fwd[Q_TARGET], -1, actions.unsqueeze(-1)).squeeze(-1)
-                targets = td_lambda_targets(
+                q_target_taken = taken(fwd[Q_TARGET], actions)
+                targets = lambda_returns(
                     cols[REWARDS] * hp.reward_scale, q_target_taken, fwd[BOOTSTRAP], hp.gamma, hp.td_lambda
                 )
             obs, state = cols[OBS][:, : actions.shape[1]], cols[GLOBAL_STATE][:, : actions.shape[1]]
             for _ in range(hp.critic_steps):
                 q = module.critic_q(module.critic, state, obs, actions)
-                loss = ((torch.gather(q, -1, actions.unsqueeze(-1)).squeeze(-1) - targets) ** 2).mean()
+                loss = ((taken(q, actions) - targets) ** 2).mean()
                 grads = self.compute_gradients({module_id: loss})
                 self.apply_gradients(self.postprocess_gradients({k: g for k, g in grads.items() if g is not None}))
             self.metrics.log_value((module_id, "critic_loss_before_joint_step"), loss.detach(), window=1)
@@ -126,32 +144,32 @@ class COMATorchLearner(TargetNetworkLearner):
         hp = self.config.hparams
         actions, rewards = batch[ACTIONS].long(), batch[REWARDS] * hp.reward_scale
         steps = actions.shape[1]
-        q, q_target = fwd_out[Q_VALUES], fwd_out[Q_TARGET]  # [B, T, U, A]
+        module = self.module[module_id].unwrapped()
+        # [B, T, U, A] (per_uav) or [B, T, U, L, W] (per_device: one row per branch of a UAV)
+        q, q_target = fwd_out[Q_VALUES], fwd_out[Q_TARGET]
         # Critic: TD(lambda) targets from the target critic.
-        q_target_taken = torch.gather(q_target, -1, actions.unsqueeze(-1)).squeeze(-1)  # [B, T, U]
-        targets = td_lambda_targets(
-            rewards, q_target_taken, fwd_out[BOOTSTRAP], hp.gamma, hp.td_lambda
-        ).detach()
-        q_taken = torch.gather(q, -1, actions.unsqueeze(-1)).squeeze(-1)
+        q_target_taken = taken(q_target, actions)  # [B, T, U] or [B, T, U, L]
+        targets = lambda_returns(rewards, q_target_taken, fwd_out[BOOTSTRAP], hp.gamma, hp.td_lambda).detach()
+        q_taken = taken(q, actions)
         critic_loss = ((q_taken - targets) ** 2).mean()
-        # Actor: counterfactual advantage with the (detached) critic.
-        logits = fwd_out[LOGITS][:, :steps]  # [B, T, U, A]
-        logp_all = torch.log_softmax(logits, dim=-1)
-        pi = logp_all.exp()
+        # Actor: counterfactual advantage with the (detached) critic, per UAV (per branch).
+        logits = fwd_out[LOGITS][:, :steps]  # [B, T, U, n_logits]
+        pi, logp, entropy = module.policy_terms(logits, actions)
         adv, baseline, _ = counterfactual_advantage(q, pi, actions)
         if hp.normalize_advantages:
             adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-        logp = torch.gather(logp_all, -1, actions.unsqueeze(-1)).squeeze(-1)
-        entropy = -(pi * logp_all).sum(-1).mean()
+        entropy = entropy.mean()
         if hp.updates_per_iteration > 1:
             # the batch is reused: PPO's clipped surrogate per UAV around the sampling policy
             # (on the first update r = 1 and its gradient is COMA's A grad log pi)
+            # (per_device: per branch, each branch's ratio clipped on its own)
             ratio = torch.exp(logp - batch[SAMPLED_LOGP])
             surrogate = torch.min(ratio * adv, ratio.clamp(1 - hp.ratio_clip, 1 + hp.ratio_clip) * adv)
             clip_fraction = ((ratio - 1).abs() > hp.ratio_clip).float().mean().detach()
         else:
             surrogate, clip_fraction = adv * logp, torch.zeros(())
-        actor_loss = -surrogate.mean() - hp.entropy_coeff * entropy
+        # per_device: the branches' terms summed per UAV (the product policy's gradient)
+        actor_loss = -module.per_agent(surrogate).mean() - hp.entropy_coeff * entropy
         if self.updates < hp.critic_warmup_updates:
             actor_loss = actor_loss * 0.0  # critic only: the advantage is meaningless before it fits
         self.metrics.log_dict(

@@ -2,7 +2,9 @@
 
 Layout of the team view (uavlora_rllib/envs/team.py): observation [U, obs_dim] (row u is UAV
 u's LOCAL observation), action MultiDiscrete([A] * U) with A = 90 (per_uav), shared reward,
-global state under info["state"].
+global state under info["state"]. This docstring describes per_uav; per_device (action
+[U, L], L = 2 quota + 1 branches) has the same actor with one logit group per branch and the
+per-branch critic of branching.py (`setup_per_device`).
 
 * Actor (the common `RecurrentAgentNet`, decentralised, shared by all UAVs; its forward passes
   are the common `RecurrentActorForward`): row u of the observation, concatenated with the
@@ -37,6 +39,7 @@ from ray.rllib.core.rl_module.torch import TorchRLModule
 from ray.rllib.utils.annotations import override
 from torch import nn
 
+from uavlora_rllib.algorithms.coma.branching import BRANCH_LOGP, BranchLayout, BranchQCritic, taken
 from uavlora_rllib.algorithms.common.actor_module import RecurrentActorForward
 from uavlora_rllib.algorithms.common.agent_net import ActionHead, RecurrentAgentNet
 from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE
@@ -47,7 +50,7 @@ from uavlora_rllib.algorithms.common.threads import set_torch_threads
 OBS = Columns.OBS
 ACTIONS = Columns.ACTIONS
 REWARDS = Columns.REWARDS
-# Outputs of forward_train.
+# Outputs of forward_train (per_device: A -> [L, W], one row per branch, and [B, U] -> [B, U, L]).
 LOGITS = "coma_logits"  # [B, T + 1, U, A] actor logits (the last step only for bootstrapping)
 Q_VALUES = "coma_q"  # [B, T, U, A] critic: Q_u(s_t, a_t,-u, .)
 Q_TARGET = "coma_q_target"  # [B, T, U, A] target critic, same inputs
@@ -196,7 +199,8 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
 
     model_config (common/config.py): COMAHParams' fields (actor_hidden, gru_hidden,
     actor_agent_heads, critic_hidden, critic_use_obs, critic_dueling), state_dim,
-    action_factors, torch_threads."""
+    action_factors (per_uav only), torch_threads. The action space picks the mode: nvec [U]
+    per_uav, [U, L] per_device."""
 
     @override(TorchRLModule)
     def setup(self) -> None:
@@ -204,6 +208,10 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
         set_torch_threads(mc["torch_threads"])
         self.n_agents, self.obs_dim = self.observation_space.shape
         nvec = np.asarray(self.action_space.nvec)
+        self.per_device = nvec.ndim == 2
+        if self.per_device:
+            self.setup_per_device(nvec)
+            return
         if nvec.ndim != 1 or not (nvec == nvec[0]).all():
             raise ValueError(f"COMA needs MultiDiscrete([A] * U) actions (per_uav), got nvec {nvec.tolist()}")
         self.n_actions = int(nvec[0])
@@ -230,6 +238,35 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
                 in_dim, tuple(mc["critic_hidden"]), self.n_actions, bool(mc["critic_dueling"]), self.factors
             )
 
+    def setup_per_device(self, nvec: np.ndarray) -> None:
+        """per_device: the actor's logits are one group per branch (ActionHead over the nvec row,
+        as MAPPO's per_device head) and the critic is branching.BranchQCritic."""
+        mc = self.model_config
+        if nvec.shape[0] != self.n_agents or not (nvec == nvec[0]).all():
+            raise ValueError(f"COMA per_device needs the same nvec row for all {self.n_agents} UAVs, got {nvec.tolist()}")
+        self.state_dim = int(mc["state_dim"])
+        self.use_obs = bool(mc["critic_use_obs"])
+        self.head = ActionHead(nvec[0].tolist())
+        self.layout = BranchLayout(self.head.nvec)
+        self.actor = RecurrentAgentNet(
+            self.obs_dim,
+            self.n_agents,
+            self.head.n_logits,
+            fc_hidden=int(mc["actor_hidden"]),
+            gru_hidden=int(mc["gru_hidden"]),
+            share=True,
+            agent_heads=bool(mc["actor_agent_heads"]),
+        )
+        if not self.inference_only:
+            self.critic = BranchQCritic(
+                self.layout,
+                self.n_agents,
+                self.state_dim,
+                self.obs_dim if self.use_obs else 0,
+                tuple(mc["critic_hidden"]),
+                bool(mc["critic_dueling"]),
+            )
+
     @override(InferenceOnlyAPI)
     def get_non_inference_attributes(self) -> list[str]:
         return ["critic", "target_critic"]
@@ -249,10 +286,18 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
         state [B, U]. Truncation at T: the bootstrap is the target critic on s_T, where the
         other UAVs play actions sampled from their policies at o_T and UAV u is averaged over
         its own policy: V_u(s_T) = sum_a' pi_u(a' | tau_T) Q_tgt(s_T, (a_T,-u, a')). batch:
-        the train batch plus the actor's LOGITS [B, T+1, U, A]."""
+        the train batch plus the actor's LOGITS [B, T+1, U, A].
+        per_device: the same per branch, Q [B, T, U, L, W] and the bootstrap [B, U, L], every
+        branch of every UAV sampled at o_T and branch l of u averaged over pi_{u,l}."""
         obs, actions, state = batch[OBS], batch[ACTIONS].long(), batch[GLOBAL_STATE]
         steps = actions.shape[1]
         q_target = self.critic_q(self.target_critic, state[:, :steps], obs[:, :steps], actions)
+        if self.per_device:
+            logits_last = batch[LOGITS][:, steps]  # [B, U, sum(row)]
+            a_last, _ = self.head.sample(logits_last)  # [B, U, L]
+            pi_last = self.layout.log_probs(logits_last).exp()  # [B, U, L, W]
+            q_last = self.critic_q(self.target_critic, state[:, steps], obs[:, steps], a_last)
+            return {Q_TARGET: q_target, BOOTSTRAP: (pi_last * q_last).sum(-1)}
         pi_last = torch.softmax(batch[LOGITS][:, steps], dim=-1)  # [B, U, A]
         a_last = torch.distributions.Categorical(probs=pi_last).sample()  # [B, U]
         q_last = self.critic_q(self.target_critic, state[:, steps], obs[:, steps], a_last)
@@ -260,7 +305,40 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
 
     # -- learner
     def critic_q(self, net: nn.Module, state: torch.Tensor, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """Q [..., U, A] (per_uav) or [..., U, L, W] (per_device) of the critic `net` (or its target)."""
+        if self.per_device:
+            return net(state, obs if self.use_obs else None, actions)
         return net(critic_inputs(state, obs if self.use_obs else None, actions, self.n_actions, self.factors))
+
+    def policy_terms(
+        self, logits: torch.Tensor, actions: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The actor's side of the loss: (pi, logp, entropy) of logits [B, T, U, n_logits] at the
+        taken actions. per_uav: pi [B, T, U, A], logp [B, T, U]; per_device: per branch,
+        pi [B, T, U, L, W] (padding 0), logp [B, T, U, L]. entropy [B, T, U] per UAV (per_device:
+        summed over its branches, the entropy of the product policy)."""
+        if self.per_device:
+            log_probs = self.layout.log_probs(logits)
+            return log_probs.exp(), taken(log_probs, actions), self.layout.entropy(log_probs).sum(-1)
+        logp_all = torch.log_softmax(logits, dim=-1)
+        pi = logp_all.exp()
+        return pi, torch.gather(logp_all, -1, actions.unsqueeze(-1)).squeeze(-1), -(pi * logp_all).sum(-1)
+
+    def per_agent(self, x: torch.Tensor) -> torch.Tensor:
+        """Per-branch terms [..., U, L] summed to per-UAV terms [..., U] (per_device); per_uav
+        terms are per UAV already."""
+        return x.sum(-1) if self.per_device else x
+
+    @override(RLModule)
+    def _forward_exploration(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
+        """Sampled actions (the common actor forward); per_device also hands the env runner each
+        branch's log-probability (BRANCH_LOGP), the per-branch ratio's denominator."""
+        if not self.per_device:
+            return super()._forward_exploration(batch, **kwargs)
+        logits, state = self.actor_logits(batch)
+        actions, logp = self.head.sample(logits)
+        branch_logp = taken(self.layout.log_probs(logits), actions)
+        return {Columns.ACTIONS: actions, Columns.ACTION_LOGP: logp, BRANCH_LOGP: branch_logp, Columns.STATE_OUT: state}
 
     @override(RLModule)
     def _forward_train(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:

@@ -1,0 +1,149 @@
+"""COMA's per_device form: a factored ("branching") policy and its per-branch counterfactual critic.
+
+In per_device mode (docs/model.md#actions) UAV u's action is a vector of L = 2 quota + 1 branches,
+nvec row [n_sf, n_tp] * quota + [n_bw]: an SF and a TP for each served-ED slot, then one BW.
+The actor is a product of one categorical per branch (the common `ActionHead`, exactly as MAPPO's
+per_device head; sampling, greedy and the env runners' log-probabilities go through it). The
+critic marginalises one branch at a time (docs/model.md#coma-per-device; Foerster et al., AAAI
+2018, with the action branching of Tavakoli et al., AAAI 2018):
+
+  Q_{u,l}(s, a)[c] = Q(s, a with branch l of u set to c),  c = 0 .. n_l - 1,
+  A_{u,l}         = Q_{u,l}(s, a)[a_{u,l}] - sum_c pi_{u,l}(c) Q_{u,l}(s, a)[c],
+
+all other branches of u and all other UAVs' actions held at the taken ones. The policy gradient
+sums A_{u,l} grad log pi_{u,l}(a_{u,l}) over the branches.
+
+Padded layout: the values of the branches of one UAV sit in a [L, W] grid, W = max(row); entry
+(l, c) with c >= n_l is padding (probability 0, Q 0), so every branch of every UAV is one slice
+of one tensor and the baseline of all of them is one `counterfactual_advantage` call.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+# Env-runner output and train-batch column: log pi_{u,l}(a_{u,l}) of the sampling policy per
+# branch, [B, T, U, L]; the denominator of the per-branch ratio when a batch is reused.
+BRANCH_LOGP = "coma_branch_logp"
+
+
+class BranchLayout(nn.Module):
+    """Where each branch's values live in a UAV's flat logits / one-hot vector of sum(row)
+    entries, and the padded [L, W] grid the per-branch tensors use (see the module docstring).
+    Holds only constant, non-persistent buffers (nothing in the state dict)."""
+
+    def __init__(self, row: Sequence[int]):
+        super().__init__()
+        self.row = [int(n) for n in row]
+        self.n_branches, self.width = len(self.row), max(self.row)
+        starts = np.concatenate([[0], np.cumsum(self.row)[:-1]])
+        values = np.arange(self.width)
+        valid = values[None, :] < np.asarray(self.row)[:, None]  # [L, W]
+        index = starts[:, None] + np.minimum(values[None, :], np.asarray(self.row)[:, None] - 1)
+        self.register_buffer("starts", torch.as_tensor(starts, dtype=torch.long), persistent=False)  # [L]
+        self.register_buffer("index", torch.as_tensor(index, dtype=torch.long), persistent=False)  # [L, W]
+        self.register_buffer("valid", torch.as_tensor(valid), persistent=False)  # [L, W] bool
+        self.register_buffer("sizes", torch.as_tensor(self.row, dtype=torch.float32), persistent=False)  # [L]
+
+    def log_probs(self, logits: torch.Tensor) -> torch.Tensor:
+        """Logits [..., sum(row)] -> per-branch log-probabilities [..., L, W] (log-softmax within
+        each branch, the same distributions as ActionHead's; padding -inf)."""
+        padded = logits[..., self.index].masked_fill(~self.valid, float("-inf"))
+        return torch.log_softmax(padded, dim=-1)
+
+    def entropy(self, log_probs: torch.Tensor) -> torch.Tensor:
+        """Per-branch entropies [..., L] of `log_probs` [..., L, W] (padding contributes 0)."""
+        safe = log_probs.masked_fill(~self.valid, 0.0)
+        return -(log_probs.exp() * safe).sum(-1)
+
+
+def taken(values: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+    """values [..., n] at the taken index actions [...] -> [...] (per UAV or per branch)."""
+    return torch.gather(values, -1, actions.long().unsqueeze(-1)).squeeze(-1)
+
+
+class BranchQCritic(nn.Module):
+    """Q_{u,l}(s, a)[c] for every branch l of every UAV u in one call: [..., U, L, W].
+
+    The function is an MLP on the concatenated input row of (u, l)
+        x_{u,l} = [s, one-hot of every UAV's every branch with branch l of u left out (all zeros),
+                   one-hot of (u, l), o_u (if `obs_dim`)]
+    with one output layer per branch l (W values, + 1 state value when `dueling`), shared by
+    the UAVs (u is in the input). The first layer is never applied to the concatenated rows:
+    W x + b = W_s s + b + sum_{k,m} W[:, a_{k,m}] - W[:, a_{u,l}] + W[:, (u, l)] + W_o o_u,
+    the same parameters and function, the joint action's sum computed once per step and the
+    U L rows then differing by one column each. No Python loop over UAVs or branches."""
+
+    def __init__(
+        self,
+        layout: BranchLayout,
+        n_agents: int,
+        state_dim: int,
+        obs_dim: int,
+        hidden: Sequence[int],
+        dueling: bool,
+    ):
+        super().__init__()
+        if not hidden:
+            raise ValueError("BranchQCritic needs at least one hidden layer (critic_hidden)")
+        self.layout, self.n_agents = layout, int(n_agents)
+        self.state_dim, self.obs_dim, self.dueling = int(state_dim), int(obs_dim), bool(dueling)
+        per_agent = sum(layout.row)
+        self.n_onehot = self.n_agents * per_agent
+        self.n_ids = self.n_agents * layout.n_branches
+        self.in_dim = self.state_dim + self.n_onehot + self.n_ids + self.obs_dim
+        self.first = nn.Linear(self.in_dim, int(hidden[0]))
+        layers: list[nn.Module] = [nn.ReLU()]
+        width = int(hidden[0])
+        for w in hidden[1:]:
+            layers += [nn.Linear(width, int(w)), nn.ReLU()]
+            width = int(w)
+        self.body = nn.Sequential(*layers)
+        n_out = layout.width + (1 if self.dueling else 0)
+        bound = 1.0 / np.sqrt(width)  # nn.Linear's default range for this fan-in
+        self.out_weight = nn.Parameter(torch.empty(layout.n_branches, width, n_out).uniform_(-bound, bound))
+        self.out_bias = nn.Parameter(torch.empty(layout.n_branches, n_out).uniform_(-bound, bound))
+        # one-hot column of (UAV k, branch m) value 0 within the action block: k * sum(row) + start_m
+        offsets = torch.arange(self.n_agents)[:, None] * per_agent + layout.starts[None, :]
+        self.register_buffer("offsets", offsets, persistent=False)  # [U, L]
+
+    def inputs(self, state: torch.Tensor, obs: torch.Tensor | None, actions: torch.Tensor) -> torch.Tensor:
+        """The concatenated rows x_{u,l} [..., U, L, in_dim] (what `forward` computes without
+        building them; for tests and for reading what the critic sees)."""
+        lead = actions.shape[:-2]
+        u_n, l_n = self.n_agents, self.layout.n_branches
+        onehot = torch.zeros(*lead, self.n_onehot, device=actions.device)
+        onehot.scatter_(-1, (actions.long() + self.offsets).flatten(-2), 1.0)
+        rows = onehot[..., None, None, :].expand(*lead, u_n, l_n, self.n_onehot).clone()
+        own = (actions.long() + self.offsets).unsqueeze(-1)  # [..., U, L, 1]
+        rows.scatter_(-1, own, 0.0)  # branch l of u left out of its own row
+        ids = torch.eye(self.n_ids, device=actions.device).reshape(u_n, l_n, self.n_ids).expand(*lead, u_n, l_n, self.n_ids)
+        parts = [state[..., None, None, :].expand(*lead, u_n, l_n, self.state_dim), rows, ids]
+        if self.obs_dim:
+            parts.append(obs[..., :, None, :].expand(*lead, u_n, l_n, self.obs_dim))
+        return torch.cat(parts, dim=-1)
+
+    def forward(self, state: torch.Tensor, obs: torch.Tensor | None, actions: torch.Tensor) -> torch.Tensor:
+        """state [..., S], obs [..., U, obs_dim] (None without obs_dim), actions [..., U, L] ->
+        Q [..., U, L, W] (padding entries 0)."""
+        w, s_dim = self.first.weight, self.state_dim
+        z_state = nn.functional.linear(state, w[:, :s_dim], self.first.bias)  # [..., H]
+        w_act = w[:, s_dim : s_dim + self.n_onehot].t()  # [n_onehot, H]: one column per (UAV, branch, value)
+        emb = nn.functional.embedding(actions.long() + self.offsets, w_act)  # [..., U, L, H]
+        joint = z_state + emb.sum(dim=(-3, -2))  # [..., H]: the state and the whole joint action
+        w_ids = w[:, s_dim + self.n_onehot : s_dim + self.n_onehot + self.n_ids].t()
+        z = joint[..., None, None, :] - emb + w_ids.reshape(self.n_agents, self.layout.n_branches, -1)
+        if self.obs_dim:
+            z = z + nn.functional.linear(obs, w[:, s_dim + self.n_onehot + self.n_ids :]).unsqueeze(-2)
+        h = self.body(z)  # starts with the first layer's ReLU
+        y = torch.einsum("...lh,lhn->...ln", h, self.out_weight) + self.out_bias  # [..., U, L, n_out]
+        valid = self.layout.valid
+        if not self.dueling:
+            return y.masked_fill(~valid, 0.0)
+        value, diff = y[..., :1], y[..., 1:].masked_fill(~valid, 0.0)
+        mean = diff.sum(-1, keepdim=True) / self.layout.sizes[:, None]
+        return (value + diff - mean).masked_fill(~valid, 0.0)
