@@ -116,6 +116,11 @@ class Organised:
                     return Reference(name, m, "/".join(modes), cell.mean_of(BOUND_KEY))
         return None
 
+    def baseline_mean(self, scenario: tuple[int, int], name: str) -> float:
+        """Seed-mean execution EE of baseline `name` in the scenario; NaN where it has no runs."""
+        cell = self.cells.get((*scenario, name))
+        return cell.summary().mean if cell is not None and cell.kind == "baseline" and cell.runs else math.nan
+
     def find_train(self, name: str) -> str | None:
         """The learner called `name` (case-insensitive), or None."""
         return next((a for a in self.algorithms("train") if a.lower() == name.lower()), None)

@@ -253,8 +253,7 @@ def open_loop_table(org: Organised) -> list[dict[str, Any]]:
         ref = org.reference(scen)
         if ref is None:
             continue
-        cell = org.cells.get((*scen, BEST_FIXED))
-        bf = cell.summary().mean if cell is not None and cell.kind == "baseline" and cell.runs else math.nan
+        bf = org.baseline_mean(scen, BEST_FIXED)
         share = bf / ref.mean
         rows.append({
             "n_eds": scen[0], "n_uavs": scen[1], "action_mode": ref.mode, "reference_baseline": ref.name,

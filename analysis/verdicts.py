@@ -66,8 +66,7 @@ def learning_table(org: Organised, history: History) -> list[dict[str, Any]]:
         ref = org.reference(scen)
         if ref is None:
             continue
-        bf_cell = org.cells.get((*scen, BEST_FIXED))
-        bf = bf_cell.summary().mean if bf_cell is not None and bf_cell.kind == "baseline" and bf_cell.runs else math.nan
+        bf = org.baseline_mean(scen, BEST_FIXED)
         for cell in sorted(org.cells_of(scen), key=lambda c: c.algorithm):
             if cell.kind != "train" or not cell.runs:
                 continue

@@ -114,22 +114,27 @@ def random_ee() -> float:
     return run_episodes(make_baseline("random", SMALL, seed=0), SMALL, EVAL_EPISODES, EVAL_SEED).mean("ee_sys_mean")
 
 
-@pytest.fixture(scope="module")
-def trained(ray_session):
-    """name -> (greedy policy, seconds of training), for every registered learner."""
+def _train_each(scenario: ScenarioConfig, budgets: dict[str, tuple[dict, int]], names) -> dict:
+    """name -> (greedy policy, seconds of training): each learner trained on its CI budget, one after the other."""
     out = {}
-    for name in LEARNERS:
-        overrides, iters = CI[name]
+    for name in names:
+        overrides, iters = budgets[name]
         entry = registry.get(name)
         t0 = time.perf_counter()
-        algo = entry.build(SMALL, entry.hparams(overrides), registry.Resources(num_envs_per_env_runner=ENVS), 0).build_algo()
+        algo = entry.build(scenario, entry.hparams(overrides), registry.Resources(num_envs_per_env_runner=ENVS), 0).build_algo()
         try:
             for _ in range(iters):
                 algo.train()
-            out[name] = (entry.greedy_policy(algo, SMALL), time.perf_counter() - t0)
+            out[name] = (entry.greedy_policy(algo, scenario), time.perf_counter() - t0)
         finally:
             algo.stop()
     return out
+
+
+@pytest.fixture(scope="module")
+def trained(ray_session):
+    """name -> (greedy policy, seconds of training), for every registered learner."""
+    return _train_each(SMALL, CI, LEARNERS)
 
 
 @pytest.fixture(scope="module")
@@ -141,20 +146,8 @@ def best_fixed_per_device_ee() -> float:
 
 @pytest.fixture(scope="module")
 def trained_per_device(ray_session):
-    """name -> (greedy policy, seconds of training) in per_device mode, for every learner that acts per ED."""
-    out = {}
-    for name in sorted(set(PER_DEVICE_LEARNERS) & set(PER_DEVICE_CI)):
-        overrides, iters = PER_DEVICE_CI[name]
-        entry = registry.get(name)
-        t0 = time.perf_counter()
-        algo = entry.build(PER_DEVICE, entry.hparams(overrides), registry.Resources(num_envs_per_env_runner=ENVS), 0).build_algo()
-        try:
-            for _ in range(iters):
-                algo.train()
-            out[name] = (entry.greedy_policy(algo, PER_DEVICE), time.perf_counter() - t0)
-        finally:
-            algo.stop()
-    return out
+    """name -> (greedy policy, seconds of training) in per_device mode, for every learner with a per_device budget."""
+    return _train_each(PER_DEVICE, PER_DEVICE_CI, sorted(set(PER_DEVICE_LEARNERS) & set(PER_DEVICE_CI)))
 
 
 def test_every_registered_learner_has_a_ci_budget():
