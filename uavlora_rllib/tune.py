@@ -20,7 +20,7 @@
   sampled, then the execution-phase evaluation (the entry's greedy policy, the trial's seed,
   ``evaluation.episodes`` episodes) reported as ``eval/*``. A trial that fails (its node
   died) is retried from its last checkpoint up to ``failure.max_failures`` times, into the
-  same MLflow run. `tracking.MlflowTrialCallback` logs everything to MLflow from the driver.
+  same MLflow run. `mlflow_callback.MlflowTrialCallback` logs everything to MLflow from the driver.
 * ``--resume`` restores the Tune experiment ``<storage>/<experiment>``: finished trials are
   not rerun, interrupted or errored ones continue from their last checkpoint, and each trial
   keeps its one MLflow run (found again by its trial_id tag). If the driver died before Tune
@@ -28,7 +28,7 @@
   experiment is an error (no silent second copy of the grid).
 * Interrupt with Ctrl+C (SIGINT) once: Tune saves the experiment state and the MLflow runs of
   unfinished trials are marked KILLED; ``--resume`` picks them up. A driver killed outright
-  (SIGKILL, lost machine) is also resumable: see `experiment.tracking`. Exit codes: 0 all
+  (SIGKILL, lost machine) is also resumable: see `experiment.mlflow_callback`. Exit codes: 0 all
   trials and baselines finished, 1 some failed (or MLflow stayed unreachable), 130
   interrupted, 2 bad input or a failed preflight check.
 
@@ -195,7 +195,7 @@ def _trial_dirname(trial) -> str:
 # --------------------------------------------------------------------------- phases
 def baselines_to_run(grid: GridConfig, tracker, out=None) -> list[BaselineSpec]:
     """The grid's baseline runs that are not FINISHED in MLflow yet."""
-    from uavlora_rllib.experiment.tracking import run_params
+    from uavlora_rllib.experiment.run_schema import run_params
 
     out = out or sys.stdout
     todo = []
@@ -210,7 +210,7 @@ def baselines_to_run(grid: GridConfig, tracker, out=None) -> list[BaselineSpec]:
 
 def baseline_logger(grid: GridConfig, tracker):
     """(spec, summary or the task's exception) -> the baseline's one MLflow run."""
-    from uavlora_rllib.experiment.tracking import run_params
+    from uavlora_rllib.experiment.run_schema import run_params
 
     def log(spec: BaselineSpec, result: Any) -> None:
         params = run_params(spec.scenario, None, grid.evaluation.episodes)
@@ -252,7 +252,7 @@ def status_reporter():
 def make_tuner(grid: GridConfig, specs: list[TrialSpec], storage: str, uri: str, grid_file: str, commit: str):
     from ray import tune
 
-    from uavlora_rllib.experiment.tracking import MlflowTrialCallback
+    from uavlora_rllib.experiment.mlflow_callback import MlflowTrialCallback
     from uavlora_rllib.experiment.trainable import UavLoraTrainable
 
     callback = MlflowTrialCallback(uri, grid.experiment, grid_file, commit, retry_timeout_s=grid.mlflow.retry_timeout_s)
@@ -281,7 +281,7 @@ def make_tuner(grid: GridConfig, specs: list[TrialSpec], storage: str, uri: str,
 
 def _tracking_failure(exc: BaseException):
     """The TrackingUnavailable inside an exception chain (Tune wraps callback errors), or None."""
-    from uavlora_rllib.experiment.tracking import TrackingUnavailable
+    from uavlora_rllib.experiment.mlflow_client import TrackingUnavailable
 
     seen = set()
     while exc is not None and id(exc) not in seen:
@@ -325,7 +325,7 @@ def _run_locked(grid: GridConfig, grid_file: str, args: argparse.Namespace, spec
 
     from uavlora_rllib.experiment.baseline_tasks import BASELINE_CPUS, BaselinePool
     from uavlora_rllib.experiment.trainable import UavLoraTrainable
-    from uavlora_rllib.experiment.tracking import Tracker, TrackingUnavailable
+    from uavlora_rllib.experiment.mlflow_client import Tracker, TrackingUnavailable
 
     restorable = tune.Tuner.can_restore(exp_path)
     if not args.resume and restorable:
