@@ -227,7 +227,7 @@ def mlflow_server(tmp_path):
 
 
 def test_mlflow_server_goes_away_then_resume_completes(two_nodes, tmp_path, mlflow_server):
-    from uavlora_rllib.experiment.tracking import Tracker, TrackingUnavailable
+    from uavlora_rllib.experiment.mlflow_client import Tracker, TrackingUnavailable
 
     uri = mlflow_server["uri"]
     grid = make_grid(tmp_path, "server", budget=400, uri=uri, mlflow={"tracking_uri": uri, "retry_timeout_s": 5})

@@ -12,7 +12,7 @@ from types import SimpleNamespace
 import pytest
 
 from uavlora_rllib.experiment import periodic_eval as pe
-from uavlora_rllib.experiment.tracking import metrics_to_log
+from uavlora_rllib.experiment.run_schema import metrics_to_log
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
 SCEN = ScenarioConfig.from_dict({"n_eds": 6, "n_uavs": 2, "episode_len": 10})
@@ -88,7 +88,7 @@ def test_points_equal_an_independent_evaluation(tmp_path, monkeypatch):
 
     from uavlora_rllib.algorithms.common import registry
     from uavlora_rllib.experiment.evaluation import run_episodes
-    from uavlora_rllib.experiment.tracking import eval_metrics
+    from uavlora_rllib.experiment.run_schema import eval_metrics
 
     if "mappo" not in registry.available():
         pytest.skip("mappo is not implemented")

@@ -19,7 +19,7 @@ import pytest
 
 from uavlora_rllib import tune as tune_cli
 from uavlora_rllib.experiment.evaluation import EPISODE_METRICS
-from uavlora_rllib.experiment.tracking import git_commit
+from uavlora_rllib.experiment.mlflow_client import git_commit
 
 from conftest import write_tiny_grid
 
@@ -316,7 +316,8 @@ def test_resume_before_tune_started_adopts_leftovers(ray_address, tmp_path, caps
     trials, adopts the RUNNING baseline run it left, and replaces a train run whose trial is lost."""
     from uavlora_rllib.experiment.driver_lock import lock_path
     from uavlora_rllib.experiment.grid import load_grid, scenario_for
-    from uavlora_rllib.experiment.tracking import KIND_TRAIN, Tracker, run_params
+    from uavlora_rllib.experiment.mlflow_client import Tracker
+    from uavlora_rllib.experiment.run_schema import KIND_TRAIN, run_params
 
     budget = 40
     grid_file = make_grid(tmp_path, "early", budget)

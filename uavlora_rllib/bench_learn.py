@@ -162,7 +162,8 @@ def run_trial(entry, scenario, overrides: dict, seed: int, args, ref: Reference)
     from uavlora_rllib.algorithms.common import registry
     from uavlora_rllib.experiment.evaluation import run_episodes
     from uavlora_rllib.experiment.grid import hparams_dict
-    from uavlora_rllib.experiment.tracking import ENV_STEPS, git_commit, training_summary
+    from uavlora_rllib.experiment.mlflow_client import git_commit
+    from uavlora_rllib.experiment.run_schema import ENV_STEPS, training_summary
 
     resources = registry.Resources(num_envs_per_env_runner=args.envs_per_runner, torch_threads=args.torch_threads)
     hparams = entry.hparams(overrides, prefix=f"--set {entry.name}")

@@ -20,7 +20,7 @@
   sampled, then the execution-phase evaluation (the entry's greedy policy, the trial's seed,
   ``evaluation.episodes`` episodes) reported as ``eval/*``. A trial that fails (its node
   died) is retried from its last checkpoint up to ``failure.max_failures`` times, into the
-  same MLflow run. `tracking.MlflowTrialCallback` logs everything to MLflow from the driver.
+  same MLflow run. `mlflow_callback.MlflowTrialCallback` logs everything to MLflow from the driver.
 * ``--resume`` restores the Tune experiment ``<storage>/<experiment>``: finished trials are
   not rerun, interrupted or errored ones continue from their last checkpoint, and each trial
   keeps its one MLflow run (found again by its trial_id tag). If the driver died before Tune
@@ -28,7 +28,7 @@
   experiment is an error (no silent second copy of the grid).
 * Interrupt with Ctrl+C (SIGINT) once: Tune saves the experiment state and the MLflow runs of
   unfinished trials are marked KILLED; ``--resume`` picks them up. A driver killed outright
-  (SIGKILL, lost machine) is also resumable: see `experiment.tracking`. Exit codes: 0 all
+  (SIGKILL, lost machine) is also resumable: see `experiment.mlflow_callback`. Exit codes: 0 all
   trials and baselines finished, 1 some failed (or MLflow stayed unreachable), 130
   interrupted, 2 bad input or a failed preflight check.
 
@@ -195,7 +195,7 @@ def _trial_dirname(trial) -> str:
 # --------------------------------------------------------------------------- phases
 def baselines_to_run(grid: GridConfig, tracker, out=None) -> list[BaselineSpec]:
     """The grid's baseline runs that are not FINISHED in MLflow yet."""
-    from uavlora_rllib.experiment.tracking import run_params
+    from uavlora_rllib.experiment.run_schema import run_params
 
     out = out or sys.stdout
     todo = []
@@ -210,7 +210,7 @@ def baselines_to_run(grid: GridConfig, tracker, out=None) -> list[BaselineSpec]:
 
 def baseline_logger(grid: GridConfig, tracker):
     """(spec, summary or the task's exception) -> the baseline's one MLflow run."""
-    from uavlora_rllib.experiment.tracking import run_params
+    from uavlora_rllib.experiment.run_schema import run_params
 
     def log(spec: BaselineSpec, result: Any) -> None:
         params = run_params(spec.scenario, None, grid.evaluation.episodes)
@@ -235,7 +235,7 @@ def status_reporter():
 
     Ray 2.60's default table ("new output") shows the grid-search value, here the whole
     trial dict, cut short; the CLIReporter shows chosen config and metric columns instead.
-    Tune uses it only with RAY_AIR_NEW_OUTPUT=0 (read when `fit` starts: `_run_locked` sets
+    Tune uses it only with RAY_AIR_NEW_OUTPUT=0 (read when `fit` starts: `_fit` sets
     it, for restored experiments too, whose pickled run config holds this reporter).
     """
     from ray.tune import CLIReporter
@@ -252,7 +252,7 @@ def status_reporter():
 def make_tuner(grid: GridConfig, specs: list[TrialSpec], storage: str, uri: str, grid_file: str, commit: str):
     from ray import tune
 
-    from uavlora_rllib.experiment.tracking import MlflowTrialCallback
+    from uavlora_rllib.experiment.mlflow_callback import MlflowTrialCallback
     from uavlora_rllib.experiment.trainable import UavLoraTrainable
 
     callback = MlflowTrialCallback(uri, grid.experiment, grid_file, commit, retry_timeout_s=grid.mlflow.retry_timeout_s)
@@ -281,7 +281,7 @@ def make_tuner(grid: GridConfig, specs: list[TrialSpec], storage: str, uri: str,
 
 def _tracking_failure(exc: BaseException):
     """The TrackingUnavailable inside an exception chain (Tune wraps callback errors), or None."""
-    from uavlora_rllib.experiment.tracking import TrackingUnavailable
+    from uavlora_rllib.experiment.mlflow_client import TrackingUnavailable
 
     seen = set()
     while exc is not None and id(exc) not in seen:
@@ -321,11 +321,39 @@ def _run_locked(grid: GridConfig, grid_file: str, args: argparse.Namespace, spec
                 exp_path: str, uri: str) -> int:
     """Connect, check, then run the baselines and the trials (the driver lock is held)."""
     import ray
-    from ray import tune
 
-    from uavlora_rllib.experiment.baseline_tasks import BASELINE_CPUS, BaselinePool
-    from uavlora_rllib.experiment.trainable import UavLoraTrainable
-    from uavlora_rllib.experiment.tracking import Tracker, TrackingUnavailable
+    restorable = _check_resume(args, exp_path, storage)
+    started_ray = _connect_ray(args)
+    pool = tracker = None
+    t_start = time.perf_counter()
+    try:
+        _preflight(grid)
+        tracker = _open_tracker(grid, grid_file, uri)
+        pool = _start_baselines(grid, tracker)
+        tuner = _tuner_for(grid, specs, storage, uri, grid_file, exp_path, tracker.commit, args.resume and restorable)
+        results = _fit(tuner, pool)
+        if results is None:
+            return EXIT_FAILED
+        done, interrupted = _progress(results, specs)
+        _settle_baselines(pool, interrupted)
+        if pool.error is not None:
+            print(f"error: {pool.error}", file=sys.stderr)
+            return EXIT_FAILED
+    except KeyboardInterrupt:
+        if pool is not None:
+            pool.cancel()
+        print(f"interrupted: continue with  python -m uavlora_rllib.tune {args.grid} --resume", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    finally:
+        _close_unfinished_runs(tracker)
+        if started_ray:
+            ray.shutdown()
+    return _report(grid, args, specs, uri, exp_path, results, pool, done, interrupted, time.perf_counter() - t_start)
+
+
+def _check_resume(args: argparse.Namespace, exp_path: str, storage: str) -> bool:
+    """Whether Tune state exists at `exp_path`; an error when it does without --resume."""
+    from ray import tune
 
     restorable = tune.Tuner.can_restore(exp_path)
     if not args.resume and restorable:
@@ -338,70 +366,107 @@ def _run_locked(grid: GridConfig, grid_file: str, args: argparse.Namespace, spec
               file=sys.stderr)
     if args.address and "://" not in storage:
         print(f"note: on a cluster, storage {storage} must be a path shared by every node", file=sys.stderr)
+    return restorable
 
-    started_ray = False
-    if not ray.is_initialized():
-        cluster.connect(args.address, args.num_cpus)
-        started_ray = True
-    pool = tracker = None
-    t_start = time.perf_counter()
+
+def _connect_ray(args: argparse.Namespace) -> bool:
+    """Connect to Ray unless already connected; True when this driver did (and shuts it down)."""
+    import ray
+
+    if ray.is_initialized():
+        return False
+    cluster.connect(args.address, args.num_cpus)
+    return True
+
+
+def _preflight(grid: GridConfig) -> None:
+    """One trial's and the baselines' resources fit the cluster; print what it is."""
+    from uavlora_rllib.experiment.baseline_tasks import BASELINE_CPUS
+
+    cluster.preflight(cluster.as_bundles(trial_resources(grid)), BASELINE_CPUS, len(baseline_runs(grid)))
+    print(f"Ray: {cluster.describe_cluster()}", flush=True)
+
+
+def _open_tracker(grid: GridConfig, grid_file: str, uri: str):
+    """The grid's MLflow experiment; MLflow unreachable is a failed preflight check (exit code 2)."""
+    from uavlora_rllib.experiment.mlflow_client import Tracker, TrackingUnavailable
+
     try:
-        base = baseline_runs(grid)
-        cluster.preflight(cluster.as_bundles(trial_resources(grid)), BASELINE_CPUS, len(base))
-        print(f"Ray: {cluster.describe_cluster()}", flush=True)
-        try:
-            tracker = Tracker(uri, grid.experiment, grid_file, retry_timeout_s=grid.mlflow.retry_timeout_s)
-        except TrackingUnavailable as exc:
-            raise ConfigError(str(exc)) from None
-        pool = BaselinePool(baselines_to_run(grid, tracker), grid.evaluation.episodes,
-                            baseline_logger(grid, tracker)).start()
-        if args.resume and restorable:
-            trainable = tune.with_resources(UavLoraTrainable, trial_resources(grid))
-            tuner = tune.Tuner.restore(exp_path, trainable, resume_unfinished=True, resume_errored=True)
-        else:
-            tuner = make_tuner(grid, specs, storage, uri, grid_file, tracker.commit)
-        os.environ["RAY_AIR_NEW_OUTPUT"] = "0"  # the table of `status_reporter`
-        try:
-            results = tuner.fit()
-        except Exception as exc:
-            failure = _tracking_failure(exc)
-            if failure is None:
-                raise
-            pool.cancel()
-            print(f"error: {failure}", file=sys.stderr)
-            return EXIT_FAILED
-        done = sum(1 for r in results if r.metrics and r.metrics.get("done"))
-        interrupted = done + len(results.errors) < len(specs)
-        if interrupted:
-            pool.cancel()
-        else:
-            if pool.pending:
-                print(f"waiting for {pool.pending} baseline evaluation(s)", flush=True)
-            pool.wait()
-        if pool.error is not None:
-            print(f"error: {pool.error}", file=sys.stderr)
-            return EXIT_FAILED
-    except KeyboardInterrupt:
-        if pool is not None:
-            pool.cancel()
-        print(f"interrupted: continue with  python -m uavlora_rllib.tune {args.grid} --resume", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    finally:
-        # no run may stay RUNNING once the grid stops (the callback closes its own; this
-        # catches any left by a crash); with MLflow unreachable they stay until --resume adopts them
-        if tracker is not None:
-            tracker.retry_timeout_s = min(tracker.retry_timeout_s, 10.0)  # MLflow may be the reason we stop
-            try:
-                closed = tracker.close_running("KILLED")
-                if closed:
-                    print(f"marked {len(closed)} unfinished MLflow run(s) KILLED", file=sys.stderr)
-            except TrackingUnavailable:
-                print("MLflow unreachable: runs left RUNNING are adopted by --resume", file=sys.stderr)
-        if started_ray:
-            ray.shutdown()
+        return Tracker(uri, grid.experiment, grid_file, retry_timeout_s=grid.mlflow.retry_timeout_s)
+    except TrackingUnavailable as exc:
+        raise ConfigError(str(exc)) from None
 
+
+def _start_baselines(grid: GridConfig, tracker):
+    """The baseline evaluations not yet FINISHED in MLflow, started as Ray tasks."""
+    from uavlora_rllib.experiment.baseline_tasks import BaselinePool
+
+    return BaselinePool(baselines_to_run(grid, tracker), grid.evaluation.episodes,
+                        baseline_logger(grid, tracker)).start()
+
+
+def _tuner_for(grid: GridConfig, specs: list[TrialSpec], storage: str, uri: str, grid_file: str, exp_path: str,
+               commit: str, restore: bool):
+    """The Tuner of the grid: restored from `exp_path` (--resume), or new."""
+    from ray import tune
+
+    from uavlora_rllib.experiment.trainable import UavLoraTrainable
+
+    if restore:
+        trainable = tune.with_resources(UavLoraTrainable, trial_resources(grid))
+        return tune.Tuner.restore(exp_path, trainable, resume_unfinished=True, resume_errored=True)
+    return make_tuner(grid, specs, storage, uri, grid_file, commit)
+
+
+def _fit(tuner, pool):
+    """tuner.fit()'s results, or None when MLflow stayed unreachable (baselines cancelled, error printed)."""
+    os.environ["RAY_AIR_NEW_OUTPUT"] = "0"  # the table of `status_reporter`
+    try:
+        return tuner.fit()
+    except Exception as exc:
+        failure = _tracking_failure(exc)
+        if failure is None:
+            raise
+        pool.cancel()
+        print(f"error: {failure}", file=sys.stderr)
+        return None
+
+
+def _progress(results, specs: list[TrialSpec]) -> tuple[int, bool]:
+    """(trials done, whether the grid stopped before every trial finished or failed)."""
+    done = sum(1 for r in results if r.metrics and r.metrics.get("done"))
+    return done, done + len(results.errors) < len(specs)
+
+
+def _settle_baselines(pool, interrupted: bool) -> None:
+    """Cancel the baselines of an interrupted grid, or wait for the rest of them."""
+    if interrupted:
+        pool.cancel()
+        return
+    if pool.pending:
+        print(f"waiting for {pool.pending} baseline evaluation(s)", flush=True)
+    pool.wait()
+
+
+def _close_unfinished_runs(tracker) -> None:
+    """No run stays RUNNING once the grid stops: mark any left by a crash KILLED (the callback closes its own)."""
+    from uavlora_rllib.experiment.mlflow_client import TrackingUnavailable
+
+    if tracker is None:
+        return
+    tracker.retry_timeout_s = min(tracker.retry_timeout_s, 10.0)  # MLflow may be the reason we stop
+    try:
+        closed = tracker.close_running("KILLED")
+        if closed:
+            print(f"marked {len(closed)} unfinished MLflow run(s) KILLED", file=sys.stderr)
+    except TrackingUnavailable:
+        print("MLflow unreachable: runs left RUNNING are adopted by --resume", file=sys.stderr)
+
+
+def _report(grid: GridConfig, args: argparse.Namespace, specs: list[TrialSpec], uri: str, exp_path: str, results,
+            pool, done: int, interrupted: bool, wall: float) -> int:
+    """Print the grid's outcome and where its results are; the exit code."""
     failed = len(results.errors)
-    wall = time.perf_counter() - t_start
     print(f"\n{done}/{len(specs)} trials finished, {failed} failed, in {wall:.0f} s")
     if pool.failed:
         print(f"{len(pool.failed)} baseline evaluation(s) failed: {', '.join(n for n, _ in pool.failed)}")

@@ -75,7 +75,7 @@ class PeriodicEvalCallback(RLlibCallback):
 
     @override(RLlibCallback)
     def on_train_result(self, *, algorithm, metrics_logger=None, result: dict, **kwargs) -> None:
-        from uavlora_rllib.experiment.tracking import ENV_STEPS, training_summary
+        from uavlora_rllib.experiment.run_schema import ENV_STEPS, training_summary
 
         s = self.settings
         if s is None or s.interval_env_steps < 1:
@@ -95,7 +95,7 @@ def evaluate_policies(algorithm, s: PeriodicEvalSettings) -> dict[str, float]:
     """{"eval/<k>": ..., "eval_sampled/<k>": ...} of the algorithm's current policies."""
     from uavlora_rllib.algorithms.common import registry
     from uavlora_rllib.experiment.evaluation import run_episodes
-    from uavlora_rllib.experiment.tracking import eval_metrics
+    from uavlora_rllib.experiment.run_schema import eval_metrics
 
     entry = registry.entry_for_algorithm(algorithm)
     out: dict[str, float] = {}

@@ -47,7 +47,7 @@ class UavLoraTrainable(tune.Trainable):
 
     def step(self) -> dict:
         from uavlora_rllib.experiment import periodic_eval
-        from uavlora_rllib.experiment.tracking import ENV_STEPS, _lookup, _number, training_summary
+        from uavlora_rllib.experiment.run_schema import ENV_STEPS, lookup, number, training_summary
 
         t0 = time.perf_counter()
         result = self.algo.train()
@@ -58,7 +58,7 @@ class UavLoraTrainable(tune.Trainable):
         if self._last_steps is not None:
             sampled = steps - self._last_steps
         else:  # first iteration after a restore
-            sampled = _number(_lookup(result, "env_runners/num_env_steps_sampled")) or 0
+            sampled = number(lookup(result, "env_runners/num_env_steps_sampled")) or 0
         out["env_steps_per_s"] = float(sampled) / dt
         out["node_id"] = self._node_id
         self._last_steps = steps
@@ -69,7 +69,7 @@ class UavLoraTrainable(tune.Trainable):
 
     def evaluate(self) -> dict:
         from uavlora_rllib.experiment.evaluation import run_episodes
-        from uavlora_rllib.experiment.tracking import eval_metrics
+        from uavlora_rllib.experiment.run_schema import eval_metrics
 
         policy = self.entry.greedy_policy(self.algo, self.scenario)
         res = run_episodes(policy, self.scenario, int(self.cfg["eval_episodes"]), int(self.cfg["seed"]))

@@ -1,0 +1,187 @@
+"""The Tune callback that logs every trial of a grid to its one MLflow run, from the driver.
+
+One run per trial, even across ``--resume``: the run is found again by its ``trial_id`` tag
+(Tune keeps trial ids when it restores an experiment), reopened (status RUNNING) and
+continued; training results already logged at a step are not logged twice. A run ends
+FINISHED when its trial terminates, FAILED when it errors, and KILLED when the grid stops
+(interrupt, crash) before the trial finished; `--resume` reopens KILLED runs.
+
+Crash safety (a driver killed at any point, then the same command with ``--resume``): a
+trial's run is found again by its ``trial_id`` and adopted whatever its status; trials Tune
+restores as finished but whose run was not ended (the driver died in between, or MLflow was
+down) are completed from the trial's ``result.json`` (`MlflowTrialCallback.reconcile_trial`).
+The runs' fields: `run_schema`; the retrying writer: `mlflow_client.Tracker`.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+from ray.tune import Callback
+
+from uavlora_rllib.experiment.mlflow_client import DEFAULT_RETRY_TIMEOUT_S, Tracker
+from uavlora_rllib.experiment.run_schema import (
+    ENV_STEPS,
+    EVAL_PREFIX,
+    KIND_TRAIN,
+    metrics_to_log,
+    number,
+    read_trial_results,
+    run_params,
+)
+
+
+class MlflowTrialCallback(Callback):
+    """Logs every trial of the grid to its one MLflow run (see the module docstring).
+
+    A trial's config carries what the run needs: ``algorithm``, ``seed``, ``n_eds``,
+    ``n_uavs``, ``scenario`` (dict), ``hparams`` (dict), ``resources`` (dict),
+    ``budget_env_steps`` and ``eval_episodes``.
+    """
+
+    def __init__(self, tracking_uri: str, experiment: str, grid_file: str, commit: str | None = None,
+                 retry_timeout_s: float = DEFAULT_RETRY_TIMEOUT_S):
+        self.tracking_uri = tracking_uri
+        self.experiment = experiment
+        self.grid_file = grid_file
+        self.commit = commit
+        self.retry_timeout_s = retry_timeout_s
+        self._tracker: Tracker | None = None
+        self._runs: dict[str, str] = {}  # trial_id -> run_id
+        self._last_step: dict[str, int] = {}  # trial_id -> highest env step with training metrics
+        self._ended: set[str] = set()
+        self._reconciled = False
+
+    # Tune pickles callbacks into the experiment state; the client is rebuilt on demand.
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state.update(_tracker=None, _runs={}, _last_step={}, _ended=set(), _reconciled=False)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        state.setdefault("retry_timeout_s", DEFAULT_RETRY_TIMEOUT_S)
+        state.setdefault("_reconciled", False)
+        self.__dict__.update(state)
+
+    @property
+    def tracker(self) -> Tracker:
+        if self._tracker is None:
+            self._tracker = Tracker(self.tracking_uri, self.experiment, self.grid_file, self.commit,
+                                    retry_timeout_s=self.retry_timeout_s)
+        return self._tracker
+
+    def run_id(self, trial) -> str:
+        """The trial's run: cached, found again by trial_id (resume, retry), or created."""
+        tid = trial.trial_id
+        if tid in self._runs:
+            return self._runs[tid]
+        cfg = trial.config.get("trial", trial.config)
+        existing = self.tracker.run_for_trial(tid)
+        if existing is not None:
+            run_id = existing.info.run_id
+            self._last_step[tid] = self.tracker.last_logged_step(existing)
+            if existing.info.status != "RUNNING":
+                self.tracker.reopen(run_id)
+        else:
+            from uavlora_rllib.experiment.grid import run_name
+
+            replaced = self.tracker.replace_orphans(cfg, tid)
+            if replaced:
+                print(f"MLflow: replaced {len(replaced)} unfinished run(s) of a trial whose Tune state was lost "
+                      f"({run_name(cfg['algorithm'], cfg['n_eds'], cfg['n_uavs'], cfg['seed'])})", flush=True)
+            tags = self.tracker.base_tags(
+                KIND_TRAIN, cfg["algorithm"], cfg["seed"], cfg["n_eds"], cfg["n_uavs"], cfg["budget_env_steps"]
+            )
+            tags["trial_id"] = tid
+            tags["checkpoint"] = ""
+            params = run_params(
+                cfg["scenario"], cfg["budget_env_steps"], cfg["eval_episodes"], cfg["hparams"], cfg["resources"]
+            )
+            name = run_name(cfg["algorithm"], cfg["n_eds"], cfg["n_uavs"], cfg["seed"])
+            run_id = self.tracker.create_run(name, tags, params)
+            self._last_step[tid] = -1
+        self._runs[tid] = run_id
+        self._ended.discard(tid)
+        return run_id
+
+    def _end(self, trial, status: str) -> None:
+        run_id = self.run_id(trial)
+        self._update_checkpoint(trial)
+        self.tracker.end(run_id, status)
+        self._ended.add(trial.trial_id)
+
+    def _update_checkpoint(self, trial) -> None:
+        ckpt = getattr(trial, "checkpoint", None)
+        path = getattr(ckpt, "path", None)
+        if path:
+            self.tracker.set_tag(self.run_id(trial), "checkpoint", path)
+
+    def _log_result(self, trial, result: Mapping[str, Any]) -> None:
+        run_id = self.run_id(trial)
+        step = int(number(result.get(ENV_STEPS)) or 0)
+        train, evals = metrics_to_log(result)
+        tid = trial.trial_id
+        if step <= self._last_step.get(tid, -1):
+            train = {}  # already logged before an interrupt (resumed from an earlier checkpoint)
+        else:
+            self._last_step[tid] = step
+        if train or evals:
+            self.tracker.log_metrics(run_id, {**train, **evals}, step)
+
+    def reconcile_trial(self, trial) -> bool:
+        """A trial Tune holds as finished whose run is not FINISHED: log what is missing from
+        its result.json (or its last result) and end the run. True when something was done."""
+        existing = self.tracker.run_for_trial(trial.trial_id)
+        if existing is not None and existing.info.status == "FINISHED" and any(
+            k.startswith(EVAL_PREFIX) for k in existing.data.metrics
+        ):
+            return False
+        rows = read_trial_results(getattr(trial, "path", None)) or ([trial.last_result] if trial.last_result else [])
+        for row in rows:
+            self._log_result(trial, row)
+        self._end(trial, "FINISHED")
+        return True
+
+    # ---- Tune hooks
+    def on_step_begin(self, iteration, trials, **info):
+        # the first step after Tuner.restore: trials restored as finished get no other hook
+        if self._reconciled:
+            return
+        self._reconciled = True
+        done = [t for t in trials if t.status == "TERMINATED"]
+        fixed = sum(self.reconcile_trial(t) for t in done)
+        if fixed:
+            print(f"MLflow: completed {fixed} run(s) of trials that had finished while their driver died", flush=True)
+
+    def on_trial_start(self, iteration, trials, trial, **info):
+        self.run_id(trial)
+
+    def on_trial_restore(self, iteration, trials, trial, **info):
+        self.run_id(trial)
+
+    def on_trial_recover(self, iteration, trials, trial, **info):
+        # the trial failed (e.g. its node died) and Tune retries it from its last checkpoint
+        # (failure.max_failures): the run stays open and continues; count the retries
+        run_id = self.run_id(trial)
+        self.tracker.set_tag(run_id, "retries", str(getattr(trial, "num_failures", 0)))
+
+    def on_trial_result(self, iteration, trials, trial, result, **info):
+        self._log_result(trial, result)
+
+    def on_trial_save(self, iteration, trials, trial, **info):
+        self._update_checkpoint(trial)
+
+    def on_trial_complete(self, iteration, trials, trial, **info):
+        self._end(trial, "FINISHED")
+
+    def on_trial_error(self, iteration, trials, trial, **info):
+        self._end(trial, "FAILED")
+
+    def on_experiment_end(self, trials, **info):
+        # Trials that did not finish (interrupted grid): their runs are KILLED until --resume.
+        for trial in trials:
+            tid = trial.trial_id
+            if tid in self._runs and tid not in self._ended:
+                self._update_checkpoint(trial)
+                self.tracker.end(self._runs[tid], "KILLED")
+                self._ended.add(tid)

@@ -1,0 +1,238 @@
+"""What an MLflow run of a grid holds, and how a trial's result dict maps onto it.
+
+The analysis step reads exactly this schema:
+
+* experiment: the grid's `experiment`; run name ``{algorithm}-V{n_eds}-U{n_uavs}-s{seed}``.
+* tags: ``kind`` ("train" | "baseline"), ``algorithm``, ``seed``, ``n_eds``, ``n_uavs``,
+  ``git_commit``, ``grid_file``, ``budget_env_steps``; train runs also ``trial_id`` and
+  ``checkpoint`` (the trial's last checkpoint, updated at every save and at the end).
+* params: ``algo.<field>`` (hyperparameters; none for baselines), ``scenario.<field>``
+  (`scenario.flatten`), ``resources.<field>`` (train runs), ``stop.env_steps``,
+  ``eval.episodes``; values are strings, cut to MLflow's length limit.
+* training metrics, step = env steps sampled so far: ``episode_return_mean``,
+  ``ee_sys_mean`` and ``success_rate`` (when the algorithm logs them), ``env_steps_per_s``
+  and every numeric learner stat as ``learner/<stat>`` (one policy module) or
+  ``learner/<module>/<stat>`` (several), the all-modules stats as ``learner/all_modules/<stat>``.
+* execution-phase evaluation (end of a trial, and baseline runs): ``eval/<k>`` and
+  ``eval/<k>_ci95`` for k in `evaluation.EPISODE_METRICS`, and ``eval/episodes``; the
+  reference baselines (greedy, optimal) also ``eval/ee_sys_upper_bound``; train runs
+  also log them during training, step = env steps (experiment/periodic_eval.py), so the final
+  evaluation is the last point of each series; ``eval_sampled/<k>`` likewise for algorithms
+  with a sampled policy.
+
+`mlflow_client.Tracker` writes runs of this schema; `mlflow_callback.MlflowTrialCallback`
+fills the train runs from Tune's results; this module only maps dicts (no MLflow calls, no Ray).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+from typing import Any, Mapping
+
+from uavlora_rllib.experiment.evaluation import BOUND_METRIC, EPISODE_METRICS
+
+try:  # the limits of the installed mlflow; the values below are mlflow 3's
+    from mlflow.utils.validation import MAX_ENTITY_KEY_LENGTH, MAX_PARAM_VAL_LENGTH
+except ImportError:  # pragma: no cover
+    MAX_PARAM_VAL_LENGTH, MAX_ENTITY_KEY_LENGTH = 6000, 250
+
+MAX_TAG_VAL_LENGTH = 5000
+TRAIN_METRICS = ("episode_return_mean", "ee_sys_mean", "success_rate", "env_steps_per_s")
+ENV_STEPS = "env_steps"  # key of the env-step counter in the trainable's results
+LEARNER_PREFIX = "learner/"
+EVAL_PREFIX = "eval/"
+
+KIND_TRAIN = "train"
+KIND_BASELINE = "baseline"
+
+
+_BAD_CHARS = re.compile(r"[^/\w.\- ]")
+
+
+def safe_name(name: str) -> str:
+    """An MLflow-valid metric/param key: allowed characters only, a normalised relative path."""
+    name = _BAD_CHARS.sub("_", str(name))
+    parts = [p for p in name.split("/") if p not in ("", ".", "..")]
+    return "/".join(parts)[:MAX_ENTITY_KEY_LENGTH] or "_"
+
+
+def param_value(value: Any) -> str:
+    """A param value as MLflow stores it: a string cut to its length limit."""
+    return str(value)[:MAX_PARAM_VAL_LENGTH]
+
+
+def number(value: Any) -> float | None:
+    """A finite float, or None (bools, strings, NaN, inf are not metrics)."""
+    if isinstance(value, bool):
+        return None
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        return None
+    return x if math.isfinite(x) else None
+
+
+def flat_params(prefix: str, mapping: Mapping[str, Any]) -> dict[str, str]:
+    """A nested mapping -> {"<prefix>.<path>": value string} (tuples as lists)."""
+    out: dict[str, str] = {}
+
+    def walk(obj: Any, path: str) -> None:
+        if isinstance(obj, Mapping):
+            for k, v in obj.items():
+                walk(v, f"{path}.{k}")
+        else:
+            out[safe_name(path)] = param_value(list(obj) if isinstance(obj, tuple) else obj)
+
+    walk(dict(mapping), prefix)
+    return out
+
+
+def run_params(
+    scenario: Any,
+    budget_env_steps: int | None,
+    eval_episodes: int,
+    hparams: Mapping[str, Any] | None = None,
+    resources: Mapping[str, Any] | None = None,
+) -> dict[str, str]:
+    """The params of a run (see the module docstring)."""
+    from uavlora_rllib.sim.scenario import ScenarioConfig, flatten
+
+    if not isinstance(scenario, ScenarioConfig):
+        scenario = ScenarioConfig.from_dict(scenario)
+    params: dict[str, str] = {}
+    if hparams is not None:
+        params.update(flat_params("algo", hparams))
+    params.update({safe_name(k): param_value(v) for k, v in flatten(scenario, "scenario").items()})
+    if resources is not None:
+        params.update(flat_params("resources", resources))
+    if budget_env_steps is not None:
+        params["stop.env_steps"] = str(int(budget_env_steps))
+    params["eval.episodes"] = str(int(eval_episodes))
+    return params
+
+
+def eval_metrics(summary: Mapping[str, Any]) -> dict[str, float]:
+    """`EvalResult.summary()` -> {"eval/<k>", "eval/<k>_ci95", "eval/episodes"}."""
+    out: dict[str, float] = {}
+    ci = summary.get("ci95", {}) or {}
+    for k in (*EPISODE_METRICS, BOUND_METRIC):
+        if k in summary:
+            out[f"{EVAL_PREFIX}{k}"] = float(summary[k])
+        if k in ci:
+            out[f"{EVAL_PREFIX}{k}_ci95"] = float(ci[k])
+    if "episodes" in summary:
+        out[f"{EVAL_PREFIX}episodes"] = float(summary["episodes"])
+    return out
+
+
+def lookup(result: Mapping[str, Any], *paths: str) -> Any:
+    """First present value among slash paths into a nested (or already flat) result dict."""
+    for path in paths:
+        if path in result:
+            return result[path]
+        node: Any = result
+        for part in path.split("/"):
+            if not isinstance(node, Mapping) or part not in node:
+                node = None
+                break
+            node = node[part]
+        if node is not None:
+            return node
+    return None
+
+
+def learner_stats(learners: Any) -> dict[str, float]:
+    """RLlib's `learners` result -> {"learner/<name>": value} (numeric, finite, no timers)."""
+    if not isinstance(learners, Mapping):
+        return {}
+    modules = [m for m in learners if m != "__all_modules__" and isinstance(learners[m], Mapping)]
+    out: dict[str, float] = {}
+
+    def walk(obj: Any, path: str) -> None:
+        if isinstance(obj, Mapping):
+            for k, v in obj.items():
+                if "timer" in str(k):
+                    continue
+                walk(v, f"{path}/{k}" if path else str(k))
+            return
+        x = number(obj)
+        if x is not None:
+            out[safe_name(LEARNER_PREFIX + path)] = x
+
+    for module_id, stats in learners.items():
+        if module_id == "__all_modules__":
+            walk(stats, "all_modules")
+        elif len(modules) == 1:
+            walk(stats, "")
+        else:
+            walk(stats, str(module_id))
+    return out
+
+
+def training_summary(result: Mapping[str, Any], env_steps_per_s: float | None = None) -> dict[str, Any]:
+    """The flat dict the trainable reports from one `algo.train()` result (robust to missing keys)."""
+    out: dict[str, Any] = {}
+    steps = lookup(result, "num_env_steps_sampled_lifetime", "env_runners/num_env_steps_sampled_lifetime")
+    out[ENV_STEPS] = int(number(steps) or 0)
+    candidates = {
+        "episode_return_mean": ("env_runners/episode_return_mean", "episode_return_mean"),
+        "ee_sys_mean": (
+            "env_runners/ee_sys_mean",
+            "ee_sys_mean",
+            "env_runners/sampled_ee_sys_mean",
+            "sampled_ee_sys_mean",
+        ),
+        "success_rate": (
+            "env_runners/success_rate",
+            "env_runners/success_rate_mean",
+            "success_rate",
+            "env_runners/sampled_success_rate",
+            "sampled_success_rate",
+        ),
+    }
+    for key, paths in candidates.items():
+        x = number(lookup(result, *paths))
+        if x is not None:
+            out[key] = x
+    if env_steps_per_s is not None and number(env_steps_per_s) is not None:
+        out["env_steps_per_s"] = float(env_steps_per_s)
+    out.update(learner_stats(result.get("learners")))
+    return out
+
+
+def metrics_to_log(result: Mapping[str, Any]) -> tuple[dict[str, float], dict[str, float]]:
+    """A trial result -> (training metrics, eval metrics) of the schema; other keys are dropped."""
+    train: dict[str, float] = {}
+    evals: dict[str, float] = {}
+    for key, value in result.items():
+        x = number(value)
+        if x is None:
+            continue
+        if key in TRAIN_METRICS or key.startswith(LEARNER_PREFIX):
+            train[safe_name(key)] = x
+        elif key.startswith((EVAL_PREFIX, "eval_sampled/")):  # periodic_eval.EVAL_SAMPLED_PREFIX
+            evals[safe_name(key)] = x
+    return train, evals
+
+
+def read_trial_results(trial_dir: str | None) -> list[dict]:
+    """The rows of a trial's result.json (one JSON object per reported result), [] if absent."""
+    if not trial_dir or "://" in trial_dir:
+        return []
+    path = os.path.join(trial_dir, "result.json")
+    rows = []
+    try:
+        with open(path) as fh:
+            for line in fh:
+                line = line.strip()
+                if line:
+                    try:
+                        rows.append(json.loads(line))
+                    except ValueError:  # a line cut short by a kill
+                        continue
+    except OSError:
+        return []
+    return rows
