@@ -44,8 +44,8 @@ OBJECTIVES = ("ee", "reward")
 REFERENCES = ("greedy", "optimal")  # the per-slot references (docs/model.md#per-slot-optimum)
 
 # `optimal` refuses joint-action spaces larger than this (90^U with the paper's sets):
-# U <= 3 is accepted (729,000 candidates; cost: BENCHMARKS.md#cost-of-the-reference-baselines),
-# U >= 4 (65.6 M) is refused.
+# U <= 3 is accepted (729,000 candidates), U >= 4 (65.6 M) is
+# refused (docs/model.md#per-slot-optimum).
 OPTIMAL_MAX_CANDIDATES = 1_000_000
 # Candidate-ED evaluations per chunk of `optimal` (bounds memory: ~ 60 bytes each).
 OPTIMAL_CHUNK_ELEMENTS = 1 << 19
@@ -362,7 +362,7 @@ def _max_uavs(n_actions: int, max_candidates: int) -> int:
 
 # ---------------------------------------------------------------- cost of an evaluation
 # Candidate-ED evaluations per second of greedy's and optimal's search on one core [1/s]: an
-# estimate only (results: BENCHMARKS.md#cost-of-the-reference-baselines; the evaluate CLI's
+# estimate only, so that a grid can say beforehand what its baselines cost (the evaluate CLI's
 # progress bar shows the real rate).
 SEARCH_RATE = 2e6
 # Everything else per scenario-slot (simulator step, observations, a cheap policy), per ED.
