@@ -1,4 +1,5 @@
-"""MAPPO / IPPO: module contract (CTDE), GRU state, per-agent GAE, training, checkpoints, learning.
+"""MAPPO / IPPO: module contract (CTDE), GRU state, per-agent GAE, a few training iterations
+(checkpoints: tests/test_algorithm_matrix.py; learning: tests/test_learning.py).
 
 CI-sized: small scenarios (V = 4, U = 2, 20-slot episodes). Ray is started once for the
 module (2 CPUs).
@@ -17,7 +18,6 @@ from uavlora_rllib.algorithms.common.policy import ModulePolicy
 from uavlora_rllib.algorithms.mappo.mappo import MAPPOConfig, MAPPOHParams
 from uavlora_rllib.algorithms.mappo.mappo_learner import per_agent_gae
 from uavlora_rllib.algorithms.mappo.mappo_module import MAPPOTorchRLModule
-from uavlora_rllib.baselines.policies import make_baseline
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.sim.observation import obs_dim, state_dim
@@ -352,73 +352,3 @@ def test_trains_a_few_iterations(ray_session, name):
         assert res.mean("ee_sys_mean") > 0
     finally:
         algo.stop()
-
-
-@pytest.mark.slow
-def test_per_device_mode_trains(ray_session):
-    cfg = SMALL.replace(action_mode="per_device")
-    algo = _build("mappo", cfg, FAST)
-    try:
-        for _ in range(2):
-            res = algo.train()
-        assert np.isfinite(res["learners"]["default_policy"]["policy_loss"])
-        policy = registry.get("mappo").greedy_policy(algo, cfg)
-        core = BatchCore(cfg, 2)
-        core.reset(0)
-        policy.reset(core)
-        actions = policy.act(core)
-        assert actions.shape == (2, cfg.n_uavs, 2 * cfg.quota + 1)
-        assert run_episodes(policy, cfg, episodes=2).mean("ee_sys_mean") > 0
-    finally:
-        algo.stop()
-
-
-@pytest.mark.slow
-def test_checkpoint_round_trip(ray_session, tmp_path):
-    from ray.rllib.algorithms.algorithm import Algorithm
-
-    algo = _build("mappo", SMALL, FAST)
-    try:
-        algo.train()
-        path = algo.save_to_path(str(tmp_path / "ckpt"))
-        before = registry.get("mappo").greedy_policy(algo, SMALL)
-    finally:
-        algo.stop()
-    restored = Algorithm.from_checkpoint(path)
-    try:
-        assert registry.entry_for_algorithm(restored).name == "mappo"
-        after = registry.entry_for_algorithm(restored).greedy_policy(restored, SMALL)
-        core = BatchCore(SMALL, 4)
-        core.reset(123)
-        before.reset(core)
-        after.reset(core)
-        for _ in range(5):  # same actions, GRU state included
-            a, b = before.act(core), after.act(core)
-            assert np.array_equal(a, b)
-            core.step(a)
-        restored.train()  # and it keeps training
-    finally:
-        restored.stop()
-
-
-# ---------------------------------------------------------------- learning
-LEARN_OVERRIDES = {"lr": 2e-3, "num_epochs": 8, "num_minibatches": 2}  # 16 episodes of 20 slots per batch
-# 60 x 320 = 19,200 env steps: the budget at which both margins below sit under every seed
-# measured (results: BENCHMARKS.md#learning-tests-margins).
-LEARN_ITERATIONS = 60
-EE_MARGIN = 1.4  # greedy EE / random EE [-]
-RETURN_GAIN = 1.2  # sampled return, mean of the last 5 iterations over the first 5 [-]
-
-
-@pytest.mark.slow
-def test_mappo_learns_to_beat_random(ray_session):
-    algo = _build("mappo", SMALL, LEARN_OVERRIDES, seed=0)
-    try:
-        returns = [algo.train()["env_runners"]["episode_return_mean"] for _ in range(LEARN_ITERATIONS)]
-        first, last = np.mean(returns[:5]), np.mean(returns[-5:])  # (one iteration's: too noisy)
-        learned = run_episodes(registry.get("mappo").greedy_policy(algo, SMALL), SMALL, episodes=16, seed=7)
-    finally:
-        algo.stop()
-    random_ee = run_episodes(make_baseline("random", SMALL, seed=0), SMALL, episodes=16, seed=7).mean("ee_sys_mean")
-    assert learned.mean("ee_sys_mean") >= EE_MARGIN * random_ee, (learned.mean("ee_sys_mean"), random_ee)
-    assert last >= RETURN_GAIN * first, (first, last)

@@ -29,13 +29,8 @@ from uavlora_rllib.sim.scenario import ScenarioConfig
 torch.set_num_threads(1)
 
 SMALL = ScenarioConfig(n_eds=4, n_uavs=2, episode_len=20)
-# CI learning budget (measured on 3 seeds, results: BENCHMARKS.md#learning-tests-margins): 50 iterations of
-# 4 episodes x 20 slots = 4,000 env steps, 2 updates per iteration. Paper defaults stay the
-# defaults; a CI-sized run needs a larger lr, a shorter epsilon schedule and a shorter horizon
-# (the problem is myopic: actions never change the next slot's positions or association), and
-# one agent network per UAV: with the shared network VDN stays, within this budget, on one
-# symmetric joint action (both UAVs on the same SF, which the paper's interference model
-# punishes; docs/model.md#training-defaults).
+# A few iterations of a CI-sized run (learning itself: tests/test_learning.py): a larger lr, a
+# shorter epsilon schedule and horizon and one agent network per UAV (docs/model.md#training-defaults).
 CI_HPARAMS = {
     "share_agent_net": False,
     "lr": 1e-3,
@@ -44,7 +39,7 @@ CI_HPARAMS = {
     "epsilon_anneal_fraction": 0.25,
     "updates_per_iteration": 2,
 }
-CI_ITERS = 50
+CI_ITERS = 12  # x 4 episodes: the replay (32 episodes) is full and 18 updates have run
 CI_ENVS = 4
 
 
@@ -345,32 +340,13 @@ def _train(name: str, seed: int, iters: int):
 @pytest.fixture(scope="module")
 def trained(ray_session):
     out = {}
-    for name in ("qmix", "vdn"):
+    for name in ("qmix",):
         t0 = time.perf_counter()
         algo, result = _train(name, seed=0, iters=CI_ITERS)
         out[name] = (algo, result, time.perf_counter() - t0)
     yield out
     for algo, _, _ in out.values():
         algo.stop()
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("name", ["qmix", "vdn"])
-def test_learns_beyond_random(trained, name):
-    """Budget: 4,000 env steps (50 iterations x 4 episodes x 20 slots, 94 gradient updates).
-    Greedy EE / random EE [-] over 20 episodes must reach the margin 1.3, below every seed
-    measured at this budget (results: BENCHMARKS.md#learning-tests-margins)."""
-    from uavlora_rllib.baselines.policies import make_baseline
-    from uavlora_rllib.experiment.evaluation import run_episodes
-
-    algo, result, seconds = trained[name]
-    assert result["num_env_steps_sampled_lifetime"] == CI_ITERS * CI_ENVS * SMALL.episode_len
-    learned = run_episodes(registry.get(name).greedy_policy(algo, SMALL), SMALL, episodes=20, seed=3)
-    random = run_episodes(make_baseline("random", SMALL, seed=0), SMALL, episodes=20, seed=3)
-    ratio = learned.mean("ee_sys_mean") / random.mean("ee_sys_mean")
-    print(f"{name}: greedy EE {learned.mean('ee_sys_mean'):.0f} vs random {random.mean('ee_sys_mean'):.0f} "
-          f"(x{ratio:.2f}) after {result['num_env_steps_sampled_lifetime']:.0f} env steps, {seconds:.1f} s")
-    assert ratio > 1.3
 
 
 @pytest.mark.slow
@@ -435,13 +411,13 @@ def test_checkpoint_round_trip(trained, tmp_path):
 
     from uavlora_rllib.sim.core import BatchCore
 
-    algo, _, _ = trained["vdn"]
+    algo, _, _ = trained["qmix"]
     algo.save_to_path(str(tmp_path))
     restored = Algorithm.from_checkpoint(str(tmp_path))
     try:
-        assert registry.entry_for_algorithm(restored).name == "vdn"
+        assert registry.entry_for_algorithm(restored).name == "qmix"
         assert restored.iteration == algo.iteration
-        pols = [registry.get("vdn").greedy_policy(a, SMALL) for a in (algo, restored)]
+        pols = [registry.get("qmix").greedy_policy(a, SMALL) for a in (algo, restored)]
         cores = [BatchCore(SMALL, 4) for _ in pols]
         for pol, core in zip(pols, cores):
             core.reset(123)
@@ -452,10 +428,10 @@ def test_checkpoint_round_trip(trained, tmp_path):
             for core in cores:
                 core.step(acts[0])
         # keeps training; the replay refills (not part of the checkpoint), counters carry on
-        before = trained["vdn"][1]["num_gradient_updates_lifetime"]
+        before = trained["qmix"][1]["num_gradient_updates_lifetime"]
         after = restored.train()
         assert after["num_gradient_updates_lifetime"] == before  # replay < learning_starts: no update yet
-        assert after["num_env_steps_sampled_lifetime"] == trained["vdn"][1]["num_env_steps_sampled_lifetime"] + CI_ENVS * 20
+        assert after["num_env_steps_sampled_lifetime"] == trained["qmix"][1]["num_env_steps_sampled_lifetime"] + CI_ENVS * 20
     finally:
         restored.stop()
 
