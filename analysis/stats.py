@@ -23,7 +23,8 @@ Training curves (Fig. 3a):
 * ``common_grid`` / ``interpolate``: curves of different seeds are linearly interpolated onto
   ``points`` evenly spaced env-step values spanning the range every seed covers.
 * ``bootstrap_ci95``: percentile bootstrap of the mean over seeds at every grid point
-  (seeds resampled with replacement, ``n_boot`` resamples, fixed generator seed).
+  (``scipy.stats.bootstrap``: whole seeds resampled with replacement, ``n_boot`` resamples, fixed
+  generator seed).
 
 Aggregates over seeds and scenarios (Agarwal et al., "Deep RL at the edge of the statistical
 precipice", NeurIPS 2021, the definitions of their ``rliable`` library). A *stratum* is the 1-D
@@ -173,14 +174,12 @@ def bootstrap_ci95(
     """Mean over axis 0 of y [n_seeds, G] and its 95% percentile-bootstrap band (lo, hi)."""
     y = np.asarray(y, dtype=float)
     mean = y.mean(axis=0)
-    n = y.shape[0]
-    if n < 2:
+    if y.shape[0] < 2:
         return mean, mean.copy(), mean.copy()
-    rng = np.random.default_rng(seed)
-    idx = rng.integers(0, n, size=(n_boot, n))
-    boot = y[idx].mean(axis=1)  # [n_boot, G]
-    lo, hi = np.percentile(boot, [2.5, 97.5], axis=0)
-    return mean, lo, hi
+    # whole seeds (rows) are resampled, so every grid point of a resample uses the same seeds
+    res = _st.bootstrap((y,), np.mean, axis=0, n_resamples=n_boot, vectorized=True, method="percentile",
+                        confidence_level=0.95, rng=seed)
+    return mean, np.asarray(res.confidence_interval.low, float), np.asarray(res.confidence_interval.high, float)
 
 
 # ---------------------------------------------------------------- aggregates over scenarios
