@@ -380,7 +380,7 @@ def fig_profile(taus: np.ndarray, profiles: dict, sets: dict, org: Organised, lk
     ax.legend(loc="lower left", frameon=False)
     files = style.save(fig, os.path.join(out_dir, "fig_profile"))
     note = overlap_note("Performance profile", overlaps(drawn))
-    caption = (f"fraction of (seed, scenario) runs whose execution EE exceeds tau times the scenario's reference, "
+    caption = (f"Fraction of (seed, scenario) runs whose execution EE exceeds tau times the scenario's reference, "
                f"averaged over {scen_txt} scenario(s); n = runs per algorithm; bands: 95% stratified bootstrap over seeds "
                "within each scenario")
     return files, [note] if note else [], caption

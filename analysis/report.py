@@ -172,7 +172,7 @@ STATS_TEXT = """\
 - Fig. 3b/3c error bars: the 95% t CI over seeds above (none for a single seed). Titles state n.
 - aggregates over seeds and scenarios: rliable's definitions (Agarwal et al. 2021), computed
   with scipy because rliable itself does not install on the pinned stack (docs/model.md#aggregate-statistics).
-  the normalised score of a seed is its EE as a share of the scenario's reference (the
+  The normalised score of a seed is its EE as a share of the scenario's reference (the
   denominator of "share of reference" above), which puts scenarios of very different EE on one
   scale. IQM: the 25% trimmed mean of all (seed, scenario) scores of an algorithm pooled
   (`analysis.stats.iqm`, the per-cell IQM's function); mean: the mean over scenarios of the
@@ -183,8 +183,8 @@ STATS_TEXT = """\
   (`scipy.stats.bootstrap`, each scenario's seeds resampled with replacement on their own, {agg_boot}
   resamples; {prof_boot} for the profile's bands; a scenario with one seed stays fixed; none
   without a scenario of 2+ seeds). With three seeds a scenario's resamples take few distinct
-  values, so these intervals are narrow and coarse; they carry the seed noise only, not the
-  choice of scenarios. The per-cell table keeps the t interval, which is exact for normal
+  values, so these intervals are coarse and tend to be too narrow; they carry the seed noise
+  only, not the choice of scenarios. The per-cell table keeps the t interval, which is exact for normal
   seed-to-seed noise at any n.
 """
 
