@@ -2,7 +2,8 @@
 
 Modules: `report` (python -m analysis.report: the CLI and report.md), `data` (runs grouped into
 cells, the reference baseline of each scenario, the curves of Fig. 3a), `tables`, `figures`,
-`paper` (the paper's reported numbers beside ours), `export` (marl-eval JSON), `stats` (every
-statistic the report uses), `runs` (reading one or several MLflow experiments), `style` (figure
-style), `animate` (python -m analysis.animate).
+`paper` (the paper's reported numbers beside ours), `export` (marl-eval JSON), `aggregate`
+(rliable-style aggregates over seeds and scenarios), `stats` (every statistic the report uses),
+`runs` (reading one or several MLflow experiments), `style` (figure style), `animate`
+(python -m analysis.animate).
 """

@@ -116,6 +116,15 @@ class Organised:
                     return Reference(name, m, "/".join(modes), cell.mean_of(BOUND_KEY))
         return None
 
+    def normalised(self, cell: Cell) -> np.ndarray:
+        """The cell's per-seed execution EE as a share of its scenario's reference (the same
+        denominator as every "share of reference" of the report); empty without a reference."""
+        ref = self.reference(cell.scenario)
+        if ref is None:
+            return np.empty(0)
+        v = cell.values()
+        return v[np.isfinite(v)] / ref.mean
+
     def baseline_mean(self, scenario: tuple[int, int], name: str) -> float:
         """Seed-mean execution EE of baseline `name` in the scenario; NaN where it has no runs."""
         cell = self.cells.get((*scenario, name))

@@ -348,3 +348,39 @@ def fig2(org: Organised, algorithm: str | None, out_dir: str, seed: int):
     desc = (f"{source}; evaluation episode seed {EVAL_SEED_BASE + seed}, last slot t={cfg.episode_len - 1}, "
             f"EE_sys of that slot {ee:.6g} bit/J, {n_assoc}/{cfg.n_eds} EDs associated")
     return files, desc, notes
+
+
+def fig_profile(taus: np.ndarray, profiles: dict, sets: dict, org: Organised, lk: dict, out_dir: str):
+    """The performance profile (rliable's score distribution): per algorithm, the fraction of its
+    (seed, scenario) runs whose normalised score exceeds tau, averaged over scenarios, with a 95%
+    stratified-bootstrap band. Returns (files, notes, caption)."""
+    import matplotlib.pyplot as plt
+
+    if not profiles:
+        return [], ["Performance profile skipped: no learner has runs in a scenario with a reference baseline."], ""
+    fig, ax = plt.subplots(figsize=(style.COLUMN_WIDTH_IN, 2.9), layout="constrained")
+    drawn, n_scen, n_runs = {}, set(), []
+    for alg, (frac, lo, hi) in profiles.items():
+        n = sum(x.size for x in sets[alg].values())
+        n_scen.add(len(sets[alg]))
+        n_runs.append(n)
+        baseline = org.kind_of(alg) == "baseline"
+        ax.plot(taus, frac, markevery=max(1, len(taus) // 8), drawstyle="steps-post",
+                label=f"{alg}{' (baseline)' if baseline else ''} (n={n})", **lk[alg])
+        if np.all(np.isfinite(lo)):
+            ax.fill_between(taus, lo, hi, color=lk[alg]["color"], alpha=0.15, linewidth=0, step="post")
+        drawn[alg] = (taus, frac)
+    ax.axvline(1.0, color="black", linewidth=0.8, linestyle=(0, (2, 2)), label="reference = 1")
+    ax.set_xlabel(r"normalised score $\tau$ (EE / scenario's reference)")
+    ax.set_ylabel(r"fraction of runs with score > $\tau$")
+    ax.set_ylim(-0.02, 1.02)
+    scen_txt = "/".join(str(s) for s in sorted(n_scen))
+    what = f"{scen_txt} scenario(s), 95% stratified bootstrap band" if max(n_runs) > 1 else f"{scen_txt} scenario(s), no band"
+    ax.set_title(f"Performance profile\n{what}", fontsize=style.SMALL_PT)
+    ax.legend(loc="lower left", frameon=False)
+    files = style.save(fig, os.path.join(out_dir, "fig_profile"))
+    note = overlap_note("Performance profile", overlaps(drawn))
+    caption = (f"Fraction of (seed, scenario) runs whose execution EE exceeds tau times the scenario's reference, "
+               f"averaged over {scen_txt} scenario(s); n = runs per algorithm; bands: 95% stratified bootstrap over seeds "
+               "within each scenario")
+    return files, [note] if note else [], caption

@@ -29,6 +29,11 @@ is read, so a sweep split over experiments or clusters gets its Fig. 3b/3c. Writ
   and of best_fixed, and whether its last evaluations had settled), results_marl_eval.json (analysis.export), and report.md linking
   all of it with the source, a WARNING line for every weak or mixed cell, and notes (overlapping
   series, skipped figures, truncations).
+* aggregates over seeds and scenarios (analysis.aggregate, rliable's definitions): table_aggregate.{csv,md}
+  (IQM and mean of the normalised scores with 95% stratified-bootstrap CIs),
+  table_improvement_probability.{csv,md} (P(--reference > X) for every other learner and best_fixed),
+  fig_profile.{png,svg} and fig_profile.csv (the performance profile). Normalised score: a seed's
+  execution EE as a share of its scenario's reference, the denominator of every share above.
 
 With one experiment the outputs are logged as artifacts of its summary run (tag kind=summary;
 reused, its artifacts replaced); with several, nothing is logged (no single experiment owns the
@@ -49,6 +54,19 @@ from typing import Any, Sequence
 from urllib.parse import urlparse
 
 from analysis import stats, style
+from analysis.aggregate import (
+    PROFILE_COLUMNS,
+    TABLE_AGGREGATE_COLUMNS,
+    TABLE_POI_COLUMNS,
+    aggregate_md,
+    aggregate_table,
+    improvement_probability_md,
+    improvement_probability_table,
+    mixed_scenarios_note,
+    performance_profiles,
+    profile_rows,
+    score_sets,
+)
 from analysis.data import (
     CURVE_METRICS,
     EVAL_CURVE,
@@ -59,7 +77,7 @@ from analysis.data import (
     organise,
 )
 from analysis.export import marl_eval_data, write_marl_eval
-from analysis.figures import fig2, fig2_record, fig3a, fig_sweep, looks, write_curves_csv
+from analysis.figures import fig2, fig2_record, fig3a, fig_profile, fig_sweep, looks, write_curves_csv
 from analysis.paper import PAPER_COLUMNS, paper_md, paper_rows
 from analysis.runs import SUMMARY_KIND, ReportError, RunRecord, Source, load_runs, resolve_sources
 from analysis.tables import (
@@ -80,10 +98,11 @@ from uavlora_rllib.cli_args import Parser, UsageError, fail, float_in, int_in, s
 
 # Every file the report may write (nothing else in --out is touched or logged).
 OUTPUT_FILES = tuple(
-    [f"{stem}.{ext}" for stem in ("fig2", "fig3a", "fig3a_all", "fig3b", "fig3c") for ext in ("png", "svg")]
+    [f"{stem}.{ext}" for stem in ("fig2", "fig3a", "fig3a_all", "fig3b", "fig3c", "fig_profile") for ext in ("png", "svg")]
     + ["fig3a_curves.csv", "table_ee.csv", "table_ee.md", "table_improvement.csv", "table_improvement.md",
        "table_paper.csv", "table_paper.md", "table_open_loop.csv", "table_open_loop.md", "table_learning.csv",
-       "table_learning.md", "results_marl_eval.json",
+       "table_learning.md", "table_aggregate.csv", "table_aggregate.md", "table_improvement_probability.csv",
+       "table_improvement_probability.md", "fig_profile.csv", "results_marl_eval.json",
        "report.md"]
 )
 MARL_EVAL_FILE = "results_marl_eval.json"
@@ -151,6 +170,22 @@ STATS_TEXT = """\
   the band is a 95% percentile bootstrap of that mean over seeds ({boot} resamples), drawn only
   for n >= 2.
 - Fig. 3b/3c error bars: the 95% t CI over seeds above (none for a single seed). Titles state n.
+- aggregates over seeds and scenarios: rliable's definitions (Agarwal et al. 2021), computed
+  with scipy because rliable itself does not install on the pinned stack (docs/model.md#aggregate-statistics).
+  The normalised score of a seed is its EE as a share of the scenario's reference (the
+  denominator of "share of reference" above), which puts scenarios of very different EE on one
+  scale. IQM: the 25% trimmed mean of all (seed, scenario) scores of an algorithm pooled
+  (`analysis.stats.iqm`, the per-cell IQM's function); mean: the mean over scenarios of the
+  per-scenario seed means. P({ref} > X): over the scenarios both ran, the mean of each scenario's
+  share of (seed of {ref}, seed of X) pairs in which {ref} scores higher, ties counting one half
+  (the Mann-Whitney U / (n m); 0.5 = no difference). Performance profile: the fraction of runs
+  scoring above tau, averaged over scenarios. Intervals: 95% percentile stratified bootstrap
+  (`scipy.stats.bootstrap`, each scenario's seeds resampled with replacement on their own, {agg_boot}
+  resamples; {prof_boot} for the profile's bands; a scenario with one seed stays fixed; none
+  without a scenario of 2+ seeds). With three seeds a scenario's resamples take few distinct
+  values, so these intervals are coarse and tend to be too narrow; they carry the seed noise
+  only, not the choice of scenarios. The per-cell table keeps the t interval, which is exact for normal
+  seed-to-seed noise at any n.
 """
 
 CAPTIONS = {
@@ -158,6 +193,7 @@ CAPTIONS = {
     "fig3a": "Fig. 3a: learning curves of the execution (greedy) policy, and the training return",
     "fig3b": "Fig. 3b: execution-phase EE against the number of EDs",
     "fig3c": "Fig. 3c: execution-phase EE against the number of UAVs",
+    "fig_profile": "Performance profile: the distribution of normalised scores over seeds and scenarios",
 }
 
 
@@ -211,6 +247,12 @@ def _build_report(sources: list[Source], out_dir: str, args) -> dict[str, Any]:
 
     figures, captions, fig_notes = draw_figures(org, counted, out_dir, args)
     notes += fig_notes
+    agg = write_aggregates(org, reference, out_dir)
+    tables.update(agg)
+    notes += agg["notes"]
+    if agg["files"]:
+        figures["fig_profile"] = agg["files"]
+    captions["fig_profile"] = agg["caption"]
     bar.update(2)
     marl, mnotes = marl_eval_data(org, history)
     write_marl_eval(os.path.join(out_dir, MARL_EVAL_FILE), marl)
@@ -225,6 +267,7 @@ def _build_report(sources: list[Source], out_dir: str, args) -> dict[str, Any]:
     return {"report": report_path, "figures": figures, "warnings": org.warnings, "notes": notes,
             "summaries": summaries, "rows": tables["rows"], "improvements": tables["improvements"],
             "paper": tables["paper"], "open_loop": tables["open_loop"], "learning": tables["learning"],
+            "aggregate": tables["aggregate"], "improvement_probability": tables["improvement_probability"],
             "n_runs": len(records)}
 
 
@@ -252,6 +295,27 @@ def write_learning_table(org, history, out_dir: str) -> dict[str, Any]:
     with open(os.path.join(out_dir, "table_learning.md"), "w") as fh:
         fh.write(md + "\n")
     return {"learning": rows, "md_learning": md}
+
+
+def write_aggregates(org, reference: str | None, out_dir: str) -> dict[str, Any]:
+    """table_aggregate, table_improvement_probability (CSV and Markdown), the performance profile
+    (fig_profile.{png,svg} and its CSV): rows, Markdown, files, caption and notes."""
+    sets = score_sets(org)
+    agg_rows = aggregate_table(org, sets)
+    poi_rows = improvement_probability_table(org, sets, reference)
+    write_csv(os.path.join(out_dir, "table_aggregate.csv"), TABLE_AGGREGATE_COLUMNS, agg_rows)
+    write_csv(os.path.join(out_dir, "table_improvement_probability.csv"), TABLE_POI_COLUMNS, poi_rows)
+    md = {"md_aggregate": aggregate_md(agg_rows), "md_improvement_probability": improvement_probability_md(poi_rows, reference)}
+    for name, key in (("table_aggregate.md", "md_aggregate"), ("table_improvement_probability.md", "md_improvement_probability")):
+        with open(os.path.join(out_dir, name), "w") as fh:
+            fh.write(md[key] + "\n")
+    taus, profiles = performance_profiles(org, sets, reference)
+    files, notes, caption = fig_profile(taus, profiles, sets, org, looks(org.algorithms()), out_dir)
+    if files:
+        write_csv(os.path.join(out_dir, "fig_profile.csv"), PROFILE_COLUMNS, profile_rows(sets, taus, profiles))
+    note = mixed_scenarios_note(agg_rows)
+    return {"aggregate": agg_rows, "improvement_probability": poi_rows, **md, "files": files, "caption": caption,
+            "notes": notes + ([note] if note else [])}
 
 
 def draw_figures(org, history, out_dir: str, args) -> tuple[dict[str, list[str]], dict[str, str], list[str]]:
@@ -302,7 +366,7 @@ def report_markdown(sources, records, org, notes, figures, captions, tables, ref
     lines += ["", "## Notes", ""]
     lines += [f"- {n}" for n in notes] or ["- none"]
     lines += ["", "## Figures", ""]
-    for key in ("fig2", "fig3a", "fig3b", "fig3c"):
+    for key in ("fig2", "fig3a", "fig3b", "fig3c", "fig_profile"):
         if key not in figures:
             lines.append(f"- {CAPTIONS[key]}: not drawn (see Notes).")
             continue
@@ -310,6 +374,8 @@ def report_markdown(sources, records, org, notes, figures, captions, tables, ref
         extra = f" {captions[key]}." if captions.get(key) else ""
         if key == "fig3a":
             extra += " Data: [fig3a_curves.csv](fig3a_curves.csv)."
+        if key == "fig_profile":
+            extra += " Data: [fig_profile.csv](fig_profile.csv)."
             if len(figures[key]) > 2:
                 extra += " All scenarios: [fig3a_all.png](fig3a_all.png) ([svg](fig3a_all.svg))."
         lines += [f"### {CAPTIONS[key]}", "", f"![{key}]({png}) ([svg]({key}.svg)).{extra}", ""]
@@ -326,6 +392,17 @@ def report_markdown(sources, records, org, notes, figures, captions, tables, ref
               "means something only above 1), and whether each seed's greedy policy had settled (its last "
               f"{LAST_EVALS} periodic evaluations within {SWING_LIMIT:.0%} of each other). "
               "CSV: [table_learning.csv](table_learning.csv).", "", tables["md_learning"], "",
+              "## Aggregate over seeds and scenarios", "",
+              "rliable's statistics (Agarwal et al., NeurIPS 2021) on normalised scores: each seed's execution EE "
+              "as a share of its scenario's reference (the denominator of every share above), so that scenarios "
+              "compare. Intervals: 95% stratified bootstrap, the seeds resampled within each scenario "
+              "(see Statistics). CSV: [table_aggregate.csv](table_aggregate.csv).", "", tables["md_aggregate"], "",
+              f"Probability of improvement: the chance that a seed of {reference or args.reference} scores higher than "
+              "a seed of the other algorithm in the same scenario, averaged over the scenarios both ran (0.5: no "
+              "difference; an interval containing 0.5 is no evidence either way). "
+              "CSV: [table_improvement_probability.csv](table_improvement_probability.csv).", "",
+              tables["md_improvement_probability"], "",
+              "The performance profile is under Figures.", "",
               f"## Improvement of {reference or args.reference}", "",
               "CSV: [table_improvement.csv](table_improvement.csv).", "", md["table_improvement.md"], "",
               "## The paper side by side (Fig. 3b, U = 2)", "",
@@ -336,8 +413,8 @@ def report_markdown(sources, records, org, notes, figures, captions, tables, ref
               "one run per seed; steps = the periodic greedy-policy evaluations, absolute_metrics = the final one).", "",
               "## Statistics", "",
               STATS_TEXT.format(ref=reference or args.reference, smooth=args.smooth, points=args.points,
-                                open_loop=OPEN_LOOP_SHARE,
-                                boot=stats.BOOTSTRAP_RESAMPLES), ""]
+                                open_loop=OPEN_LOOP_SHARE, boot=stats.BOOTSTRAP_RESAMPLES,
+                                agg_boot=stats.AGGREGATE_RESAMPLES, prof_boot=stats.PROFILE_RESAMPLES), ""]
     return "\n".join(lines)
 
 

@@ -259,6 +259,48 @@ def test_figures_and_curves(store):
     assert float(vdn2[-1]["env_steps"]) == 10_000 and vdn2[0]["n_seeds"] == "2"
 
 
+def test_aggregates_probability_of_improvement_and_profile(store):
+    """table_aggregate, table_improvement_probability and fig_profile on the shares of each
+    scenario's optimum (200 in S1, 190 in S2)."""
+    out = store["out"]
+    shares = {alg: {scen: np.array(list(by_seed.values())) / (200.0 if scen == S1 else 190.0)
+                    for (a, scen), by_seed in EE.items() if a == alg} for alg in ("mappo", "vdn", "hyper_mix")}
+    agg = {r["algorithm"]: r for r in _rows(out / "table_aggregate.csv")}
+    m = agg["mappo"]
+    assert m["kind"] == "train" and m["n_scenarios"] == "2" and m["n_runs"] == "7" and m["scenarios"] == "V10U2 V20U2"
+    pooled = np.concatenate(list(shares["mappo"].values()))
+    assert float(m["iqm"]) == pytest.approx(st.trim_mean(pooled, 0.25), rel=1e-12)
+    assert float(m["mean"]) == pytest.approx((110.0 / 200 + 95.0 / 190) / 2, rel=1e-12)  # scenarios weigh the same
+    for name in ("iqm", "mean"):
+        assert float(m[f"{name}_ci95_low"]) <= float(m[name]) <= float(m[f"{name}_ci95_high"])
+    assert float(agg["optimal"]["iqm"]) == pytest.approx(1.0) and agg["hyper_mix"]["scenarios"] == "V10U2"
+    assert [r["algorithm"] for r in _rows(out / "table_aggregate.csv")][:3] == ["mappo", "hyper_mix", "vdn"]
+    poi = {r["other"]: r for r in _rows(out / "table_improvement_probability.csv")}
+    assert set(poi) == {"vdn", "hyper_mix", "best_fixed"} and {r["reference"] for r in poi.values()} == {"mappo"}
+    assert float(poi["vdn"]["probability_of_improvement"]) == 1.0 and poi["vdn"]["n_scenarios"] == "2"
+    assert float(poi["hyper_mix"]["probability_of_improvement"]) == 1.0 and poi["hyper_mix"]["scenarios"] == "V10U2"
+    # best_fixed: 0.98 of the optimum in S1 (above every mappo seed), 0.5 in S2 (below one of four)
+    assert float(poi["best_fixed"]["probability_of_improvement"]) == pytest.approx((0.0 + 0.25) / 2)
+    for stem in ("png", "svg"):
+        assert (out / f"fig_profile.{stem}").stat().st_size > 1000
+    prof = _rows(out / "fig_profile.csv")
+    assert {r["algorithm"] for r in prof} == {"mappo", "vdn", "hyper_mix", "best_fixed"}
+    mp = [r for r in prof if r["algorithm"] == "mappo"]
+    fr = np.array([float(r["fraction_above"]) for r in mp])
+    assert fr[0] == 1.0 and fr[-1] == 0.0 and np.all(np.diff(fr) <= 0) and mp[0]["n_runs"] == "7"
+    for r in mp:  # the fraction of runs above tau, each scenario weighing one half
+        tau = float(r["tau"])
+        want = np.mean([np.mean(v > tau) for v in shares["mappo"].values()])
+        assert float(r["fraction_above"]) == pytest.approx(want)
+        assert float(r["ci95_low"]) <= float(r["fraction_above"]) <= float(r["ci95_high"])
+    text = (out / "report.md").read_text()
+    assert "## Aggregate over seeds and scenarios" in text and "share of its scenario's reference" in text
+    for link in ("table_aggregate.csv", "table_improvement_probability.csv", "fig_profile.png", "fig_profile.csv"):
+        assert f"({link})" in text, link
+    assert "P(mappo > other)" in text and "the learners cover different scenarios" in text  # hyper_mix: S1 only
+    assert "docs/model.md#aggregate-statistics" in text
+
+
 def test_report_warnings_and_source(store):
     text = (store["out"] / "report.md").read_text()
     warn = [ln for ln in text.splitlines() if "WARNING" in ln]
