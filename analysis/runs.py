@@ -7,8 +7,9 @@ names the experiment and URI it came from.
 The schema is the Tune callback's (README / issue 6): tags kind, algorithm, seed, n_eds,
 n_uavs, git_commit, grid_file, trial_id, checkpoint, budget_env_steps; params
 "scenario.<field>", "stop.env_steps", "eval.episodes", ...; execution metrics "eval/<k>";
-training curves with step = env steps. Runs tagged kind=summary (this package's own output)
-are left out.
+training curves with step = env steps. A grid's parent run (kind=grid, the trials and
+baselines nested under it) and runs tagged kind=summary (the report's home in experiments
+written before parents existed) are left out of the records.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from typing import Any
 from uavlora_rllib.cli_args import UsageError
 
 SUMMARY_KIND = "summary"
+GRID_KIND = "grid"  # run_schema.KIND_GRID: the grid's parent run, which holds the report's files
 EVAL_PREFIX = "eval/"
 EE_KEY = "eval/ee_sys_mean"
 SAMPLED_EE_KEY = "eval_sampled/ee_sys_mean"  # execution with actions drawn from the trained policy
@@ -200,15 +202,20 @@ def _record(run) -> RunRecord:
 
 
 def load_runs(client, experiment_id: str, experiment: str = "", source: int = 0) -> tuple[list[RunRecord], list[Any]]:
-    """All active runs of the experiment as RunRecords (summary runs excluded), and the
-    summary runs themselves (raw MLflow Run objects, newest first)."""
+    """All active runs of the experiment as RunRecords (grid parents and summary runs excluded),
+    and those excluded runs themselves (raw MLflow Run objects: grid parents oldest first, then
+    summary runs newest first): where the report logs its files (`analysis.report.log_summary`)."""
     records: list[RunRecord] = []
     summaries: list[Any] = []
+    parents: list[Any] = []
     token = None
     while True:
         page = client.search_runs([experiment_id], max_results=1000, page_token=token)
         for run in page:
-            if run.data.tags.get("kind") == SUMMARY_KIND:
+            kind = run.data.tags.get("kind")
+            if kind == GRID_KIND:
+                parents.append(run)
+            elif kind == SUMMARY_KIND:
                 summaries.append(run)
             else:
                 rec = _record(run)
@@ -218,8 +225,9 @@ def load_runs(client, experiment_id: str, experiment: str = "", source: int = 0)
         if not token:
             break
     summaries.sort(key=lambda r: r.info.start_time or 0, reverse=True)
+    parents.sort(key=lambda r: (r.info.start_time or 0, r.info.run_id))
     records.sort(key=lambda r: (r.start_time, r.run_id))
-    return records, summaries
+    return records, parents + summaries
 
 
 def metric_history(client, run_id: str, key: str) -> tuple[list[float], list[float]]:
