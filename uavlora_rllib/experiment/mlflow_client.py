@@ -174,11 +174,26 @@ class Tracker:
         self.client = MlflowClient(tracking_uri=tracking_uri)
         exp = self._call(self.client.get_experiment_by_name, experiment)
         if exp is None:
-            self.experiment_id = self._call(self.client.create_experiment, experiment)
+            self.experiment_id = self._call(self._create_experiment, experiment)
         else:
             if exp.lifecycle_stage == "deleted":
                 self._call(self.client.restore_experiment, exp.experiment_id)
             self.experiment_id = exp.experiment_id
+
+    def _create_experiment(self, name: str) -> str:
+        """create_experiment, idempotent: a retry after a timed-out create that the server did
+        carry out (or another driver creating it at the same time) finds the experiment instead."""
+        from mlflow.exceptions import MlflowException
+
+        try:
+            return self.client.create_experiment(name)
+        except MlflowException as exc:
+            if exc.error_code != "RESOURCE_ALREADY_EXISTS":
+                raise
+            exp = self.client.get_experiment_by_name(name)
+            if exp is None:
+                raise
+            return exp.experiment_id
 
     def _call(self, fn, *args, **kwargs):
         """fn(*args) under the write lock, retried with backoff while MLflow is unreachable."""

@@ -1,4 +1,4 @@
-"""What an MLflow run of a grid holds, and how a trial's result dict maps onto it.
+"""What an MLflow run of a grid holds, and how a trial's result dict maps onto it (docs/model.md#mlflow-runs).
 
 The analysis step reads exactly this schema:
 
@@ -290,7 +290,7 @@ def trial_config_yaml(cfg: Mapping[str, Any], trial_id: str) -> str:
     import yaml
 
     doc = {"trial_id": trial_id, **_plain(cfg)}
-    return "# the resolved config of this trial (uavlora_rllib.tune; docs/model.md#training-defaults)\n" + \
+    return "# the resolved config of this trial (uavlora_rllib.tune; docs/model.md#mlflow-runs)\n" + \
         yaml.safe_dump(doc, sort_keys=False)
 
 
