@@ -109,7 +109,12 @@ def runs_of(uri: str, experiment: str) -> list:
     client = MlflowClient(uri)
     exp = client.get_experiment_by_name(experiment)
     assert exp is not None, f"no MLflow experiment {experiment!r}"
-    return client.search_runs([exp.experiment_id], max_results=1000)
+    runs = client.search_runs([exp.experiment_id], max_results=1000)
+    parents = [r for r in runs if r.data.tags.get("kind") == "grid"]  # the grid's one parent run
+    assert len(parents) == 1 and parents[0].info.status == "FINISHED", [(r.info.run_name, r.info.status) for r in parents]
+    runs = [r for r in runs if r.data.tags.get("kind") != "grid"]
+    assert all(r.data.tags.get("mlflow.parentRunId") == parents[0].info.run_id for r in runs)
+    return runs
 
 
 def assert_one_finished_run_each(uri: str, experiment: str, trials: set[str], baselines: set[str]) -> list:

@@ -20,7 +20,8 @@
   sampled, then the execution-phase evaluation (the entry's greedy policy, the trial's seed,
   ``evaluation.episodes`` episodes) reported as ``eval/*``. A trial that fails (its node
   died) is retried from its last checkpoint up to ``failure.max_failures`` times, into the
-  same MLflow run. `mlflow_callback.MlflowTrialCallback` logs everything to MLflow from the driver.
+  same MLflow run. `mlflow_callback.MlflowTrialCallback` logs everything to MLflow from the driver;
+  trials and baselines are nested under the grid's one parent run (docs/model.md#mlflow-runs).
 * ``--resume`` restores the Tune experiment ``<storage>/<experiment>``: finished trials are
   not rerun, interrupted or errored ones continue from their last checkpoint, and each trial
   keeps its one MLflow run (found again by its trial_id tag). If the driver died before Tune

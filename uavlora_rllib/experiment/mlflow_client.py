@@ -17,7 +17,11 @@ Against an MLflow server every call is retried with exponential backoff for at m
 ``retry_timeout_s`` seconds (grid ``mlflow.retry_timeout_s``) while the failure is `retryable`
 (no answer, or HTTP 429/502/503/504, or a busy database); then `TrackingUnavailable` stops the
 driver with one clear line. Nothing is lost: Tune's results and checkpoints are on storage, and
-``--resume`` fills the runs in. Run fields: `run_schema`.
+``--resume`` fills the runs in. A server that answers 401/403 (MLflow's basic-auth app without,
+or with wrong, MLFLOW_TRACKING_USERNAME/PASSWORD) is not retried: `TrackingRefused`, one line.
+
+Every run of the grid is nested under its one parent run (`Tracker.grid_run`, tag kind=grid),
+found again by every later driver of the same experiment. Run fields: `run_schema`.
 """
 
 from __future__ import annotations
