@@ -127,6 +127,10 @@ def connect(tracking_uri: str):
         client = MlflowClient(tracking_uri=tracking_uri)
         client.search_experiments(max_results=1)
     except Exception as exc:  # noqa: BLE001 - any failure here means "cannot reach it"
+        status = getattr(exc, "get_http_status_code", lambda: None)()
+        if status in (401, 403):  # MLflow's basic-auth app (docs/cluster.md#mlflow)
+            raise ReportError(f"tracking URI {tracking_uri!r} refused the request (HTTP {status}): set "
+                              "MLFLOW_TRACKING_USERNAME and MLFLOW_TRACKING_PASSWORD to a user of the server") from None
         raise ReportError(f"tracking URI {tracking_uri!r} is unreachable: {_first_line(exc)}") from None
     return client
 

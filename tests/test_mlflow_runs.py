@@ -320,3 +320,18 @@ def test_grid_against_an_authenticated_server(auth_server, local_ray, tmp_path, 
     assert {r.info.run_id: _artifacts(client, r.info.run_id) for r in runs2} == before
     assert len(client.get_metric_history(train.info.run_id, "episode_return_mean")) == returns
     assert len(client.get_metric_history(base.info.run_id, "eval/ee_sys_mean")) == len(hist)
+
+    # the report logs its files on the parent run; without credentials it is refused in one line
+    from analysis import report
+
+    args = ["--experiment", "ui", "--tracking-uri", uri, "--out", str(tmp_path / "report"), "--no-fig2"]
+    assert report.main(args) == 0, capsys.readouterr().err[-2000:]
+    capsys.readouterr()
+    files = _artifacts(client, parent.info.run_id)
+    assert {"grid.yaml", "report/report.md", "report/table_ee.csv"} <= set(files), files
+    assert not [r for r in client.search_runs([exp.experiment_id]) if r.data.tags["kind"] not in ("grid", "train",
+                                                                                                  "baseline")]
+    monkeypatch.delenv("MLFLOW_TRACKING_PASSWORD")
+    assert report.main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "HTTP 401" in err and "MLFLOW_TRACKING_PASSWORD" in err, err

@@ -224,8 +224,8 @@ class MlflowTrialCallback(Callback):
         return True
 
     # ---- Tune hooks
-    def on_step_begin(self, iteration, trials, **info):
-        # the first step after Tuner.restore: trials restored as finished get no other hook
+    def _reconcile(self, trials) -> None:
+        """Once per driver: complete the runs of trials restored as finished (they get no other hook)."""
         if self._reconciled:
             return
         self._reconciled = True
@@ -233,6 +233,10 @@ class MlflowTrialCallback(Callback):
         fixed = sum(self.reconcile_trial(t) for t in done)
         if fixed:
             print(f"MLflow: completed {fixed} run(s) of trials that had finished while their driver died", flush=True)
+
+    def on_step_begin(self, iteration, trials, **info):
+        # the first step after Tuner.restore
+        self._reconcile(trials)
 
     def on_trial_start(self, iteration, trials, trial, **info):
         self.run_id(trial)
@@ -259,6 +263,8 @@ class MlflowTrialCallback(Callback):
         self._end(trial, "FAILED")
 
     def on_experiment_end(self, trials, **info):
+        # every trial was restored as finished: Tune ran no step, so reconcile here
+        self._reconcile(trials)
         # Trials that did not finish (interrupted grid): their runs are KILLED until --resume.
         for trial in trials:
             tid = trial.trial_id
