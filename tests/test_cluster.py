@@ -197,13 +197,13 @@ def mlflow_server(tmp_path):
     """A real `mlflow server` on a free port; start() / stop() by PID (restartable on the same db)."""
     port = free_port()
     db = tmp_path / "server.db"
-    mlflow_bin = os.path.join(os.path.dirname(sys.executable), "mlflow")
     state = {"proc": None, "uri": f"http://127.0.0.1:{port}"}
 
     def start():
         proc = subprocess.Popen(
-            [mlflow_bin, "server", "--backend-store-uri", f"sqlite:///{db}", "--host", "127.0.0.1",
-             "--port", str(port), "--workers", "1"],
+            # `python -m mlflow`, not bin/mlflow: a copied venv's script shebangs may be stale
+            [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", f"sqlite:///{db}", "--host",
+             "127.0.0.1", "--port", str(port), "--workers", "1"],
             cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
         )
         state["proc"] = proc
