@@ -35,8 +35,10 @@ is read, so a sweep split over experiments or clusters gets its Fig. 3b/3c. Writ
   fig_profile.{png,svg} and fig_profile.csv (the performance profile). Normalised score: a seed's
   execution EE as a share of its scenario's reference, the denominator of every share above.
 
-With one experiment the outputs are logged as artifacts of its summary run (tag kind=summary;
-reused, its artifacts replaced); with several, nothing is logged (no single experiment owns the
+With one experiment the outputs are logged as artifacts of the grid's parent run (tag
+kind=grid), in its folder ``report/`` (replaced on every report), beside the grid's trials and
+baselines; an experiment written before parents existed gets a summary run instead (tag
+kind=summary; reused, its artifacts replaced). With several, nothing is logged (no single experiment owns the
 report; a note says so). Modules: data (cells, references, curves), tables, figures, paper,
 export, stats. Every expected failure (bad flag, unknown experiment, unreachable URI, --out a
 file or not writable) prints one line on stderr, exit code 2.
@@ -79,7 +81,7 @@ from analysis.data import (
 from analysis.export import marl_eval_data, write_marl_eval
 from analysis.figures import fig2, fig2_record, fig3a, fig_profile, fig_sweep, looks, write_curves_csv
 from analysis.paper import PAPER_COLUMNS, paper_md, paper_rows
-from analysis.runs import SUMMARY_KIND, ReportError, RunRecord, Source, load_runs, resolve_sources
+from analysis.runs import GRID_KIND, SUMMARY_KIND, ReportError, RunRecord, Source, load_runs, resolve_sources
 from analysis.tables import (
     TABLE_EE_COLUMNS,
     TABLE_IMP_COLUMNS,
@@ -425,25 +427,52 @@ def _local_path(uri: str) -> str | None:
     return None
 
 
+REPORT_ARTIFACT_DIR = "report"  # the report's folder among the grid parent run's artifacts
+
+
+def _clear_local_artifacts(artifact_uri: str, sub: str = "") -> None:
+    """Remove a run's previous artifacts (under `sub`) when they are stored locally, so that a new
+    report replaces the old one instead of mixing with it (servers overwrite same-named files)."""
+    local = _local_path(artifact_uri or "")
+    target = os.path.join(local, sub) if local and sub else local
+    if not target or not os.path.isdir(target):
+        return
+    for name in os.listdir(target):
+        p = os.path.join(target, name)
+        shutil.rmtree(p) if os.path.isdir(p) else os.remove(p)
+
+
+def _tag_report(client, run_id: str, result: dict[str, Any]) -> None:
+    client.set_tag(run_id, "report_generated_utc", time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
+    client.set_tag(run_id, "report_runs", str(result["n_runs"]))
+    client.set_tag(run_id, "report_warnings", str(len(result["warnings"])))
+
+
 def log_summary(client, exp, summaries, out_dir: str, result: dict[str, Any]) -> str:
-    """Log out_dir as artifacts of the experiment's summary run (the newest is reused, older
+    """Log out_dir as artifacts of the grid's parent run (folder report/; the oldest parent when
+    several) or, in an experiment without one, of its summary run (the newest is reused, older
     ones are deleted, the reused run's previous artifacts are removed when stored locally)."""
+    parents = [r for r in summaries if r.data.tags.get("kind") == GRID_KIND]
+    if parents:
+        run_id = parents[0].info.run_id
+        _clear_local_artifacts(parents[0].info.artifact_uri, REPORT_ARTIFACT_DIR)
+        _tag_report(client, run_id, result)
+        for name in OUTPUT_FILES:
+            path = os.path.join(out_dir, name)
+            if os.path.isfile(path):
+                client.log_artifact(run_id, path, REPORT_ARTIFACT_DIR)
+        return run_id  # its status is the grid's (FINISHED, KILLED, ...): left as it is
+    summaries = [r for r in summaries if r.data.tags.get("kind") != GRID_KIND]
     if summaries:
         run_id = summaries[0].info.run_id
         for extra in summaries[1:]:
             client.delete_run(extra.info.run_id)
-        local = _local_path(summaries[0].info.artifact_uri or "")
-        if local and os.path.isdir(local):
-            for name in os.listdir(local):
-                p = os.path.join(local, name)
-                shutil.rmtree(p) if os.path.isdir(p) else os.remove(p)
+        _clear_local_artifacts(summaries[0].info.artifact_uri)
         client.update_run(run_id, status="RUNNING")
     else:
         run_id = client.create_run(exp.experiment_id, run_name="summary", tags={"kind": SUMMARY_KIND}).info.run_id
     client.set_tag(run_id, "kind", SUMMARY_KIND)
-    client.set_tag(run_id, "report_generated_utc", time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
-    client.set_tag(run_id, "report_runs", str(result["n_runs"]))
-    client.set_tag(run_id, "report_warnings", str(len(result["warnings"])))
+    _tag_report(client, run_id, result)
     for name in OUTPUT_FILES:
         path = os.path.join(out_dir, name)
         if os.path.isfile(path):
@@ -465,7 +494,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fig2-seed", type=seed, default=0, help="evaluation episode of Fig. 2 (seed offset, default 0)")
     p.add_argument("--fig2-algorithm", default=None, help="learner that plays Fig. 2 (default: the best by execution EE)")
     p.add_argument("--no-fig2", action="store_true", help="skip Fig. 2 (no simulation)")
-    p.add_argument("--no-log", action="store_true", help="do not log the outputs to an MLflow summary run")
+    p.add_argument("--no-log", action="store_true", help="do not log the outputs to MLflow (the grid's parent run, or a summary run)")
     return p
 
 
@@ -488,7 +517,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 raise ReportError(f"the report is in {out_dir}, but logging it to MLflow failed "
                                   f"({type(exc).__name__}: {str(exc).strip().splitlines()[0] if str(exc).strip() else ''}); "
                                   "rerun with --no-log to skip logging") from None
-            logged = f"; logged to summary run {run_id}"
+            logged = f"; logged to MLflow run {run_id}"
     except UsageError as exc:  # ReportError and the parser's errors
         return fail(exc, "report")
     except OSError as exc:  # the output folder filled up or vanished while writing

@@ -7,8 +7,9 @@ names the experiment and URI it came from.
 The schema is the Tune callback's (README / issue 6): tags kind, algorithm, seed, n_eds,
 n_uavs, git_commit, grid_file, trial_id, checkpoint, budget_env_steps; params
 "scenario.<field>", "stop.env_steps", "eval.episodes", ...; execution metrics "eval/<k>";
-training curves with step = env steps. Runs tagged kind=summary (this package's own output)
-are left out.
+training curves with step = env steps. A grid's parent run (kind=grid, the trials and
+baselines nested under it) and runs tagged kind=summary (the report's home in experiments
+written before parents existed) are left out of the records.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from typing import Any
 from uavlora_rllib.cli_args import UsageError
 
 SUMMARY_KIND = "summary"
+GRID_KIND = "grid"  # run_schema.KIND_GRID: the grid's parent run, which holds the report's files
 EVAL_PREFIX = "eval/"
 EE_KEY = "eval/ee_sys_mean"
 SAMPLED_EE_KEY = "eval_sampled/ee_sys_mean"  # execution with actions drawn from the trained policy
@@ -125,6 +127,10 @@ def connect(tracking_uri: str):
         client = MlflowClient(tracking_uri=tracking_uri)
         client.search_experiments(max_results=1)
     except Exception as exc:  # noqa: BLE001 - any failure here means "cannot reach it"
+        status = getattr(exc, "get_http_status_code", lambda: None)()
+        if status in (401, 403):  # MLflow's basic-auth app (docs/cluster.md#mlflow)
+            raise ReportError(f"tracking URI {tracking_uri!r} refused the request (HTTP {status}): set "
+                              "MLFLOW_TRACKING_USERNAME and MLFLOW_TRACKING_PASSWORD to a user of the server") from None
         raise ReportError(f"tracking URI {tracking_uri!r} is unreachable: {_first_line(exc)}") from None
     return client
 
@@ -200,15 +206,20 @@ def _record(run) -> RunRecord:
 
 
 def load_runs(client, experiment_id: str, experiment: str = "", source: int = 0) -> tuple[list[RunRecord], list[Any]]:
-    """All active runs of the experiment as RunRecords (summary runs excluded), and the
-    summary runs themselves (raw MLflow Run objects, newest first)."""
+    """All active runs of the experiment as RunRecords (grid parents and summary runs excluded),
+    and those excluded runs themselves (raw MLflow Run objects: grid parents oldest first, then
+    summary runs newest first): where the report logs its files (`analysis.report.log_summary`)."""
     records: list[RunRecord] = []
     summaries: list[Any] = []
+    parents: list[Any] = []
     token = None
     while True:
         page = client.search_runs([experiment_id], max_results=1000, page_token=token)
         for run in page:
-            if run.data.tags.get("kind") == SUMMARY_KIND:
+            kind = run.data.tags.get("kind")
+            if kind == GRID_KIND:
+                parents.append(run)
+            elif kind == SUMMARY_KIND:
                 summaries.append(run)
             else:
                 rec = _record(run)
@@ -218,8 +229,9 @@ def load_runs(client, experiment_id: str, experiment: str = "", source: int = 0)
         if not token:
             break
     summaries.sort(key=lambda r: r.info.start_time or 0, reverse=True)
+    parents.sort(key=lambda r: (r.info.start_time or 0, r.info.run_id))
     records.sort(key=lambda r: (r.start_time, r.run_id))
-    return records, summaries
+    return records, parents + summaries
 
 
 def metric_history(client, run_id: str, key: str) -> tuple[list[float], list[float]]:

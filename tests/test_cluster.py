@@ -109,7 +109,12 @@ def runs_of(uri: str, experiment: str) -> list:
     client = MlflowClient(uri)
     exp = client.get_experiment_by_name(experiment)
     assert exp is not None, f"no MLflow experiment {experiment!r}"
-    return client.search_runs([exp.experiment_id], max_results=1000)
+    runs = client.search_runs([exp.experiment_id], max_results=1000)
+    parents = [r for r in runs if r.data.tags.get("kind") == "grid"]  # the grid's one parent run
+    assert len(parents) == 1 and parents[0].info.status == "FINISHED", [(r.info.run_name, r.info.status) for r in parents]
+    runs = [r for r in runs if r.data.tags.get("kind") != "grid"]
+    assert all(r.data.tags.get("mlflow.parentRunId") == parents[0].info.run_id for r in runs)
+    return runs
 
 
 def assert_one_finished_run_each(uri: str, experiment: str, trials: set[str], baselines: set[str]) -> list:
@@ -192,13 +197,13 @@ def mlflow_server(tmp_path):
     """A real `mlflow server` on a free port; start() / stop() by PID (restartable on the same db)."""
     port = free_port()
     db = tmp_path / "server.db"
-    mlflow_bin = os.path.join(os.path.dirname(sys.executable), "mlflow")
     state = {"proc": None, "uri": f"http://127.0.0.1:{port}"}
 
     def start():
         proc = subprocess.Popen(
-            [mlflow_bin, "server", "--backend-store-uri", f"sqlite:///{db}", "--host", "127.0.0.1",
-             "--port", str(port), "--workers", "1"],
+            # `python -m mlflow`, not bin/mlflow: a copied venv's script shebangs may be stale
+            [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", f"sqlite:///{db}", "--host",
+             "127.0.0.1", "--port", str(port), "--workers", "1"],
             cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
         )
         state["proc"] = proc

@@ -69,3 +69,35 @@ def test_rayjob_manifest_runs_a_grid_on_an_image_built_with_constraints():
         dockerfile = fh.read()
     assert "FROM rayproject/ray:2.60.0-py311" in dockerfile
     assert "pip install --no-cache-dir -c constraints.txt -e ." in dockerfile
+
+
+def test_mlflow_server_asks_for_a_password_and_the_driver_brings_one():
+    """deploy/ runs MLflow with its basic-auth app, secrets from Kubernetes secrets (never in the
+    files), and hands the driver (RayJob head, cluster-launcher command) MLFLOW_TRACKING_* variables."""
+    with open(os.path.join(DEPLOY, "mlflow-server.yaml")) as fh:
+        docs = {d["kind"]: d for d in yaml.safe_load_all(fh)}
+    assert set(docs) == {"ConfigMap", "Deployment", "Service"}
+    ini = docs["ConfigMap"]["data"]["basic_auth.ini"]
+    assert "mlflow.server.auth:authenticate_request_basic_auth" in ini and "admin_password" not in ini
+    (container,) = docs["Deployment"]["spec"]["template"]["spec"]["containers"]
+    command = " ".join(container["args"])
+    assert "mlflow server --app-name basic-auth" in command and "--artifacts-destination" in command
+    env = {e["name"]: e for e in container["env"]}
+    for secret in ("MLFLOW_AUTH_ADMIN_PASSWORD", "MLFLOW_FLASK_SERVER_SECRET_KEY"):
+        assert "secretKeyRef" in env[secret]["valueFrom"], secret
+    assert env["MLFLOW_AUTH_CONFIG_PATH"]["value"].startswith("/etc/mlflow/")
+    assert docs["Service"]["spec"]["ports"][0]["port"] == 5000
+
+    head = load("rayjob.yaml")["spec"]["rayClusterSpec"]["headGroupSpec"]["template"]["spec"]["containers"][0]
+    env = {e["name"]: e for e in head["env"]}
+    for var in ("MLFLOW_TRACKING_USERNAME", "MLFLOW_TRACKING_PASSWORD"):
+        assert env[var]["valueFrom"]["secretKeyRef"]["name"] == "mlflow-driver", var
+
+    config = load("ray-cluster.yaml")
+    start = "\n".join(config["head_start_ray_commands"])
+    assert "mlflow server --app-name basic-auth" in start and "MLFLOW_AUTH_CONFIG_PATH" in start
+    with open(os.path.join(DEPLOY, "ray-cluster.yaml")) as fh:
+        usage = " ".join(line.lstrip("# ").rstrip("\\\n") for line in fh if line.startswith("#"))
+    assert "MLFLOW_TRACKING_USERNAME" in usage and "MLFLOW_TRACKING_PASSWORD" in usage
+    with open(os.path.join(REPO, "pyproject.toml")) as fh:
+        assert '"mlflow[auth]' in fh.read()  # the basic-auth app's Flask-WTF comes with the install

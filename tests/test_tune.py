@@ -71,12 +71,18 @@ def make_grid(tmp_path, name: str, budget: int, max_concurrent: int | None = Non
 
 
 def mlflow_runs(tmp_path, experiment: str) -> list:
+    """The grid's train and baseline runs, each checked to be nested under its one parent run."""
     from mlflow.tracking import MlflowClient
 
     client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
     exp = client.get_experiment_by_name(experiment)
     assert exp is not None
-    return client, client.search_runs([exp.experiment_id], max_results=1000)
+    runs = client.search_runs([exp.experiment_id], max_results=1000)
+    parents = [r for r in runs if r.data.tags.get("kind") == "grid"]
+    assert len(parents) == 1 and parents[0].info.run_name == experiment, [r.info.run_name for r in parents]
+    runs = [r for r in runs if r.data.tags.get("kind") != "grid"]
+    assert all(r.data.tags["mlflow.parentRunId"] == parents[0].info.run_id for r in runs)
+    return client, runs
 
 
 def steps_of(client, run, key: str) -> list[int]:
@@ -97,6 +103,7 @@ def check_train_run(client, run, grid_file: str, budget: int) -> None:
     assert os.path.basename(tags["checkpoint"]).startswith("checkpoint_") and os.path.isdir(tags["checkpoint"])
     assert f"{ALGO}-V6-U2-s{seed}_{tags['trial_id']}" in tags["checkpoint"]
     # params
+    assert (params["algorithm"], params["seed"], params["n_eds"], params["n_uavs"]) == (ALGO, seed, "6", "2")
     assert params["algo.lr"] == "0.0003" and params["algo.batch_episodes"] == "2"
     assert params["algo.num_epochs"] == "1" and "algo.gamma" in params  # defaults too
     assert params["scenario.n_eds"] == "6" and params["scenario.n_uavs"] == "2"
@@ -348,7 +355,8 @@ def test_resume_before_tune_started_adopts_leftovers(ray_address, tmp_path, caps
         [f"{ALGO}-V6-U2-s{s}" for s in (0, 1)] + [f"{b}-V6-U2-s{s}" for b in ("random", "fixed") for s in (0, 1)])
     assert all(r.info.status == "FINISHED" for r in runs)
     adopted = next(r for r in runs if r.info.run_name == "random-V6-U2-s0")
-    assert adopted.info.run_id == left_baseline and dict(adopted.data.params) == params
+    assert adopted.info.run_id == left_baseline
+    assert dict(adopted.data.params) == {"algorithm": "random", "seed": "0", "n_eds": "6", "n_uavs": "2", **params}
     assert "eval/ee_sys_mean" in adopted.data.metrics
     assert lost_train not in {r.info.run_id for r in runs}  # its trial no longer exists: replaced
     assert client.get_run(lost_train).info.lifecycle_stage == "deleted"

@@ -20,7 +20,8 @@
   sampled, then the execution-phase evaluation (the entry's greedy policy, the trial's seed,
   ``evaluation.episodes`` episodes) reported as ``eval/*``. A trial that fails (its node
   died) is retried from its last checkpoint up to ``failure.max_failures`` times, into the
-  same MLflow run. `mlflow_callback.MlflowTrialCallback` logs everything to MLflow from the driver.
+  same MLflow run. `mlflow_callback.MlflowTrialCallback` logs everything to MLflow from the driver;
+  trials and baselines are nested under the grid's one parent run (docs/model.md#mlflow-runs).
 * ``--resume`` restores the Tune experiment ``<storage>/<experiment>``: finished trials are
   not rerun, interrupted or errored ones continue from their last checkpoint, and each trial
   keeps its one MLflow run (found again by its trial_id tag). If the driver died before Tune
@@ -255,7 +256,8 @@ def make_tuner(grid: GridConfig, specs: list[TrialSpec], storage: str, uri: str,
     from uavlora_rllib.experiment.mlflow_callback import MlflowTrialCallback
     from uavlora_rllib.experiment.trainable import UavLoraTrainable
 
-    callback = MlflowTrialCallback(uri, grid.experiment, grid_file, commit, retry_timeout_s=grid.mlflow.retry_timeout_s)
+    callback = MlflowTrialCallback(uri, grid.experiment, grid_file, commit, retry_timeout_s=grid.mlflow.retry_timeout_s,
+                                   checkpoint_artifact_max_mb=grid.mlflow.checkpoint_artifact_max_mb)
     return tune.Tuner(
         tune.with_resources(UavLoraTrainable, trial_resources(grid)),
         param_space={"trial": tune.grid_search([trial_config(s, grid) for s in specs])},
@@ -325,6 +327,7 @@ def _run_locked(grid: GridConfig, grid_file: str, args: argparse.Namespace, spec
     restorable = _check_resume(args, exp_path, storage)
     started_ray = _connect_ray(args)
     pool = tracker = None
+    grid_status = "KILLED"  # the parent run's status when this driver stops (FINISHED, FAILED, KILLED)
     t_start = time.perf_counter()
     try:
         _preflight(grid)
@@ -333,19 +336,25 @@ def _run_locked(grid: GridConfig, grid_file: str, args: argparse.Namespace, spec
         tuner = _tuner_for(grid, specs, storage, uri, grid_file, exp_path, tracker.commit, args.resume and restorable)
         results = _fit(tuner, pool)
         if results is None:
+            grid_status = "FAILED"
             return EXIT_FAILED
         done, interrupted = _progress(results, specs)
         _settle_baselines(pool, interrupted)
         if pool.error is not None:
             print(f"error: {pool.error}", file=sys.stderr)
+            grid_status = "FAILED"
             return EXIT_FAILED
+        if results.errors or pool.failed:
+            grid_status = "FAILED"
+        elif not interrupted:
+            grid_status = "FINISHED"
     except KeyboardInterrupt:
         if pool is not None:
             pool.cancel()
         print(f"interrupted: continue with  python -m uavlora_rllib.tune {args.grid} --resume", file=sys.stderr)
         return EXIT_INTERRUPTED
     finally:
-        _close_unfinished_runs(tracker)
+        _close_unfinished_runs(tracker, grid_status)
         if started_ray:
             ray.shutdown()
     return _report(grid, args, specs, uri, exp_path, results, pool, done, interrupted, time.perf_counter() - t_start)
@@ -392,8 +401,10 @@ def _open_tracker(grid: GridConfig, grid_file: str, uri: str):
     from uavlora_rllib.experiment.mlflow_client import Tracker, TrackingUnavailable
 
     try:
-        return Tracker(uri, grid.experiment, grid_file, retry_timeout_s=grid.mlflow.retry_timeout_s)
-    except TrackingUnavailable as exc:
+        tracker = Tracker(uri, grid.experiment, grid_file, retry_timeout_s=grid.mlflow.retry_timeout_s)
+        tracker.open_grid_run()  # the parent of this grid's runs (kept by --resume)
+        return tracker
+    except TrackingUnavailable as exc:  # unreachable, or refused (TrackingRefused: credentials)
         raise ConfigError(str(exc)) from None
 
 
@@ -448,14 +459,16 @@ def _settle_baselines(pool, interrupted: bool) -> None:
     pool.wait()
 
 
-def _close_unfinished_runs(tracker) -> None:
-    """No run stays RUNNING once the grid stops: mark any left by a crash KILLED (the callback closes its own)."""
+def _close_unfinished_runs(tracker, grid_status: str = "KILLED") -> None:
+    """No run stays RUNNING once the grid stops: the parent run ends as `grid_status`, any run left
+    by a crash KILLED (the callback closes its own)."""
     from uavlora_rllib.experiment.mlflow_client import TrackingUnavailable
 
     if tracker is None:
         return
     tracker.retry_timeout_s = min(tracker.retry_timeout_s, 10.0)  # MLflow may be the reason we stop
     try:
+        tracker.end(tracker.grid_run(), grid_status)
         closed = tracker.close_running("KILLED")
         if closed:
             print(f"marked {len(closed)} unfinished MLflow run(s) KILLED", file=sys.stderr)

@@ -128,6 +128,11 @@ class MlflowConfig:
     # seconds the driver keeps retrying (with backoff) while MLflow is unreachable, then stops
     # with a clear message; --resume fills in what was not logged (docs/cluster.md)
     retry_timeout_s: float = Field(300.0, gt=0, le=86400)
+    # MB up to which a finished trial's final checkpoint (on a local or shared filesystem) is
+    # uploaded as its run's `checkpoint/` artifact; larger ones, cloud storage, and 0 keep only
+    # the `checkpoint` tag pointing at it (docs/cluster.md#mlflow). RLlib checkpoints of the paper's
+    # models are ~4 MB
+    checkpoint_artifact_max_mb: float = Field(50.0, ge=0, le=10**6)
 
     @field_validator("tracking_uri")
     @classmethod

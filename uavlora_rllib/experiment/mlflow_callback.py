@@ -10,6 +10,13 @@ Crash safety (a driver killed at any point, then the same command with ``--resum
 trial's run is found again by its ``trial_id`` and adopted whatever its status; trials Tune
 restores as finished but whose run was not ended (the driver died in between, or MLflow was
 down) are completed from the trial's ``result.json`` (`MlflowTrialCallback.reconcile_trial`).
+Artifacts (`run_schema`): ``trial_config.yaml`` when the run is created or adopted; when the
+trial ends, ``curves.csv`` (from the run's own metric histories, so it holds exactly what the UI
+draws) and, for a FINISHED trial, its final checkpoint as ``checkpoint/`` when that is on a
+local or shared filesystem and small enough (``mlflow.checkpoint_artifact_max_mb``), else a
+``checkpoint_artifact`` tag saying why not. Each goes to a fixed artifact path, so a repeat
+(``--resume`` after a crash) replaces instead of duplicating, and a checkpoint already uploaded
+(tag ``checkpoint_artifact_source``) is not uploaded again.
 The runs' fields: `run_schema`; the retrying writer: `mlflow_client.Tracker`.
 """
 
@@ -17,18 +24,50 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
+import os
+
 from ray.tune import Callback
 
 from uavlora_rllib.experiment.mlflow_client import DEFAULT_RETRY_TIMEOUT_S, Tracker
 from uavlora_rllib.experiment.run_schema import (
+    CHECKPOINT_ARTIFACT,
+    CURVES_ARTIFACT,
     ENV_STEPS,
     EVAL_PREFIX,
     KIND_TRAIN,
+    TRIAL_CONFIG_ARTIFACT,
+    curves_csv,
+    identity_params,
     metrics_to_log,
     number,
     read_trial_results,
     run_params,
+    trial_config_yaml,
 )
+
+DEFAULT_CHECKPOINT_ARTIFACT_MAX_MB = 50.0  # grid mlflow.checkpoint_artifact_max_mb
+
+
+def checkpoint_uri(checkpoint) -> str:
+    """Where a Tune checkpoint lies: its path on a local/shared filesystem, else a URI (s3://, gs://)."""
+    path = str(checkpoint.path)
+    kind = str(getattr(getattr(checkpoint, "filesystem", None), "type_name", "local") or "local")
+    if kind == "local" or kind.startswith("py::"):
+        return path
+    scheme = {"gcs": "gs"}.get(kind, kind)  # pyarrow's GcsFileSystem is "gcs"; its URIs are gs://
+    return f"{scheme}://{path.lstrip('/')}"
+
+
+def directory_mb(path: str) -> float:
+    """Size of the files under `path` in MB (10^6 bytes)."""
+    total = 0
+    for root, _, files in os.walk(path):
+        for name in files:
+            try:
+                total += os.path.getsize(os.path.join(root, name))
+            except OSError:
+                pass
+    return total / 1e6
 
 
 class MlflowTrialCallback(Callback):
@@ -40,12 +79,14 @@ class MlflowTrialCallback(Callback):
     """
 
     def __init__(self, tracking_uri: str, experiment: str, grid_file: str, commit: str | None = None,
-                 retry_timeout_s: float = DEFAULT_RETRY_TIMEOUT_S):
+                 retry_timeout_s: float = DEFAULT_RETRY_TIMEOUT_S,
+                 checkpoint_artifact_max_mb: float = DEFAULT_CHECKPOINT_ARTIFACT_MAX_MB):
         self.tracking_uri = tracking_uri
         self.experiment = experiment
         self.grid_file = grid_file
         self.commit = commit
         self.retry_timeout_s = retry_timeout_s
+        self.checkpoint_artifact_max_mb = checkpoint_artifact_max_mb
         self._tracker: Tracker | None = None
         self._runs: dict[str, str] = {}  # trial_id -> run_id
         self._last_step: dict[str, int] = {}  # trial_id -> highest env step with training metrics
@@ -61,6 +102,7 @@ class MlflowTrialCallback(Callback):
     def __setstate__(self, state: dict) -> None:
         state.setdefault("retry_timeout_s", DEFAULT_RETRY_TIMEOUT_S)
         state.setdefault("_reconciled", False)
+        state.setdefault("checkpoint_artifact_max_mb", DEFAULT_CHECKPOINT_ARTIFACT_MAX_MB)
         self.__dict__.update(state)
 
     @property
@@ -77,9 +119,14 @@ class MlflowTrialCallback(Callback):
             return self._runs[tid]
         cfg = trial.config.get("trial", trial.config)
         existing = self.tracker.run_for_trial(tid)
+        identity = identity_params(cfg["algorithm"], cfg["seed"], cfg["n_eds"], cfg["n_uavs"])
         if existing is not None:
             run_id = existing.info.run_id
             self._last_step[tid] = self.tracker.last_logged_step(existing)
+            self.tracker.set_parent(existing)  # a run written before parents existed
+            missing = {k: v for k, v in identity.items() if k not in existing.data.params}
+            if missing:
+                self.tracker.log_params(run_id, missing)
             if existing.info.status != "RUNNING":
                 self.tracker.reopen(run_id)
         else:
@@ -94,12 +141,13 @@ class MlflowTrialCallback(Callback):
             )
             tags["trial_id"] = tid
             tags["checkpoint"] = ""
-            params = run_params(
+            params = {**identity, **run_params(
                 cfg["scenario"], cfg["budget_env_steps"], cfg["eval_episodes"], cfg["hparams"], cfg["resources"]
-            )
+            )}
             name = run_name(cfg["algorithm"], cfg["n_eds"], cfg["n_uavs"], cfg["seed"])
             run_id = self.tracker.create_run(name, tags, params)
             self._last_step[tid] = -1
+        self.tracker.log_text(run_id, trial_config_yaml(cfg, tid), TRIAL_CONFIG_ARTIFACT)
         self._runs[tid] = run_id
         self._ended.discard(tid)
         return run_id
@@ -107,14 +155,47 @@ class MlflowTrialCallback(Callback):
     def _end(self, trial, status: str) -> None:
         run_id = self.run_id(trial)
         self._update_checkpoint(trial)
+        # artifacts before the status: a driver killed in between leaves the run unfinished, and
+        # --resume (reconcile_trial) logs them again to the same paths
+        self.tracker.log_text(run_id, curves_csv(self.tracker.metric_histories(run_id)), CURVES_ARTIFACT)
+        if status == "FINISHED":
+            self._log_final_checkpoint(trial, run_id)
         self.tracker.end(run_id, status)
         self._ended.add(trial.trial_id)
 
     def _update_checkpoint(self, trial) -> None:
         ckpt = getattr(trial, "checkpoint", None)
-        path = getattr(ckpt, "path", None)
-        if path:
-            self.tracker.set_tag(self.run_id(trial), "checkpoint", path)
+        if getattr(ckpt, "path", None):
+            self.tracker.set_tag(self.run_id(trial), "checkpoint", checkpoint_uri(ckpt))
+
+    def _log_final_checkpoint(self, trial, run_id: str) -> None:
+        """The final checkpoint as the run's ``checkpoint/`` artifact when it is on a local or
+        shared filesystem and at most `checkpoint_artifact_max_mb` MB (once: tag
+        ``checkpoint_artifact_source``); else tag ``checkpoint_artifact`` says why not, and the
+        ``checkpoint`` tag is the pointer. Cloud checkpoints are not copied through the driver."""
+        ckpt = getattr(trial, "checkpoint", None)
+        if not getattr(ckpt, "path", None):
+            return
+        where = checkpoint_uri(ckpt)
+        limit = float(self.checkpoint_artifact_max_mb)
+        if "://" in where:
+            reason = "not uploaded: on cloud storage (tag checkpoint is its URI)"
+        elif not os.path.isdir(where):
+            reason = "not uploaded: not visible from the driver (tag checkpoint is its path)"
+        elif limit <= 0:
+            reason = "not uploaded: mlflow.checkpoint_artifact_max_mb is 0 (tag checkpoint is its path)"
+        else:
+            size = directory_mb(where)
+            if size > limit:
+                reason = (f"not uploaded: {size:.1f} MB > mlflow.checkpoint_artifact_max_mb {limit:g} "
+                          "(tag checkpoint is its path)")
+            else:
+                run = self.tracker.get_run(run_id)
+                if run.data.tags.get("checkpoint_artifact_source") != where:
+                    self.tracker.log_artifacts(run_id, where, CHECKPOINT_ARTIFACT)
+                    self.tracker.set_tag(run_id, "checkpoint_artifact_source", where)
+                reason = f"{CHECKPOINT_ARTIFACT}/"
+        self.tracker.set_tag(run_id, "checkpoint_artifact", reason)
 
     def _log_result(self, trial, result: Mapping[str, Any]) -> None:
         run_id = self.run_id(trial)
@@ -143,8 +224,8 @@ class MlflowTrialCallback(Callback):
         return True
 
     # ---- Tune hooks
-    def on_step_begin(self, iteration, trials, **info):
-        # the first step after Tuner.restore: trials restored as finished get no other hook
+    def _reconcile(self, trials) -> None:
+        """Once per driver: complete the runs of trials restored as finished (they get no other hook)."""
         if self._reconciled:
             return
         self._reconciled = True
@@ -152,6 +233,10 @@ class MlflowTrialCallback(Callback):
         fixed = sum(self.reconcile_trial(t) for t in done)
         if fixed:
             print(f"MLflow: completed {fixed} run(s) of trials that had finished while their driver died", flush=True)
+
+    def on_step_begin(self, iteration, trials, **info):
+        # the first step after Tuner.restore
+        self._reconcile(trials)
 
     def on_trial_start(self, iteration, trials, trial, **info):
         self.run_id(trial)
@@ -178,6 +263,8 @@ class MlflowTrialCallback(Callback):
         self._end(trial, "FAILED")
 
     def on_experiment_end(self, trials, **info):
+        # every trial was restored as finished: Tune ran no step, so reconcile here
+        self._reconcile(trials)
         # Trials that did not finish (interrupted grid): their runs are KILLED until --resume.
         for trial in trials:
             tid = trial.trial_id

@@ -17,7 +17,11 @@ Against an MLflow server every call is retried with exponential backoff for at m
 ``retry_timeout_s`` seconds (grid ``mlflow.retry_timeout_s``) while the failure is `retryable`
 (no answer, or HTTP 429/502/503/504, or a busy database); then `TrackingUnavailable` stops the
 driver with one clear line. Nothing is lost: Tune's results and checkpoints are on storage, and
-``--resume`` fills the runs in. Run fields: `run_schema`.
+``--resume`` fills the runs in. A server that answers 401/403 (MLflow's basic-auth app without,
+or with wrong, MLFLOW_TRACKING_USERNAME/PASSWORD) is not retried: `TrackingRefused`, one line.
+
+Every run of the grid is nested under its one parent run (`Tracker.grid_run`, tag kind=grid),
+found again by every later driver of the same experiment. Run fields: `run_schema`.
 """
 
 from __future__ import annotations
@@ -31,11 +35,17 @@ import time
 from typing import Any, Iterable, Mapping
 
 from uavlora_rllib.experiment.run_schema import (
+    GRID_ARTIFACT,
+    IDENTITY_PARAMS,
     KIND_BASELINE,
+    KIND_GRID,
     KIND_TRAIN,
     MAX_TAG_VAL_LENGTH,
+    PARENT_TAG,
     TRAIN_METRICS,
     eval_metrics,
+    identity_params,
+    reference_steps,
 )
 
 UNFINISHED = ("RUNNING", "KILLED", "FAILED", "SCHEDULED")
@@ -49,6 +59,10 @@ DEFAULT_RETRY_TIMEOUT_S = 300.0
 
 class TrackingUnavailable(RuntimeError):
     """MLflow stayed unreachable for the whole retry budget."""
+
+
+class TrackingRefused(TrackingUnavailable):
+    """The MLflow server answered 401/403: missing or wrong credentials (its basic-auth app)."""
 
 
 def retryable(exc: BaseException) -> bool:
@@ -102,6 +116,28 @@ def _http_status(exc: BaseException) -> int | None:
     return None
 
 
+def user_name() -> str:
+    """Who launched the grid (MLflow's ``mlflow.user`` convention: the OS user), or "unknown"."""
+    import getpass
+
+    try:
+        return getpass.getuser()
+    except (KeyError, OSError):  # no passwd entry and no USER variable (some containers)
+        return "unknown"
+
+
+def git_repo_url(repo_dir: str | None = None) -> str | None:
+    """The checkout's ``origin`` URL when it is a web or SSH address the UI can link to, else None."""
+    repo_dir = repo_dir or os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    try:
+        out = subprocess.run(["git", "-C", repo_dir, "config", "--get", "remote.origin.url"],
+                             capture_output=True, text=True, timeout=10, check=True)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    url = out.stdout.strip()
+    return url if url.startswith(("https://", "http://", "git@", "ssh://")) else None
+
+
 def git_commit(repo_dir: str | None = None) -> str:
     """`git rev-parse HEAD` of the project checkout, or "unknown"."""
     repo_dir = repo_dir or os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -112,6 +148,11 @@ def git_commit(repo_dir: str | None = None) -> str:
         return out.stdout.strip() or "unknown"
     except (OSError, subprocess.SubprocessError):
         return "unknown"
+
+
+def _without_identity(params: Mapping[str, str]) -> dict[str, str]:
+    """Params without the identity ones (runs written before they were params lack them)."""
+    return {k: v for k, v in params.items() if k not in IDENTITY_PARAMS}
 
 
 class Tracker:
@@ -131,14 +172,32 @@ class Tracker:
         self.grid_file = grid_file
         self.retry_timeout_s = float(retry_timeout_s)
         self.commit = commit or git_commit()
+        self.user = user_name()
+        self.repo_url = git_repo_url()
+        self._grid_run_id: str | None = None
         self.client = MlflowClient(tracking_uri=tracking_uri)
         exp = self._call(self.client.get_experiment_by_name, experiment)
         if exp is None:
-            self.experiment_id = self._call(self.client.create_experiment, experiment)
+            self.experiment_id = self._call(self._create_experiment, experiment)
         else:
             if exp.lifecycle_stage == "deleted":
                 self._call(self.client.restore_experiment, exp.experiment_id)
             self.experiment_id = exp.experiment_id
+
+    def _create_experiment(self, name: str) -> str:
+        """create_experiment, idempotent: a retry after a timed-out create that the server did
+        carry out (or another driver creating it at the same time) finds the experiment instead."""
+        from mlflow.exceptions import MlflowException
+
+        try:
+            return self.client.create_experiment(name)
+        except MlflowException as exc:
+            if exc.error_code != "RESOURCE_ALREADY_EXISTS":
+                raise
+            exp = self.client.get_experiment_by_name(name)
+            if exp is None:
+                raise
+            return exp.experiment_id
 
     def _call(self, fn, *args, **kwargs):
         """fn(*args) under the write lock, retried with backoff while MLflow is unreachable."""
@@ -150,6 +209,14 @@ class Tracker:
                 with _WRITE_LOCK:
                     return fn(*args, **kwargs)
             except Exception as exc:
+                status = _http_status(exc)
+                if status in (401, 403):
+                    raise TrackingRefused(
+                        f"mlflow.tracking_uri: MLflow at {self.tracking_uri} refused the request (HTTP {status}: "
+                        f"{'no or wrong credentials' if status == 401 else 'no permission'}); set "
+                        "MLFLOW_TRACKING_USERNAME and MLFLOW_TRACKING_PASSWORD to a user of its basic-auth app "
+                        "(docs/cluster.md#mlflow)"
+                    ) from None
                 if not retryable(exc):
                     raise
                 left = deadline - time.monotonic()
@@ -178,6 +245,9 @@ class Tracker:
             if not token:
                 return runs
 
+    def get_run(self, run_id: str):
+        return self._call(self.client.get_run, run_id)
+
     def run_for_trial(self, trial_id: str):
         runs = self.search(f"tags.trial_id = '{trial_id}'")
         return runs[0] if runs else None
@@ -196,6 +266,27 @@ class Tracker:
         return max(steps)
 
     # ---- writes
+    def source_tags(self) -> dict:
+        """MLflow's standard source tags, so the UI's Source and User fields are filled: the command
+        that ran the grid, the commit it ran at, and who ran it."""
+        from mlflow.utils.mlflow_tags import (
+            MLFLOW_GIT_COMMIT,
+            MLFLOW_GIT_REPO_URL,
+            MLFLOW_SOURCE_NAME,
+            MLFLOW_SOURCE_TYPE,
+            MLFLOW_USER,
+        )
+
+        tags = {
+            MLFLOW_SOURCE_NAME: f"python -m uavlora_rllib.tune {self.grid_file}"[:MAX_TAG_VAL_LENGTH],
+            MLFLOW_SOURCE_TYPE: "LOCAL",
+            MLFLOW_GIT_COMMIT: self.commit,
+            MLFLOW_USER: self.user,
+        }
+        if self.repo_url:
+            tags[MLFLOW_GIT_REPO_URL] = self.repo_url
+        return tags
+
     def base_tags(self, kind: str, algorithm: str, seed: int, n_eds: int, n_uavs: int, budget: int | None) -> dict:
         return {
             "kind": kind,
@@ -206,12 +297,63 @@ class Tracker:
             "git_commit": self.commit,
             "grid_file": self.grid_file[:MAX_TAG_VAL_LENGTH],
             "budget_env_steps": str(budget if budget is not None else 0),
+            **self.source_tags(),
+            PARENT_TAG: self.grid_run(),
         }
 
     def create_run(self, name: str, tags: Mapping[str, str], params: Mapping[str, str]) -> str:
         run = self._call(self.client.create_run, self.experiment_id, run_name=name, tags=dict(tags))
         self.log_params(run.info.run_id, params)
         return run.info.run_id
+
+    # ---- the grid's parent run
+    def grid_run(self) -> str:
+        """The id of the grid's parent run (tag kind=grid), found again or created (with the grid
+        YAML as its ``grid.yaml`` artifact): one per experiment, kept by every ``--resume``."""
+        if self._grid_run_id is None:
+            runs = self.search(f"tags.kind = '{KIND_GRID}'")  # oldest first
+            if runs:
+                self._grid_run_id = runs[0].info.run_id
+            else:
+                tags = {"kind": KIND_GRID, "git_commit": self.commit,
+                        "grid_file": self.grid_file[:MAX_TAG_VAL_LENGTH], **self.source_tags()}
+                run = self._call(self.client.create_run, self.experiment_id, run_name=self.experiment, tags=tags)
+                self._grid_run_id = run.info.run_id
+                if os.path.isfile(self.grid_file):
+                    with open(self.grid_file) as fh:
+                        self.log_text(self._grid_run_id, fh.read(), GRID_ARTIFACT)
+        return self._grid_run_id
+
+    def open_grid_run(self) -> str:
+        """The parent run, RUNNING while this driver runs the grid (its commit tags updated)."""
+        run_id = self.grid_run()
+        for key, value in {"git_commit": self.commit, **self.source_tags()}.items():
+            self.set_tag(run_id, key, value)
+        self.reopen(run_id)
+        return run_id
+
+    def set_parent(self, run) -> None:
+        """Nest an existing run (one written before parents existed, or adopted) under the grid run."""
+        parent = self.grid_run()
+        if run.data.tags.get(PARENT_TAG) != parent:
+            self.set_tag(run.info.run_id, PARENT_TAG, parent)
+
+    # ---- artifacts
+    def log_text(self, run_id: str, text: str, artifact_file: str) -> None:
+        """A small text artifact; logging the same file again replaces it (no duplicate)."""
+        self._call(self.client.log_text, run_id, text, artifact_file)
+
+    def log_artifacts(self, run_id: str, local_dir: str, artifact_path: str) -> None:
+        self._call(self.client.log_artifacts, run_id, local_dir, artifact_path)
+
+    def metric_histories(self, run_id: str) -> dict[str, list[tuple[int, float]]]:
+        """Every metric of a run as [(step, value)] in logging order (for its ``curves.csv``)."""
+        run = self._call(self.client.get_run, run_id)
+        out = {}
+        for key in run.data.metrics:
+            hist = self._call(self.client.get_metric_history, run_id, key)
+            out[key] = [(m.step, m.value) for m in sorted(hist, key=lambda m: (m.timestamp, m.step))]
+        return out
 
     def log_params(self, run_id: str, params: Mapping[str, str]) -> None:
         from mlflow.entities import Param
@@ -252,11 +394,16 @@ class Tracker:
 
     # ---- baselines
     def finished_baseline(self, name: str, seed: int, n_eds: int, n_uavs: int, params: Mapping[str, str]) -> bool:
-        """A FINISHED baseline run with the same identity and params exists (skip on resume)."""
+        """A FINISHED baseline run with the same identity and params exists (skip on resume; a
+        run written before parents existed is nested under the grid run then)."""
         runs = self.search(
             self.identity_filter(KIND_BASELINE, name, seed, n_eds, n_uavs) + " and attributes.status = 'FINISHED'"
         )
-        return any(dict(r.data.params) == dict(params) for r in runs)
+        for r in runs:
+            if _without_identity(r.data.params) == _without_identity(params):
+                self.set_parent(r)
+                return True
+        return False
 
     def _adoptable_baseline(self, name: str, seed: int, n_eds: int, n_uavs: int, params: Mapping[str, str]):
         """Unfinished baseline runs with this identity whose params agree with `params` (a
@@ -285,14 +432,16 @@ class Tracker:
         is created (or an unfinished one adopted), filled with eval/* and ended FINISHED/FAILED.
 
         `budget` is the grid's training budget (tag budget_env_steps: which grid the baseline
-        accompanies); nothing is trained, so no stop.env_steps param. The run is written only
-        once the result exists, so an interrupted evaluation leaves no run behind.
+        accompanies); nothing is trained, so no stop.env_steps param, and the values are logged
+        at `run_schema.reference_steps` of it (a flat line beside the learners' curves). The run
+        is written only once the result exists, so an interrupted evaluation leaves no run behind.
         """
         error: Exception | None = None
         try:
             summary = evaluate()
         except Exception as exc:
             summary, error = None, exc
+        params = {**identity_params(name, seed, n_eds, n_uavs), **params}
         tags = self.base_tags(KIND_BASELINE, name, seed, n_eds, n_uavs, budget)
         adopted = self._adoptable_baseline(name, seed, n_eds, n_uavs, params)
         if adopted is not None:
@@ -308,7 +457,9 @@ class Tracker:
             self.set_tag(run_id, "error", " ".join(str(error).split()))
             self.end(run_id, "FAILED")
             raise error
-        self.log_metrics(run_id, eval_metrics(summary), step=0)
+        metrics = eval_metrics(summary)
+        for step in reference_steps(budget):  # a flat reference line across the training range
+            self.log_metrics(run_id, metrics, step=step)
         self.end(run_id, "FINISHED")
         return run_id
 

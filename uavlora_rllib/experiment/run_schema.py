@@ -1,14 +1,28 @@
-"""What an MLflow run of a grid holds, and how a trial's result dict maps onto it.
+"""What an MLflow run of a grid holds, and how a trial's result dict maps onto it (docs/model.md#mlflow-runs).
 
 The analysis step reads exactly this schema:
 
-* experiment: the grid's `experiment`; run name ``{algorithm}-V{n_eds}-U{n_uavs}-s{seed}``.
+* experiment: the grid's `experiment`, holding one parent run per grid (tag ``kind`` = "grid",
+  run name = the experiment) with the grid's train and baseline runs nested under it (tag
+  ``mlflow.parentRunId``); run name ``{algorithm}-V{n_eds}-U{n_uavs}-s{seed}``. The parent holds
+  the grid YAML (artifact ``grid.yaml``) and the report's files (artifact folder ``report/``,
+  written by ``analysis.report``). Experiments written before the parent existed are flat (and
+  may hold a ``kind`` = "summary" run instead); the report reads both.
 * tags: ``kind`` ("train" | "baseline"), ``algorithm``, ``seed``, ``n_eds``, ``n_uavs``,
-  ``git_commit``, ``grid_file``, ``budget_env_steps``; train runs also ``trial_id`` and
-  ``checkpoint`` (the trial's last checkpoint, updated at every save and at the end).
-* params: ``algo.<field>`` (hyperparameters; none for baselines), ``scenario.<field>``
+  ``git_commit``, ``grid_file``, ``budget_env_steps``, MLflow's own ``mlflow.source.name``
+  (the command), ``mlflow.source.type`` (LOCAL), ``mlflow.source.git.commit`` and
+  ``mlflow.user``; train runs also ``trial_id``, ``checkpoint`` (the trial's last checkpoint:
+  a path, or a URI on cloud storage; updated at every save and at the end) and
+  ``checkpoint_artifact`` (whether the final checkpoint was uploaded, see below).
+* params: ``algorithm``, ``seed``, ``n_eds``, ``n_uavs`` (to filter and group by in the UI),
+  ``algo.<field>`` (hyperparameters; none for baselines), ``scenario.<field>``
   (`scenario.flatten`), ``resources.<field>`` (train runs), ``stop.env_steps``,
   ``eval.episodes``; values are strings, cut to MLflow's length limit.
+* artifacts of a train run: ``trial_config.yaml`` (the resolved trial config it trained with),
+  and once the trial ends ``curves.csv`` (every metric of the run, one row per env step) and,
+  when it FINISHED, ``checkpoint/`` (its final RLlib checkpoint) if the checkpoint is on a local
+  or shared filesystem and at most ``mlflow.checkpoint_artifact_max_mb`` MB; otherwise only the
+  ``checkpoint`` tag points at it (docs/cluster.md#mlflow).
 * training metrics, step = env steps sampled so far: ``episode_return_mean``,
   ``ee_sys_mean`` and ``success_rate`` (when the algorithm logs them), ``env_steps_per_s``
   and every numeric learner stat as ``learner/<stat>`` (one policy module) or
@@ -18,7 +32,8 @@ The analysis step reads exactly this schema:
   reference baselines (greedy, optimal) also ``eval/ee_sys_upper_bound``; train runs
   also log them during training, step = env steps (experiment/periodic_eval.py), so the final
   evaluation is the last point of each series; ``eval_sampled/<k>`` likewise for algorithms
-  with a sampled policy.
+  with a sampled policy. A baseline run logs its (constant) values at `reference_steps` of the
+  grid's budget, so the UI's charts draw it as a flat line across the training range.
 
 `mlflow_client.Tracker` writes runs of this schema; `mlflow_callback.MlflowTrialCallback`
 fills the train runs from Tune's results; this module only maps dicts (no MLflow calls, no Ray).
@@ -47,6 +62,14 @@ EVAL_PREFIX = "eval/"
 
 KIND_TRAIN = "train"
 KIND_BASELINE = "baseline"
+KIND_GRID = "grid"  # the parent run of a grid's runs
+PARENT_TAG = "mlflow.parentRunId"  # MLflow's nesting tag: the UI shows the run under its parent
+IDENTITY_PARAMS = ("algorithm", "seed", "n_eds", "n_uavs")
+REFERENCE_POINTS = 11  # steps a baseline's values are logged at: 0, budget/10, ..., budget
+TRIAL_CONFIG_ARTIFACT = "trial_config.yaml"
+CURVES_ARTIFACT = "curves.csv"
+CHECKPOINT_ARTIFACT = "checkpoint"
+GRID_ARTIFACT = "grid.yaml"
 
 
 _BAD_CHARS = re.compile(r"[^/\w.\- ]")
@@ -236,3 +259,56 @@ def read_trial_results(trial_dir: str | None) -> list[dict]:
     except OSError:
         return []
     return rows
+
+
+def identity_params(algorithm: str, seed: int, n_eds: int, n_uavs: int) -> dict[str, str]:
+    """The params a researcher filters and groups runs by (also tags, which resume matches on)."""
+    return {"algorithm": str(algorithm), "seed": str(seed), "n_eds": str(n_eds), "n_uavs": str(n_uavs)}
+
+
+def reference_steps(budget_env_steps: int | None, points: int = REFERENCE_POINTS) -> list[int]:
+    """Env steps spanning [0, budget] at which a baseline logs its constant values: a flat
+    reference line beside the learners' curves in the UI's charts (step 0 alone without a budget)."""
+    if not budget_env_steps or budget_env_steps <= 0:
+        return [0]
+    return sorted({round(budget_env_steps * i / (points - 1)) for i in range(points)})
+
+
+def _plain(value: Any) -> Any:
+    """Plain YAML data: mappings, lists, str, numbers, bools, None (anything else as a string)."""
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    return str(value)
+
+
+def trial_config_yaml(cfg: Mapping[str, Any], trial_id: str) -> str:
+    """The trial's resolved config (what it trained with), as the YAML of its ``trial_config.yaml``."""
+    import yaml
+
+    doc = {"trial_id": trial_id, **_plain(cfg)}
+    return "# the resolved config of this trial (uavlora_rllib.tune; docs/model.md#mlflow-runs)\n" + \
+        yaml.safe_dump(doc, sort_keys=False)
+
+
+def curves_csv(histories: Mapping[str, list[tuple[int, float]]]) -> str:
+    """{metric: [(step, value), ...]} -> a CSV with one row per step (env steps) and one column per
+    metric (empty where a metric has no value at that step; the last value of a repeated step)."""
+    import csv
+    import io
+
+    keys = sorted(histories)
+    table: dict[int, dict[str, float]] = {}
+    for key in keys:
+        for step, value in histories[key]:
+            table.setdefault(int(step), {})[key] = value
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow([ENV_STEPS, *keys])
+    for step in sorted(table):
+        row = table[step]
+        writer.writerow([step, *(repr(row[k]) if k in row else "" for k in keys)])
+    return buf.getvalue()
