@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from typing import Callable
+from collections.abc import Callable
 
 SEED_MAX = 2**32 - 1  # seeds are 32-bit everywhere (NumPy's legacy seeding, Ray, the grid's seeds)
 

@@ -208,7 +208,7 @@ class _PerDeviceSearch:
                     p0, q0, m = self._row(const_set, const_bw, uu, kk, p0, q0)
                     moved |= m
                 for uu in range(n_u):
-                    const_bw, p0, q0, m = _best_entry(const_bw, uu, cfg.n_bw, lambda c: self.bw_keys(const_set, c), p0, q0)
+                    const_bw, p0, q0, m = _best_entry(const_bw, uu, cfg.n_bw, lambda c: self.bw_keys(const_set, c), p0, q0)  # noqa: B023 (called at once)
                     moved |= m
                 if not moved:
                     break

@@ -33,8 +33,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from uavlora_rllib.sim import physics
 from uavlora_rllib.config_errors import ConfigError
+from uavlora_rllib.sim import physics
 from uavlora_rllib.sim.actions import decode_joint_action, encode_joint_action, per_device_action_len
 from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.sim.scenario import ScenarioConfig

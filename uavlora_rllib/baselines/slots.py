@@ -43,7 +43,7 @@ class Slots:
         return self.g_serving.shape[0]
 
     @classmethod
-    def of_core(cls, core: BatchCore) -> "Slots":
+    def of_core(cls, core: BatchCore) -> Slots:
         gains = core.gains if core.cfg.interference != "paper" else None
         return cls(core.g_serving, core.links.serving_idx, core.associated, core.slot_of_ed, gains)
 

@@ -55,8 +55,9 @@ import math
 import os
 import re
 import urllib.parse
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Annotated, Any, Mapping
+from typing import Annotated, Any
 
 import yaml
 from pydantic import Field, field_validator
@@ -375,7 +376,7 @@ def _validate(grid: GridConfig) -> None:
             scenario = scenario_for(grid, n_eds, n_uavs)
         except ConfigError as exc:
             raise ConfigError(f"{exc}{where}") from None
-        for name, (entry, hparams) in entries.items():
+        for entry, hparams in entries.values():
             entry.check_scenario(scenario, prefix="scenario.action_mode")
             # the entry's own cross-checks (hyperparameters x resources x scenario); builds
             # only the AlgorithmConfig, not the algorithm

@@ -24,7 +24,7 @@ one, which is worth 0, stay unassociated).
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment

@@ -19,7 +19,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Literal, Mapping
+from collections.abc import Mapping
+from typing import Any, Literal
 
 import pydantic
 from pydantic import Field, field_validator, model_validator
@@ -145,7 +146,7 @@ class ScenarioConfig:
         return tuple(sorted(v))
 
     @model_validator(mode="after")
-    def _check_quota(self) -> "ScenarioConfig":
+    def _check_quota(self) -> ScenarioConfig:
         if self.action_mode == "per_device" and self.quota > 64:
             raise ValueError(
                 f"action_mode per_device needs max_eds_per_uav <= 64 (action slots), got quota {self.quota}"
@@ -180,7 +181,7 @@ class ScenarioConfig:
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
-    def replace(self, **changes: Any) -> "ScenarioConfig":
+    def replace(self, **changes: Any) -> ScenarioConfig:
         """A validated copy with some fields changed (nested groups as dicts or objects)."""
         merged = self.to_dict()
         for key, value in changes.items():
@@ -193,7 +194,7 @@ class ScenarioConfig:
         return ScenarioConfig.from_dict(merged)
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any] | None, prefix: str = "scenario") -> "ScenarioConfig":
+    def from_dict(cls, data: Mapping[str, Any] | None, prefix: str = "scenario") -> ScenarioConfig:
         """Build from a plain mapping (a YAML section); raises ConfigError naming the bad field."""
         return build(cls, data, prefix)
 

@@ -20,7 +20,7 @@ of one tensor and the baseline of all of them is one `counterfactual_advantage` 
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch

@@ -24,7 +24,7 @@ Log-probabilities and entropies are summed over a UAV's components but kept per 
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch

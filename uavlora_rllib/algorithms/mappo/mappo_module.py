@@ -24,7 +24,7 @@ STATE_OUT. Inference: ACTIONS = argmax per agent (component).
 
 from __future__ import annotations
 
-from typing import Any, Dict, List
+from typing import Any
 
 import numpy as np
 import torch
@@ -133,16 +133,16 @@ class MAPPOTorchRLModule(RecurrentActorForward, TorchRLModule, ValueFunctionAPI,
             self.critic = Critic(in_dim, int(mc["critic_hidden"]), self.n_agents, bool(mc["value_norm"]))
 
     @override(InferenceOnlyAPI)
-    def get_non_inference_attributes(self) -> List[str]:
+    def get_non_inference_attributes(self) -> list[str]:
         return ["critic"]
 
     @override(RLModule)
-    def _forward_train(self, batch: Dict[str, Any], **kwargs) -> Dict[str, Any]:
+    def _forward_train(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
         logits, state = self.actor_logits(batch)
         return {Columns.ACTION_DIST_INPUTS: logits, Columns.STATE_OUT: state}
 
     # ---------------------------------------------------------------- critic
-    def critic_input(self, batch: Dict[str, Any]) -> torch.Tensor:
+    def critic_input(self, batch: dict[str, Any]) -> torch.Tensor:
         """The global state [..., S] (central; the same for every agent) or each agent's own
         observation row [..., U, d] (local)."""
         if self.critic_kind == "central":
@@ -150,7 +150,7 @@ class MAPPOTorchRLModule(RecurrentActorForward, TorchRLModule, ValueFunctionAPI,
         return batch[Columns.OBS].float()
 
     @override(ValueFunctionAPI)
-    def compute_values(self, batch: Dict[str, Any], embeddings: Any = None) -> torch.Tensor:
+    def compute_values(self, batch: dict[str, Any], embeddings: Any = None) -> torch.Tensor:
         """Per-agent values [B, T, U] in the critic's (normalised, if value_norm) space."""
         return self.critic(self.critic_input(batch), shared=self.critic_kind == "central")
 

@@ -39,12 +39,11 @@ restored run refills it (learning resumes after learning_starts_episodes new epi
 
 from __future__ import annotations
 
-import numpy as np
 from typing import Literal
 
+import numpy as np
 from pydantic import Field, model_validator
 from pydantic.dataclasses import dataclass as typed_dataclass
-
 from ray.rllib.algorithms.algorithm import Algorithm
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 from ray.rllib.core import DEFAULT_MODULE_ID
@@ -150,7 +149,7 @@ class QMIXHParams:
     )
 
     @model_validator(mode="after")
-    def _check(self) -> "QMIXHParams":
+    def _check(self) -> QMIXHParams:
         if self.epsilon_end > self.epsilon_start:
             raise ValueError(f"epsilon_end ({self.epsilon_end}) must be <= epsilon_start ({self.epsilon_start})")
         if self.batch_size_episodes > self.buffer_size_episodes:

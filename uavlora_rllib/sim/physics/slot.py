@@ -35,7 +35,7 @@ class Tables:
     hover_w: float
 
     @classmethod
-    def from_config(cls, cfg: ScenarioConfig) -> "Tables":
+    def from_config(cls, cfg: ScenarioConfig) -> Tables:
         sf = np.asarray(cfg.sf_set, dtype=np.int64)
         bw = np.asarray(cfg.bw_khz, dtype=np.int64)
         return cls(
