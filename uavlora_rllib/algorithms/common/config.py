@@ -3,7 +3,7 @@
 The convention every algorithm follows:
 
 * ONE typed config class, a pydantic dataclass (`MAPPOHParams`, `QMIXHParams`,
-  `COMAHParams`) whose every field is `Field(default, description="what it does [unit]")`.
+  `COMAHParams`) whose every field is `Field(default=default, description="what it does [unit]")`.
   The description is the documentation: `python -m uavlora_rllib.tune --list-hparams ALGO`
   prints it with the default (see `describe_hparams`). Checks between its own fields: a
   pydantic `model_validator`. Checks against the scenario and the trial's resources: its
