@@ -280,7 +280,7 @@ def make_tuner(grid: GridConfig, specs: list[TrialSpec], storage: str, uri: str,
     )
 
 
-def _tracking_failure(exc: BaseException):
+def _tracking_failure(exc: BaseException | None):
     """The TrackingUnavailable inside an exception chain (Tune wraps callback errors), or None."""
     from uavlora_rllib.experiment.mlflow_client import TrackingUnavailable
 

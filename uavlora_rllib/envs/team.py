@@ -177,10 +177,10 @@ class UavLoraTeamVectorEnv(gym.vector.VectorEnv):
         rewards = np.where(restart, 0.0, res.reward)
         truncated = np.where(restart, False, res.truncated)
         if restart.any():
-            seeds: list = [None] * self.num_envs
+            restart_seeds: list[np.random.SeedSequence | None] = [None] * self.num_envs
             for i, s in zip(np.flatnonzero(restart), self._seeds.spawn(int(restart.sum()))):
-                seeds[i] = s
-            self.core.reset(seeds, mask=restart)
+                restart_seeds[i] = s
+            self.core.reset(restart_seeds, mask=restart)
         self._needs_reset = truncated.copy()
         terminated = np.zeros(self.num_envs, dtype=bool)
         return _obs32(self.core.obs), rewards, terminated, truncated, self._infos(res.metrics, ~restart)

@@ -451,6 +451,6 @@ def baseline_runs(grid: GridConfig) -> list[BaselineSpec]:
 
 def hparams_dict(hparams: Any) -> dict[str, Any]:
     """A hyperparameter dataclass as a plain dict (for Ray configs and MLflow params)."""
-    if dataclasses.is_dataclass(hparams):
+    if dataclasses.is_dataclass(hparams) and not isinstance(hparams, type):
         return dataclasses.asdict(hparams)
     return dict(hparams or {})

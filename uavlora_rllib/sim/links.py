@@ -109,6 +109,7 @@ class LinkStage(ABC):
         grp = serving_idx if all_associated else np.where(associated, serving_idx, u)
         # EDs by (serving UAV, descending gain, ED id): each UAV's EDs form a run in gain order
         order, grouped = group_sort(g_serving, grp, u + 1, descending=True)
+        assert grouped is not None  # (groups given)
         order += self._row_base  # flat indices into [N, V]
         grouped += self._grp_base
         counts = group_counts

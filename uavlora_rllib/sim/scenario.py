@@ -185,7 +185,7 @@ class ScenarioConfig:
         """A validated copy with some fields changed (nested groups as dicts or objects)."""
         merged = self.to_dict()
         for key, value in changes.items():
-            if dataclasses.is_dataclass(value):
+            if dataclasses.is_dataclass(value) and not isinstance(value, type):
                 value = dataclasses.asdict(value)
             if isinstance(value, Mapping) and isinstance(merged.get(key), dict):
                 merged[key] = {**merged[key], **value}

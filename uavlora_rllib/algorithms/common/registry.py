@@ -119,7 +119,7 @@ def register(entry: AlgorithmEntry) -> None:
     _REGISTRY[entry.name] = entry
 
 
-def register_algorithm(name: str, config_cls: type, action_modes: tuple[str, ...]) -> AlgorithmEntry:
+def register_algorithm(name: str, config_cls: type[Any], action_modes: tuple[str, ...]) -> AlgorithmEntry:
     """Register algorithm `name`, whose trials are `config_cls` (an `HParamsConfig`
     AlgorithmConfig) set up by `config.team_config`; returns its entry."""
 

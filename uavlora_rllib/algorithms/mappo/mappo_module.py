@@ -24,7 +24,7 @@ STATE_OUT. Inference: ACTIONS = argmax per agent (component).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -44,6 +44,10 @@ from uavlora_rllib.algorithms.common.threads import set_torch_threads
 class ValueNorm(nn.Module):
     """Running mean / std of the value targets (MAPPO's ValueNorm, a PopArt without the
     output-layer rescaling): debiased exponential moving averages of x and x^2."""
+
+    mean: torch.Tensor
+    mean_sq: torch.Tensor
+    debias: torch.Tensor
 
     def __init__(self, beta: float = 0.99, eps: float = 1e-5):
         super().__init__()
@@ -91,7 +95,7 @@ class Critic(nn.Module):
     def forward(self, x: torch.Tensor, shared: bool = False) -> torch.Tensor:
         """x [..., U, d] per agent, or [..., d] the same for every agent (shared=True), without
         the id -> values [..., U] (normalised space)."""
-        first = self.net[0]
+        first = cast(nn.Linear, self.net[0])
         d = self.in_dim - self.n_agents
         z = nn.functional.linear(x, first.weight[:, :d], first.bias)
         if shared:

@@ -164,7 +164,7 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
         return self._eps[1] if t is None else linear_epsilon(t, *self._eps)
 
     # ------------------------------------------------------------------ acting (env runners)
-    def _step(self, batch: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
+    def _step(self, batch: dict[str, Any]) -> tuple[Any, torch.Tensor]:
         """Greedy-ready Qs of one step: obs [B, 1, U, d] (or [B, U, d]) -> q [B, U, A], h [B, U, H]."""
         obs = batch[Columns.OBS].float()
         if obs.dim() == 3:

@@ -57,7 +57,7 @@ def sinr_paper_tx(s_tx: np.ndarray, sf_idx: np.ndarray, n_sf: int, out: np.ndarr
 def sinr_of_groups(s_flat: np.ndarray, group: np.ndarray, n_bins: int, out: np.ndarray | None = None) -> np.ndarray:
     """Eq. (sinr) of EDs whose interferers are the EDs of the same group (flat bin per ED:
     scenario and SF): s / (sum of the group's s - s + 1), s_flat and group 1-D."""
-    total = np.bincount(group, weights=s_flat, minlength=n_bins)
+    total: np.ndarray = np.bincount(group, weights=s_flat, minlength=n_bins)  # (float: weighted)
     interference = total.take(group)  # sum over the ED's own SF, itself included
     interference -= s_flat  # >= 0 exactly: a running sum of terms >= 0 never falls below one of them
     interference += 1.0
@@ -110,7 +110,7 @@ def sinr_cross_gain(
 def rate_bps(
     sinr: np.ndarray,
     bw_hz: np.ndarray,
-    sf: np.ndarray,
+    sf: np.ndarray | None,
     threshold_db: np.ndarray,
     model: Literal["shannon", "lora_phy"] = "shannon",
     coding_rate: int = 1,
@@ -125,6 +125,7 @@ def rate_bps(
         np.add(sinr, 1.0, out=out)
         np.log2(out, out=out)
         return np.multiply(bw_hz, out, out=out)
+    assert sf is not None, "rate_bps: the LoRa PHY rate needs sf"
     phy = sf * bw_hz / np.power(2.0, sf) * 4.0 / (4.0 + coding_rate)
     r = np.where(lin_to_db(sinr) >= threshold_db, phy, 0.0)
     if out is not None:

@@ -40,7 +40,7 @@ def energy_efficiency_tx(
     idx = group_index(serving_uav, n_uavs, shape)
     n_bins = idx.size // shape[-1] * n_uavs
     bits = np.bincount(idx, weights=rate_tx.reshape(-1), minlength=n_bins)
-    watts = np.bincount(idx, weights=p_tx.reshape(-1), minlength=n_bins)
+    watts: np.ndarray = np.bincount(idx, weights=p_tx.reshape(-1), minlength=n_bins)  # (float: weighted)
     watts += hover_w
     return np.add.reduce(np.divide(bits, watts, out=watts).reshape(shape[:-1] + (n_uavs,)), axis=-1)
 

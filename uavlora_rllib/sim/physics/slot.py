@@ -77,8 +77,8 @@ def slot_metrics(
     serving_uav: np.ndarray,
     associated: np.ndarray,
     sf_idx: np.ndarray,
-    tp_idx: np.ndarray,
-    bw_idx: np.ndarray,
+    tp_idx: np.ndarray | None,
+    bw_idx: np.ndarray | None,
     cfg: ScenarioConfig,
     tables: Tables,
     g_serving: np.ndarray | None = None,
@@ -94,9 +94,13 @@ def slot_metrics(
     each shaped [...].
     """
     if g_serving is None:
+        assert gains is not None, "slot_metrics: needs gains or g_serving"
         g_serving = at_serving(gains, serving_uav)
     sf_idx = np.asarray(sf_idx)
-    p_w, bw_hz, thr_db = allocation_values(sf_idx, tp_idx, bw_idx, tables) if values is None else values
+    if values is None:
+        assert tp_idx is not None and bw_idx is not None, "slot_metrics: needs tp_idx and bw_idx, or values"
+        values = allocation_values(sf_idx, tp_idx, bw_idx, tables)
+    p_w, bw_hz, thr_db = values
     g_serving, associated, serving_uav = np.asarray(g_serving), np.asarray(associated), np.asarray(serving_uav)
     shape = p_w.shape
     if not (shape == g_serving.shape == associated.shape == sf_idx.shape == serving_uav.shape):
@@ -117,6 +121,7 @@ def slot_metrics(
         sinr_lin = sinr_paper_tx(s_tx, sf_idx, cfg.n_sf, out=lin[1])
     else:
         sinr_lin = lin[1]
+        assert gains is not None, "slot_metrics: interference 'cross_gain' needs gains"
         sinr_lin[...] = sinr_cross_gain(p_w, gains, serving_uav, sf_idx, associated, cfg.n_sf, tables.noise_w)
     db = lin_to_db(lin)
     snr_db, sinr_db = db[0], db[1]
