@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-slow test-all bench
+.PHONY: install demo lint test test-slow test-all bench
 
 $(STAMP): pyproject.toml constraints.txt
 	python3 -m venv $(VENV)
@@ -18,6 +18,12 @@ install: $(STAMP)
 demo: install
 	$(PY) -m uavlora_rllib.tune tune_configs/smoke.yaml
 	$(PY) -m analysis.report --experiment smoke --tracking-uri sqlite:///mlflow.db --out reports/smoke
+
+# Lint and types, zero findings (configured in pyproject.toml): ruff on the code and the tests,
+# mypy on the package. CI runs it before the tests.
+lint: install
+	$(VENV)/bin/ruff check uavlora_rllib analysis tests
+	$(VENV)/bin/mypy
 
 # What a contributor runs before every commit: everything but the tests marked `slow`
 # (learning runs, whole grids, clusters). test-slow runs those; test-all runs both at once.

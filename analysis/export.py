@@ -39,7 +39,8 @@ from __future__ import annotations
 import json
 import math
 from collections import Counter
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from analysis.data import Organised
 

@@ -52,7 +52,8 @@ import shutil
 import sys
 import time
 from collections import Counter
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 from urllib.parse import urlparse
 
 from analysis import stats, style
@@ -83,9 +84,9 @@ from analysis.figures import fig2, fig2_record, fig3a, fig_profile, fig_sweep, l
 from analysis.paper import PAPER_COLUMNS, paper_md, paper_rows
 from analysis.runs import GRID_KIND, SUMMARY_KIND, ReportError, RunRecord, Source, load_runs, resolve_sources
 from analysis.tables import (
+    OPEN_LOOP_SHARE,
     TABLE_EE_COLUMNS,
     TABLE_IMP_COLUMNS,
-    OPEN_LOOP_SHARE,
     TABLE_OPEN_LOOP_COLUMNS,
     ee_table,
     ee_table_md,

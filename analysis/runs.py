@@ -22,6 +22,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from typing import Any
+
 from uavlora_rllib.cli_args import UsageError
 
 SUMMARY_KIND = "summary"

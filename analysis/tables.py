@@ -7,7 +7,8 @@ from __future__ import annotations
 import csv
 import math
 from collections import defaultdict
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 from analysis import stats
 from analysis.data import BEST_FIXED, KINDS, MIN_SEEDS, OPTIMAL, Cell, Organised

@@ -9,7 +9,8 @@ share target and the swing limit are the learning benchmark's (docs/model.md#lea
 from __future__ import annotations
 
 import math
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 

@@ -11,8 +11,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from uavlora_rllib.sim.association import UNASSOCIATED
 from uavlora_rllib.sim.actions import per_device_action_len
+from uavlora_rllib.sim.association import UNASSOCIATED
 from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.sim.scenario import ScenarioConfig
 

@@ -7,10 +7,10 @@ import itertools
 
 import numpy as np
 import pytest
+from conftest import reference_greedy
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import reference_greedy
 from uavlora_rllib.sim.association import UNASSOCIATED, associate, greedy_association, optimal_association
 
 SETTINGS = settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])

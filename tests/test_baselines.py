@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from uavlora_rllib.sim import physics
 from uavlora_rllib.baselines.policies import (
     BASELINES,
     AdrPolicy,
@@ -13,9 +12,10 @@ from uavlora_rllib.baselines.policies import (
     make_baseline,
 )
 from uavlora_rllib.config_errors import ConfigError
+from uavlora_rllib.experiment.evaluation import run_episodes
+from uavlora_rllib.sim import physics
 from uavlora_rllib.sim.actions import decode_joint_action, encode_joint_action
 from uavlora_rllib.sim.core import BatchCore
-from uavlora_rllib.experiment.evaluation import run_episodes
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
 PAPER = ScenarioConfig()

@@ -4,7 +4,6 @@ anything runs (no Ray started, no benchmark timed)."""
 from __future__ import annotations
 
 import pytest
-
 import tune_stock_ppo  # noqa: F401  (registers stock_ppo, a per_uav-only plugin)
 
 from uavlora_rllib import bench, bench_train

@@ -23,7 +23,6 @@ import time
 import urllib.request
 
 import pytest
-
 from conftest import write_tiny_grid
 
 pytestmark = pytest.mark.slow

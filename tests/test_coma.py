@@ -11,9 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.algorithms.coma.coma import COMAHParams
-from uavlora_rllib.algorithms.common.config import hparams_model_config
 from uavlora_rllib.algorithms.coma.coma_module import (
     COMATorchRLModule,
     counterfactual_advantage,
@@ -21,6 +19,8 @@ from uavlora_rllib.algorithms.coma.coma_module import (
     factor_onehot,
     td_lambda_targets,
 )
+from uavlora_rllib.algorithms.common import registry
+from uavlora_rllib.algorithms.common.config import hparams_model_config
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.sim.scenario import ScenarioConfig
 

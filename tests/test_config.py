@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from uavlora_rllib.config_errors import ConfigError
+from uavlora_rllib.envs.multi_agent import UavLoraMultiAgentEnv, UavLoraParallelEnv
 from uavlora_rllib.sim.actions import ActionError, per_device_action_len
 from uavlora_rllib.sim.core import BatchCore
-from uavlora_rllib.envs.multi_agent import UavLoraMultiAgentEnv, UavLoraParallelEnv
 from uavlora_rllib.sim.scenario import ScenarioConfig, flatten
 
 

@@ -11,11 +11,11 @@ import warnings
 import gymnasium
 import numpy as np
 import pytest
+from conftest import make_cfg, random_actions
 from gymnasium.utils.env_checker import check_env
 from pettingzoo.test import api_test, parallel_api_test, parallel_seed_test, render_test, seed_test
 
 import uavlora_rllib
-from conftest import make_cfg, random_actions
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.envs import uavlora_v0
 from uavlora_rllib.envs.multi_agent import UavLoraMultiAgentEnv

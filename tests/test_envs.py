@@ -8,19 +8,19 @@ import warnings
 
 import numpy as np
 import pytest
+from conftest import make_cfg, random_actions, reference_greedy, run_core
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from pettingzoo.test import parallel_api_test, parallel_seed_test
 from ray.rllib.utils.pre_checks.env import check_multiagent_environments
 
-from conftest import make_cfg, random_actions, reference_greedy, run_core
+from uavlora_rllib.envs.multi_agent import UavLoraMultiAgentEnv, UavLoraParallelEnv, state_space
 from uavlora_rllib.sim import physics
-from uavlora_rllib.sim.association import UNASSOCIATED
 from uavlora_rllib.sim.actions import ActionError, decode_joint_action, encode_joint_action
+from uavlora_rllib.sim.association import UNASSOCIATED
 from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.sim.links import AllPairLinks, NearestLinks
 from uavlora_rllib.sim.observation import obs_dim, state_dim
-from uavlora_rllib.envs.multi_agent import UavLoraMultiAgentEnv, UavLoraParallelEnv, state_space
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
 MODES = ["per_uav", "per_device"]
@@ -160,7 +160,7 @@ def test_observations_states_and_infos_every_step(fields):
         assert set(obs) == set(env.possible_agents)
         for agent, o in obs.items():
             assert env.observation_spaces[agent].contains(o), (t, agent, o)
-        for agent, info in infos.items():
+        for info in infos.values():
             assert info["state"].shape == space_s.shape and space_s.contains(info["state"])
             if t > 0:
                 assert set(physics.SLOT_METRICS) <= set(info)

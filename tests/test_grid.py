@@ -9,9 +9,9 @@ import subprocess
 import sys
 
 import pytest
+import tune_stock_ppo  # noqa: F401  (registers stock_ppo, stock_ppo_b)
 import yaml
 
-import tune_stock_ppo  # noqa: F401  (registers stock_ppo, stock_ppo_b)
 from uavlora_rllib import tune as tune_cli
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.experiment.grid import baseline_runs, load_grid, parse_grid, trials

@@ -16,14 +16,11 @@ episodes. The measured shares are in BENCHMARKS.md.
 
 from __future__ import annotations
 
-import json
 import time
 
 import numpy as np
 import pytest
 import torch
-
-import tune_stock_ppo  # noqa: F401  (registers stock_ppo, a per_uav-only plugin, for the CLI refusal below)
 
 from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.baselines import make_baseline
@@ -211,111 +208,3 @@ def test_per_device_greedy_execution_beats_the_best_constant(trained_per_device,
     ee = run_episodes(policy, PER_DEVICE, EVAL_EPISODES, EVAL_SEED).mean("ee_sys_mean")
     print(f"{name} per_device: greedy EE {ee:.0f} = {ee / best_fixed_per_device_ee:.2f}x best_fixed ({seconds:.0f} s)")
     assert ee >= BEAT_BEST_FIXED * best_fixed_per_device_ee, (ee, best_fixed_per_device_ee)
-
-
-# ---------------------------------------------------------------- the benchmark's CLI (no training)
-@pytest.mark.parametrize(
-    "argv, message",
-    [
-        (["--scenarios", "60x"], "--scenarios: expected VxU"),
-        (["--learners", "nope"], "--learners: unknown algorithm 'nope'"),
-        (["--learners", "mappo", "--set", "mappo.nope=1"], "--set mappo.nope: unknown field"),
-        (["--learners", "mappo", "--set", "qmix.lr=1"], "--set: 'qmix' is not one of the learners run"),
-        (["--learners", "stock_ppo", "--action-mode", "per_device"], "--action-mode: algorithm 'stock_ppo' supports action modes"),
-        (["--target", "1.5"], "--target: expected a number in (0, 1]"),
-        (["--env-steps", "0"], "--env-steps: must be a positive integer"),
-    ],
-)
-def test_bench_learn_bad_input_is_one_line_and_exit_2(argv, message, capsys):
-    from uavlora_rllib import bench_learn
-
-    assert bench_learn.main(argv) == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and message in err, err
-
-
-def test_bench_learn_steps_to_target_and_table(tmp_path, capsys):
-    from uavlora_rllib import bench_learn
-
-    curve = [{"env_steps": 10_000, "greedy_share": 0.5}, {"env_steps": 20_000, "greedy_share": 0.95}, {"env_steps": 30_000, "greedy_share": 0.85}]
-    assert bench_learn.steps_to_share(curve, 0.9) == 20_000  # the first crossing, even if it falls back
-    assert bench_learn.steps_to_share(curve, 0.99) is None
-    row = {"learner": "mappo", "n_eds": 60, "n_uavs": 4, "action_mode": "per_uav", "seed": 0, "tag": "t", "env_steps": 30_000,
-           "greedy_ee": 8_500.0, "greedy_share": 0.85, "sampled_share": None, "env_steps_to_target": 20_000, "target": 0.9,
-           "reference": "greedy", "reference_ee": 10_000.0, "random_ee": 5_000.0, "train_s": 12.0, "wall_s": 15.0,
-           "budget_env_steps": 30_000, "curve": curve}
-    path = tmp_path / "r.jsonl"
-    path.write_text(json.dumps(row) + "\n")
-    assert bench_learn.main(["--table", str(path)]) == 0
-    out = capsys.readouterr().out
-    assert "| 60 | 4 | per_uav | mappo | t | 0 | 30,000 | 0.850 | - | 20,000 (90%) | 1.70 | greedy 10,000 | 0.500 |" in out
-    # one seed at 30k: no verdict on the 3-seed, 200k target
-    assert out.strip().splitlines()[-1].startswith("| 60 | 4 | per_uav | mappo | t | 30,000 | 0 | 0.850 | 0.850 | - | 0.85 | n/a |")
-    # three seeds at 200k: the mean decides (U=4: 0.85), and V=10/U=2 also at 60k (0.9)
-    rows = [dict(row, seed=s, budget_env_steps=200_000, greedy_share=g) for s, g in ((0, 0.95), (1, 0.9), (2, 0.6))]
-    rows += [dict(row, n_eds=10, n_uavs=2, seed=s, budget_env_steps=200_000, greedy_share=1.0,
-                  curve=[{"env_steps": 60_000, "greedy_share": g}, {"env_steps": 200_000, "greedy_share": 1.0}])
-             for s, g in ((0, 0.95), (1, 0.9), (2, 0.8))]
-    lines = bench_learn.summary_table(rows[::-1]).splitlines()  # seeds and scenarios in any order
-    # the issue's scenario order (U, then V), seeds ascending
-    assert lines[2].startswith("| 10 | 2 |") and lines[2].endswith("| 0,1,2 | 1.000 | 1.000 | - | 0.95 | met | 0.883 missed |")
-    assert lines[3].startswith("| 60 | 4 |") and lines[3].endswith("| 0,1,2 | 0.817 | 0.600 | - | 0.85 | missed | - |")
-    # evaluated at 40k only before 60k: a share below 0.9 there is no miss of "0.9 within 60k"
-    early = [dict(r, curve=[{"env_steps": 40_000, "greedy_share": 0.8}, {"env_steps": 200_000, "greedy_share": 1.0}])
-             for r in rows[3:]]
-    assert bench_learn.summary_table(early).splitlines()[2].endswith("| met | 0.800 at 40,000: n/a |")
-    assert bench_learn.summary_table([dict(r, curve=[dict(p, greedy_share=0.95) for p in r["curve"]]) for r in early]
-                                     ).splitlines()[2].endswith("| met | 0.950 met |")
-    # a seed with no evaluation by 60k: no mean over the others in its place
-    gap = [dict(early[0], curve=[{"env_steps": 81_600, "greedy_share": 1.0}])] + early[1:]
-    assert bench_learn.summary_table(gap).splitlines()[2].endswith("| met | - |")
-
-
-def test_bench_learn_trial_row_records_what_ran(tmp_path, capsys):
-    """One tiny end-to-end trial: the JSON row carries the reference, the curve and every
-    hyperparameter the trial ran with (the override applied), so it stays readable after a
-    later registry change."""
-    from uavlora_rllib import bench_learn
-
-    out = tmp_path / "r.jsonl"
-    argv = ["--scenarios", "10x2", "--learners", "vdn", "--env-steps", "2400", "--eval-every", "1200",
-            "--eval-episodes", "1", "--envs-per-runner", "8", "--set", "vdn.state_bias=false", "--tag", "tiny",
-            "--out", str(out)]  # 8 envs x 150 slots: 1,200 env steps per iteration
-    assert bench_learn.main(argv) == 0
-    (row,) = [json.loads(line) for line in out.read_text().splitlines()]
-    assert (row["learner"], row["n_eds"], row["n_uavs"], row["reference"], row["tag"]) == ("vdn", 10, 2, "optimal", "tiny")
-    assert row["hparams"]["state_bias"] is False and row["hparams"]["lr"] == 1e-4  # override + paper default
-    assert row["overrides"] == {"state_bias": False}
-    assert [p["env_steps"] for p in row["curve"]] == [1200, 2400]
-    assert row["greedy_share"] == pytest.approx(row["greedy_ee"] / row["reference_ee"])
-    assert 0 < row["random_ee"] < row["reference_ee"]  # the optimum beats random actions
-    assert len(row["git_commit"]) == 40 or row["git_commit"] == "unknown"
-    assert "| 10 | 2 | per_uav | vdn | tiny | 0 | 2,400 |" in capsys.readouterr().out
-
-
-def test_bench_learn_per_device_trial_uses_the_per_uav_reference_as_scale(tmp_path):
-    """per_device has no tractable optimum: the row names the per_uav reference it is scaled by,
-    and random is the per_device random policy (the benchmark judges per_device against it)."""
-    from uavlora_rllib import bench_learn
-
-    out = tmp_path / "r.jsonl"
-    argv = ["--scenarios", "10x2", "--learners", "mappo", "--action-mode", "per_device", "--env-steps", "1200",
-            "--eval-every", "1200", "--eval-episodes", "1", "--envs-per-runner", "8", "--out", str(out)]
-    assert bench_learn.main(argv) == 0
-    (row,) = [json.loads(line) for line in out.read_text().splitlines()]
-    assert (row["action_mode"], row["reference"]) == ("per_device", "optimal (per_uav)")
-    assert row["random_ee"] > row["reference_ee"]  # an SF per ED lifts same-SF interference: see BENCHMARKS
-
-
-def test_bench_learn_inside_a_ray_session_leaves_it_running(ray_session, tmp_path):
-    """Called from Python within a Ray session (this module's), bench_learn uses it, no second
-    ray.init, and does not shut it down under its caller."""
-    import ray
-
-    from uavlora_rllib import bench_learn
-
-    argv = ["--scenarios", "10x2", "--learners", "vdn", "--env-steps", "1200", "--eval-every", "1200",
-            "--eval-episodes", "1", "--envs-per-runner", "8", "--out", str(tmp_path / "r.jsonl")]
-    assert bench_learn.main(argv) == 0
-    assert ray.is_initialized()
-    assert len((tmp_path / "r.jsonl").read_text().splitlines()) == 1

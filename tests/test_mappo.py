@@ -19,11 +19,11 @@ from uavlora_rllib.algorithms.mappo.mappo import MAPPOConfig, MAPPOHParams
 from uavlora_rllib.algorithms.mappo.mappo_learner import per_agent_gae
 from uavlora_rllib.algorithms.mappo.mappo_module import MAPPOTorchRLModule
 from uavlora_rllib.config_errors import ConfigError
+from uavlora_rllib.envs.team import UavLoraTeamEnv, team_action_space, team_observation_space
+from uavlora_rllib.experiment.evaluation import run_episodes
 from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.sim.observation import obs_dim, state_dim
-from uavlora_rllib.experiment.evaluation import run_episodes
 from uavlora_rllib.sim.scenario import ScenarioConfig
-from uavlora_rllib.envs.team import UavLoraTeamEnv, team_action_space, team_observation_space
 
 torch.set_num_threads(1)
 

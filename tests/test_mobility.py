@@ -12,8 +12,8 @@ import math
 
 import numpy as np
 import pytest
-
 from conftest import make_cfg
+
 from uavlora_rllib.sim.core import BatchCore
 
 # A config where the speed clip essentially never binds (sigma = 0.5 per axis, v_max = 5:

@@ -13,8 +13,8 @@ import math
 import numpy as np
 import pytest
 
-from uavlora_rllib.sim import physics
 from uavlora_rllib.config_errors import ConfigError
+from uavlora_rllib.sim import physics
 from uavlora_rllib.sim.scenario import RewardWeights, ScenarioConfig
 
 CFG = ScenarioConfig()

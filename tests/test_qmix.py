@@ -9,7 +9,6 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
-
 from ray.rllib.core import DEFAULT_MODULE_ID
 from ray.rllib.core.columns import Columns
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
@@ -73,7 +72,7 @@ def test_bad_config_errors_name_the_field():
 @pytest.mark.parametrize(
     "per_episode, added, expected",
     [
-        (0.25, [16, 16, 16], [4, 4, 4]),  # the default with bench_learn's / smoke's 16 envs
+        (0.25, [16, 16, 16], [4, 4, 4]),  # the default with the learning grids' / smoke's 16 envs
         (0.25, [2, 2, 2, 2], [0, 1, 0, 1]),  # fewer envs: the fraction carries over
         (1.0, [4, 0, 3], [4, 0, 3]),  # EPyMARL's ratio: one update per episode
         (1.5, [3, 3], [4, 5]),

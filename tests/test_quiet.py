@@ -27,6 +27,6 @@ def test_known_messages_are_dropped_and_others_kept(caplog):
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always")
         quiet_known_warnings()  # catch_warnings reset the filters
-        warnings.warn("\x1b[33mWARN: Overriding environment rllib-multi-agent-env-v0 already in registry.\x1b[0m")
-        warnings.warn("Overriding environment MyEnv-v0 already in registry.")
+        warnings.warn("\x1b[33mWARN: Overriding environment rllib-multi-agent-env-v0 already in registry.\x1b[0m", stacklevel=1)
+        warnings.warn("Overriding environment MyEnv-v0 already in registry.", stacklevel=1)
     assert [str(w.message) for w in seen] == ["Overriding environment MyEnv-v0 already in registry."]

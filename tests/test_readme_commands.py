@@ -35,7 +35,7 @@ def _argv(command: str) -> list[str]:
     return argv[2:]
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _help(module: str, sub: str | None) -> str:
     argv = [sys.executable, "-m", module] + ([sub] if sub else []) + ["--help"]
     proc = subprocess.run(argv, capture_output=True, text=True, env=ENV, cwd=ROOT, timeout=180)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from uavlora_rllib.baselines.best_fixed import BEST_FIXED_SLOTS, BestFixedPolicy, record_slots, selection_seeds
-from uavlora_rllib.baselines.bound import upper_bound_ee, upper_bound_of_core, water_filled_log_sum
+from uavlora_rllib.baselines.bound import upper_bound_of_core, water_filled_log_sum
 from uavlora_rllib.baselines.per_device import PerDeviceGreedy, PerDeviceOptimal
 from uavlora_rllib.baselines.policies import make_baseline
 from uavlora_rllib.baselines.slots import AllocationScorer, Slots

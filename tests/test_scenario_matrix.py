@@ -13,11 +13,11 @@ from __future__ import annotations
 
 import itertools
 import math
-import os
 import tempfile
 
 import numpy as np
 import pytest
+from conftest import random_actions
 
 from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.baselines.policies import BASELINES, make_baseline
@@ -28,8 +28,6 @@ from uavlora_rllib.sim import physics
 from uavlora_rllib.sim.actions import decode_joint_action
 from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.sim.scenario import ScenarioConfig
-
-from conftest import random_actions
 
 OPTIONS = {
     "interference": ("paper", "cross_gain"),

@@ -14,16 +14,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from conftest import random_actions
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from uavlora_rllib.baselines.policies import make_baseline
-from uavlora_rllib.envs.multi_agent import UavLoraMultiAgentEnv, UavLoraParallelEnv
-from uavlora_rllib.envs.multi_agent import STATE_KEY
+from uavlora_rllib.envs.multi_agent import STATE_KEY, UavLoraMultiAgentEnv, UavLoraParallelEnv
 from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.sim.scenario import HoverConfig, MobilityConfig, RewardWeights, ScenarioConfig
-
-from conftest import random_actions
 
 
 def _bounds(cls: type, name: str) -> tuple[float, float]:

@@ -25,6 +25,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # conftest's helpers when run as a script
 
 from conftest import make_cfg, random_actions  # noqa: E402
+
 from uavlora_rllib.sim.core import BatchCore  # noqa: E402
 from uavlora_rllib.sim.scenario import ScenarioConfig  # noqa: E402
 

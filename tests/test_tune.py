@@ -16,12 +16,11 @@ import sys
 import time
 
 import pytest
+from conftest import write_tiny_grid
 
 from uavlora_rllib import tune as tune_cli
 from uavlora_rllib.experiment.evaluation import EPISODE_METRICS
 from uavlora_rllib.experiment.mlflow_client import git_commit
-
-from conftest import write_tiny_grid
 
 pytestmark = pytest.mark.slow
 

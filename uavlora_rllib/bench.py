@@ -26,8 +26,8 @@ import platform  # noqa: E402
 import re  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
-from typing import Callable  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -132,8 +132,9 @@ def measure(cases: list[Case], repeats: int, report: Callable[[Row], None] | Non
             wall, cpu = case.run()
             best[i] = (min(best[i][0], wall), min(best[i][1], cpu))
     rows = [Row(*c.what, *b) for c, b in zip(cases, best)]
-    for row in rows if report else ():
-        report(row)
+    if report is not None:
+        for row in rows:
+            report(row)
     return rows
 
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from typing import Callable
+from collections.abc import Callable
+from typing import NoReturn
 
 SEED_MAX = 2**32 - 1  # seeds are 32-bit everywhere (NumPy's legacy seeding, Ray, the grid's seeds)
 
@@ -28,7 +29,7 @@ class Parser(argparse.ArgumentParser):
             kwargs["prog"] = PROG_ALIAS[1] + prog[len(PROG_ALIAS[0]) :]
         super().__init__(*args, **kwargs)
 
-    def error(self, message: str) -> None:
+    def error(self, message: str) -> NoReturn:
         raise UsageError(message)
 
 

@@ -11,7 +11,8 @@ import dataclasses
 import math
 import types
 import typing
-from typing import Annotated, Any, Mapping
+from collections.abc import Mapping
+from typing import Annotated, Any
 
 import annotated_types
 import pydantic

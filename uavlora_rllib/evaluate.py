@@ -25,12 +25,13 @@ import json
 import math
 import os
 import sys
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 from uavlora_rllib.baselines.policies import BASELINES, OBJECTIVES, REFERENCES, evaluation_seconds, make_baseline
-from uavlora_rllib.experiment.evaluation import BOUND_METRIC
 from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in, positive_int, seed
 from uavlora_rllib.config_errors import ConfigError
+from uavlora_rllib.experiment.evaluation import BOUND_METRIC
 from uavlora_rllib.experiment.grid import parse_yaml, read_yaml_text
 from uavlora_rllib.sim.actions import ActionError
 from uavlora_rllib.sim.scenario import ScenarioConfig

@@ -43,21 +43,22 @@ import dataclasses
 import os
 import sys
 import time
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 from uavlora_rllib.algorithms.common import registry
-from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in
+from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.experiment import cluster
 from uavlora_rllib.experiment.grid import (
     BaselineSpec,
     GridConfig,
-    algorithm_overrides,
     TrialSpec,
+    algorithm_overrides,
     baseline_runs,
-    hparams_dict,
     check_local_resources,
     check_storage,
+    hparams_dict,
     load_grid,
     run_name,
     trials,
@@ -281,7 +282,7 @@ def make_tuner(grid: GridConfig, specs: list[TrialSpec], storage: str, uri: str,
     )
 
 
-def _tracking_failure(exc: BaseException):
+def _tracking_failure(exc: BaseException | None):
     """The TrackingUnavailable inside an exception chain (Tune wraps callback errors), or None."""
     from uavlora_rllib.experiment.mlflow_client import TrackingUnavailable
 

@@ -16,6 +16,8 @@ UAV's observation (the k-th strongest it serves) in each slot, not to a fixed ED
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from uavlora_rllib.baselines.slots import AllocationScorer, Slots, lex_argmax, lex_better
@@ -52,14 +54,15 @@ def record_slots(cfg: ScenarioConfig, seeds: list) -> Slots:
     core.reset(seeds)
     shape = (core.n, cfg.n_uavs) + (() if cfg.action_mode == "per_uav" else (2 * cfg.quota + 1,))
     idle = np.zeros(shape, dtype=np.int64)
-    parts = []
+    parts: list[list[Any]] = []  # per slot: 4 arrays, then the gains or None
     for _ in range(cfg.episode_len):
         s = Slots.of_core(core)
         parts.append([np.array(a) for a in (s.g_serving, s.serving_idx, s.associated, s.slot_of_ed)]
                      + [None if s.gains is None else np.array(s.gains)])
         core.step(idle)
-    cat = [np.concatenate([p[i] for p in parts]) for i in range(4)]
-    return Slots(*cat, None if parts[0][4] is None else np.concatenate([p[4] for p in parts]))
+    g_serving, serving_idx, associated, slot_of_ed = (np.concatenate([p[i] for p in parts]) for i in range(4))
+    gains = None if parts[0][4] is None else np.concatenate([p[4] for p in parts])
+    return Slots(g_serving, serving_idx, associated, slot_of_ed, gains)
 
 
 def _subset(slots: Slots, rows: np.ndarray) -> Slots:
@@ -93,9 +96,8 @@ class BestFixedPolicy:
         return self.action
 
     def act(self, core: BatchCore) -> np.ndarray:
-        if self.action is None:
-            self.select()
-        return np.broadcast_to(self.action, (core.n,) + self.action.shape).copy()
+        action = self.select() if self.action is None else self.action
+        return np.broadcast_to(action, (core.n,) + action.shape).copy()
 
 
 def _best_entry(vec: np.ndarray, i: int, n_values: int, keys, p0: float, q0: float):
@@ -159,6 +161,7 @@ class _PerUavSearch:
                     break
             if best is None or lex_better(p0, q0, best[1], best[2]):
                 best = (joint, p0, q0)
+        assert best is not None  # (at least one start)
         return best[0], float(best[1])
 
 
@@ -181,7 +184,8 @@ class _PerDeviceSearch:
 
     def keys(self, const_set: np.ndarray, const_bw: np.ndarray) -> tuple[float, float]:
         setting, bw = self.allocation(const_set, const_bw)
-        return tuple(float(k) for k in _mean_keys(self.scorer.metrics(setting, bw, self.slots)))
+        p, q = _mean_keys(self.scorer.metrics(setting, bw, self.slots))
+        return float(p), float(q)
 
     def bw_keys(self, const_set: np.ndarray, bws: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean keys of the constant with each BW vector of bws [C, U] -> two [C]."""
@@ -208,12 +212,13 @@ class _PerDeviceSearch:
                     p0, q0, m = self._row(const_set, const_bw, uu, kk, p0, q0)
                     moved |= m
                 for uu in range(n_u):
-                    const_bw, p0, q0, m = _best_entry(const_bw, uu, cfg.n_bw, lambda c: self.bw_keys(const_set, c), p0, q0)
+                    const_bw, p0, q0, m = _best_entry(const_bw, uu, cfg.n_bw, lambda c: self.bw_keys(const_set, c), p0, q0)  # noqa: B023 (called at once)
                     moved |= m
                 if not moved:
                     break
             if best is None or lex_better(p0, q0, best[2], best[3]):
                 best = (const_set, const_bw, p0, q0)
+        assert best is not None  # (at least one start)
         const_set, const_bw = best[0], best[1]
         action = np.zeros((n_u, 2 * q_ + 1), dtype=np.int64)
         action[:, 0:-1:2], action[:, 1:-1:2], action[:, -1] = const_set // cfg.n_tp, const_set % cfg.n_tp, const_bw

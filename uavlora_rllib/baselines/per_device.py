@@ -69,6 +69,7 @@ class PerDeviceGreedy:
         want = sf * cfg.n_tp + tp
         # an allowed setting closest to the wanted one: same SF first, then higher TP
         s = self._scorer
+        assert s is not None  # (search() sets it)
         pref = (s.set_sf[None, None] == sf[..., None]) * 10 * cfg.n_tp + s.set_tp[None, None]
         fallback = np.argmax(np.where(ok, pref, -np.inf), axis=-1)
         wanted_ok = np.take_along_axis(ok, want[..., None], axis=-1)[..., 0]
@@ -76,6 +77,7 @@ class PerDeviceGreedy:
 
     def _ascend(self, setting, bw, slots, setting_ok, bw_ok) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         cfg, s = self.cfg, self._scorer
+        assert s is not None  # (search() sets it)
         n, v = setting.shape
         rows = np.arange(n)
         movers = np.broadcast_to(np.arange(v), (n, v))
@@ -121,6 +123,7 @@ class PerDeviceGreedy:
             best[0] = np.where(take[:, None], setting, best[0])
             best[1] = np.where(take[:, None], bw, best[1])
             best[2], best[3] = np.where(take, p, best[2]), np.where(take, q, best[3])
+        assert best is not None  # (STARTS is not empty)
         return best[0], best[1]
 
     def act(self, core: BatchCore) -> np.ndarray:

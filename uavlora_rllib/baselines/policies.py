@@ -33,8 +33,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from uavlora_rllib.sim import physics
 from uavlora_rllib.config_errors import ConfigError
+from uavlora_rllib.sim import physics
 from uavlora_rllib.sim.actions import decode_joint_action, encode_joint_action, per_device_action_len
 from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.sim.scenario import ScenarioConfig
@@ -84,6 +84,7 @@ class RandomPolicy:
         self.name = "random"
         self.cfg = cfg
         self._rng = np.random.default_rng(seed)
+        self._high: np.int64 | np.ndarray
         if cfg.action_mode == "per_uav":
             self._high = np.int64(cfg.n_joint_actions)
         else:
@@ -93,7 +94,7 @@ class RandomPolicy:
         pass
 
     def act(self, core: BatchCore) -> np.ndarray:
-        shape = (core.n, self.cfg.n_uavs) + (() if self.cfg.action_mode == "per_uav" else (len(self._high),))
+        shape = (core.n, self.cfg.n_uavs) + (() if self.cfg.action_mode == "per_uav" else (self._high.size,))
         return self._rng.integers(0, self._high, size=shape, dtype=np.int64)
 
 
@@ -181,6 +182,7 @@ class AdrPolicy:
     def act(self, core: BatchCore) -> np.ndarray:
         if self._sf is None or self._sf.shape[0] != core.n:
             self.reset(core)
+        assert self._sf is not None and self._tp is not None  # (reset sets them)
         cfg = self.cfg
         assoc = core.associated
         if cfg.action_mode == "per_uav":
@@ -341,7 +343,7 @@ class OptimalPolicy(_SlotSearch):
             c = np.arange(start, min(start + chunk, self.n_candidates), dtype=np.int64)
             per_uav = (c[:, None] // self._radix) % n_a  # [C, U]
             for_u = allowed[:, np.arange(n_u)[None, :], per_uav]  # [N, C, U]
-            ok = for_u.all(axis=-1).T  # [C, N]
+            ok = np.asarray(for_u.all(axis=-1)).T  # [C, N]
             joint = np.broadcast_to(per_uav[:, None, :], (len(c), n, n_u))
             p, q = self._score(core, joint, ok)  # [C, N] each
             i = _lex_argmax(p, q)

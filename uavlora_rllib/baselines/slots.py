@@ -43,7 +43,7 @@ class Slots:
         return self.g_serving.shape[0]
 
     @classmethod
-    def of_core(cls, core: BatchCore) -> "Slots":
+    def of_core(cls, core: BatchCore) -> Slots:
         gains = core.gains if core.cfg.interference != "paper" else None
         return cls(core.g_serving, core.links.serving_idx, core.associated, core.slot_of_ed, gains)
 
@@ -80,7 +80,7 @@ class AllocationScorer:
         flat = setting_ok.reshape(setting_ok.shape[:2] + (-1,))  # [N, V, n_bw * n_set]
         ok_ed = np.take_along_axis(np.broadcast_to(flat, sf_set.shape + flat.shape[-1:]),
                                    (bw_ed * n_set + sf_set)[..., None], axis=-1)[..., 0]
-        return ok_ed.all(axis=-1) & np.take_along_axis(np.broadcast_to(bw_ok, bw.shape + bw_ok.shape[-1:]),
+        return np.asarray(ok_ed.all(axis=-1)) & np.take_along_axis(np.broadcast_to(bw_ok, bw.shape + bw_ok.shape[-1:]),
                                                       bw[..., None], axis=-1)[..., 0].all(axis=-1)
 
     # ---------------------------------------------------------------- exact scoring

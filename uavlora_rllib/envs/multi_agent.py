@@ -9,7 +9,8 @@ state under ``info["state"]`` for centralised critics (docs/model.md#environment
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 from ray.rllib.env.multi_agent_env import MultiAgentEnv

@@ -7,7 +7,8 @@ the simulator without importing Ray (docs/model.md#environments). The RLlib view
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import gymnasium as gym
 import numpy as np

@@ -21,14 +21,13 @@ them without importing Ray (docs/model.md#environments).
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.sim.actions import per_device_action_len
-from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.envs.parallel import (
     RENDER_FPS,
     RENDER_MODES,
@@ -42,6 +41,8 @@ from uavlora_rllib.envs.parallel import (
     scenario_with,
     state_space,
 )
+from uavlora_rllib.sim.actions import per_device_action_len
+from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
 TEAM_ENV_NAME = "uavlora_team"  # its name in Tune's registry (registered by envs.multi_agent, which imports Ray)
@@ -176,10 +177,10 @@ class UavLoraTeamVectorEnv(gym.vector.VectorEnv):
         rewards = np.where(restart, 0.0, res.reward)
         truncated = np.where(restart, False, res.truncated)
         if restart.any():
-            seeds: list = [None] * self.num_envs
+            restart_seeds: list[np.random.SeedSequence | None] = [None] * self.num_envs
             for i, s in zip(np.flatnonzero(restart), self._seeds.spawn(int(restart.sum()))):
-                seeds[i] = s
-            self.core.reset(seeds, mask=restart)
+                restart_seeds[i] = s
+            self.core.reset(restart_seeds, mask=restart)
         self._needs_reset = truncated.copy()
         terminated = np.zeros(self.num_envs, dtype=bool)
         return _obs32(self.core.obs), rewards, terminated, truncated, self._infos(res.metrics, ~restart)
@@ -198,7 +199,7 @@ def gym_env(scenario: Mapping[str, Any] | ScenarioConfig | None = None, render_m
 
 
 def gym_vector_env(num_envs: int = 1, scenario: Mapping[str, Any] | ScenarioConfig | None = None,
-                   render_mode: str | None = None, **fields: Any) -> "UavLoraTeamVectorEnv":
+                   render_mode: str | None = None, **fields: Any) -> UavLoraTeamVectorEnv:
     """`gymnasium.make_vec("UavLora-v0", num_envs=N, vectorization_mode="vector_entry_point")`:
     N scenarios in one BatchCore (docs/model.md#environments); frames are not drawn for N > 1."""
     if render_mode is not None:

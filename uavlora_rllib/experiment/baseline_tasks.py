@@ -14,7 +14,8 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from typing import Any, Callable, TextIO
+from collections.abc import Callable
+from typing import Any, TextIO
 
 from uavlora_rllib.experiment.grid import BaselineSpec
 
@@ -52,7 +53,7 @@ class BaselinePool:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
-    def start(self) -> "BaselinePool":
+    def start(self) -> BaselinePool:
         import ray
 
         from uavlora_rllib.baselines.policies import evaluation_seconds

@@ -19,7 +19,8 @@ from __future__ import annotations
 import importlib.util
 import os
 import time
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 from uavlora_rllib.config_errors import ConfigError
 

@@ -125,7 +125,7 @@ class DriverLock:
         os.replace(tmp, self.path)  # atomic: a reader never sees half a heartbeat
 
     # ---- API
-    def acquire(self) -> "DriverLock":
+    def acquire(self) -> DriverLock:
         os.makedirs(os.path.dirname(self.path), exist_ok=True)
         for _ in range(3):
             if self._create():
@@ -170,7 +170,7 @@ class DriverLock:
             except FileNotFoundError:
                 pass
 
-    def __enter__(self) -> "DriverLock":
+    def __enter__(self) -> DriverLock:
         return self.acquire()
 
     def __exit__(self, *exc) -> None:

@@ -8,8 +8,9 @@ training seeds (which are small integers and RLlib's offsets of them).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import Protocol
 
 import numpy as np
 from scipy import stats

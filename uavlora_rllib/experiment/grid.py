@@ -55,18 +55,19 @@ import math
 import os
 import re
 import urllib.parse
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Annotated, Any, Mapping
+from typing import Annotated, Any
 
 import yaml
-from pydantic import Field, field_validator
+from pydantic import ConfigDict, Field, field_validator
 from pydantic.dataclasses import dataclass as typed_dataclass
 
 from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.config_errors import ConfigError, build
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
-_STRICT = {"extra": "forbid", "frozen": True}
+_STRICT = ConfigDict(extra="forbid", frozen=True)
 PosInt = Annotated[int, Field(ge=1)]
 SEED_MAX = 2**32 - 1  # NumPy's legacy seeding and Ray/RLlib's seeding take 32-bit seeds
 Seed = Annotated[int, Field(ge=0, le=SEED_MAX)]
@@ -127,12 +128,12 @@ class MlflowConfig:
     tracking_uri: str = "sqlite:///mlflow.db"
     # seconds the driver keeps retrying (with backoff) while MLflow is unreachable, then stops
     # with a clear message; --resume fills in what was not logged (docs/cluster.md)
-    retry_timeout_s: float = Field(300.0, gt=0, le=86400)
+    retry_timeout_s: float = Field(default=300.0, gt=0, le=86400)
     # MB up to which a finished trial's final checkpoint (on a local or shared filesystem) is
     # uploaded as its run's `checkpoint/` artifact; larger ones, cloud storage, and 0 keep only
     # the `checkpoint` tag pointing at it (docs/cluster.md#mlflow). RLlib checkpoints of the paper's
     # models are ~4 MB
-    checkpoint_artifact_max_mb: float = Field(50.0, ge=0, le=10**6)
+    checkpoint_artifact_max_mb: float = Field(default=50.0, ge=0, le=10**6)
 
     @field_validator("tracking_uri")
     @classmethod
@@ -164,16 +165,16 @@ class MlflowConfig:
 class FailureConfig:
     # times Tune restarts a failed trial (e.g. its node died) from its last checkpoint, into the
     # same MLflow run, before the trial counts as failed; 0 disables retries
-    max_failures: int = Field(3, ge=0, le=1000)
+    max_failures: int = Field(default=3, ge=0, le=1000)
 
 
 @typed_dataclass(config=_STRICT)
 class EvaluationConfig:
     # execution-phase episodes per trial and per baseline run, [1, 1e6]
-    episodes: int = Field(10, ge=1, le=1_000_000)
+    episodes: int = Field(default=10, ge=1, le=1_000_000)
     # env steps between evaluations of the greedy policy during training (learning curves,
     # experiment/periodic_eval.py); null: stop.env_steps / 20; 0: none
-    interval_env_steps: int | None = Field(None, ge=0)
+    interval_env_steps: int | None = Field(default=None, ge=0)
 
 
 def _no_duplicates(v: list) -> list:
@@ -195,13 +196,13 @@ class GridConfig:
     stop: StopConfig
     baselines: list[str] = dataclasses.field(default_factory=list)
     scenario: dict[str, Any] = dataclasses.field(default_factory=dict)
-    checkpoint_every: int = Field(10, ge=1, le=10**9)
+    checkpoint_every: int = Field(default=10, ge=1, le=10**9)
     resources: registry.Resources = dataclasses.field(default_factory=registry.Resources)
     mlflow: MlflowConfig = dataclasses.field(default_factory=MlflowConfig)
     evaluation: EvaluationConfig = dataclasses.field(default_factory=EvaluationConfig)
     failure: FailureConfig = dataclasses.field(default_factory=FailureConfig)
-    storage: str = Field("./ray_results", min_length=1)
-    max_concurrent_trials: int | None = Field(None, ge=1, le=100_000)
+    storage: str = Field(default="./ray_results", min_length=1)
+    max_concurrent_trials: int | None = Field(default=None, ge=1, le=100_000)
     plugins: list[str] = dataclasses.field(default_factory=list)
 
     @field_validator("experiment")
@@ -380,7 +381,7 @@ def _validate(grid: GridConfig) -> None:
             scenario = scenario_for(grid, n_eds, n_uavs)
         except ConfigError as exc:
             raise ConfigError(f"{exc}{where}") from None
-        for name, (entry, hparams) in entries.items():
+        for entry, hparams in entries.values():
             entry.check_scenario(scenario, prefix="scenario.action_mode")
             # the entry's own cross-checks (hyperparameters x resources x scenario); builds
             # only the AlgorithmConfig, not the algorithm
@@ -455,6 +456,6 @@ def baseline_runs(grid: GridConfig) -> list[BaselineSpec]:
 
 def hparams_dict(hparams: Any) -> dict[str, Any]:
     """A hyperparameter dataclass as a plain dict (for Ray configs and MLflow params)."""
-    if dataclasses.is_dataclass(hparams):
+    if dataclasses.is_dataclass(hparams) and not isinstance(hparams, type):
         return dataclasses.asdict(hparams)
     return dict(hparams or {})

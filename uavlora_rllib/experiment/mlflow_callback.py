@@ -22,7 +22,8 @@ The runs' fields: `run_schema`; the retrying writer: `mlflow_client.Tracker`.
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import os
 

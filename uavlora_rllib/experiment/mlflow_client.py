@@ -32,7 +32,8 @@ import sqlite3
 import subprocess
 import threading
 import time
-from typing import Any, Iterable, Mapping
+from collections.abc import Iterable, Mapping
+from typing import Any
 
 from uavlora_rllib.experiment.run_schema import (
     GRID_ARTIFACT,

@@ -24,12 +24,13 @@ policy that was trained.
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, ClassVar, Mapping
+from typing import Any, ClassVar
 
 from ray.rllib.callbacks.callbacks import RLlibCallback
-from ray.rllib.utils.annotations import override
 from ray.rllib.utils import force_list
+from ray.rllib.utils.annotations import override
 
 from uavlora_rllib.sim.scenario import ScenarioConfig
 

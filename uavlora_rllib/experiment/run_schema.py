@@ -45,7 +45,8 @@ import json
 import math
 import os
 import re
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 from uavlora_rllib.experiment.evaluation import BOUND_METRIC, EPISODE_METRICS
 

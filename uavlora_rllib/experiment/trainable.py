@@ -22,12 +22,10 @@ class UavLoraTrainable(tune.Trainable):
     """One trial: build the registry entry's algorithm, train to the budget, evaluate."""
 
     def setup(self, config: dict) -> None:
-        from uavlora_rllib.sim.scenario import ScenarioConfig
-
         import uavlora_rllib.envs.multi_agent  # noqa: F401  (registers the "uavlora" env)
         from uavlora_rllib.experiment import periodic_eval
-
         from uavlora_rllib.experiment.quiet import quiet_known_warnings
+        from uavlora_rllib.sim.scenario import ScenarioConfig
 
         quiet_known_warnings()
         cfg = config.get("trial", config)

@@ -55,7 +55,7 @@ def check_range(actions: np.ndarray, shape: tuple[int, ...], high) -> None:
     bad = (actions < 0) | (actions >= high)
     if bad.any():
         idx = tuple(int(i) for i in np.argwhere(bad)[0])
-        limit = high if np.isscalar(high) else int(np.broadcast_to(high, shape)[idx])
+        limit = int(np.broadcast_to(high, shape)[idx])  # (a scalar high broadcasts to itself)
         raise ActionError(f"action of uav_{idx[1]} (scenario {idx[0]}): {int(actions[idx])} is outside [0, {limit})")
 
 

@@ -24,7 +24,7 @@ one, which is worth 0, stay unassociated).
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -44,7 +44,7 @@ def greedy_association(gains: np.ndarray, d_h: np.ndarray, comm_range_m: float, 
     # Fast path: where every ED's first choice fits in its UAV's quota, the matching is just
     # the per-ED argmax (first index on ties, as the stable sort below) and no order matters.
     first = np.argmax(g, axis=1)  # [N, V]
-    reachable = ok.any(axis=1)
+    reachable = np.asarray(ok.any(axis=1))
     n_uavs = gains.shape[1]
     counts = ((first[:, None, :] == np.arange(n_uavs)[None, :, None]) & reachable[:, None, :]).sum(axis=-1)
     serving = np.where(reachable, first, UNASSOCIATED)

@@ -22,8 +22,9 @@ numbers as stepping slot by slot).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -34,6 +35,8 @@ from uavlora_rllib.sim.mobility import GaussMarkovMobility
 from uavlora_rllib.sim.observation import Observer, obs_dim, state_dim
 from uavlora_rllib.sim.scenario import ScenarioConfig
 from uavlora_rllib.sim.scoring import SlotScorer
+
+Seed = int | np.random.SeedSequence | None  # one scenario's seed (None: from the unseeded stream)
 
 
 @dataclass
@@ -79,8 +82,8 @@ class BatchCore:
         self.scorer = SlotScorer(cfg, self.decoder, self.tables)
         # every pair's gain for the scoring: only the all-pairs models read it
         self._score_needs_gains = self.link_stage.all_pairs and not self.scorer.shared
-        self.links: Links | None = None
-        self.obs: np.ndarray | None = None
+        self.links: Links = None  # type: ignore[assignment]  # set by reset()
+        self.obs: np.ndarray = None  # type: ignore[assignment]  # set by reset()
         self._prev_alloc = np.full((n_envs, cfg.n_eds, 3), -1, dtype=np.int64)
         self._prev_parts: tuple | None = None  # what the scoring kept of the slot just played
         self._seed_source = np.random.SeedSequence()
@@ -92,11 +95,11 @@ class BatchCore:
         if lookahead:
             self._ahead_links = link_stage(cfg, lookahead)
             self._ahead_observer = Observer(cfg, lookahead)
-        self._block: tuple | None = None
+        self._block: tuple[Any, ...] | None = None
         self._block_k = 0
 
     # ------------------------------------------------------------------ reset
-    def reset(self, seed: int | Sequence[int | None] | None = None, mask: np.ndarray | None = None) -> np.ndarray:
+    def reset(self, seed: int | Sequence[Seed] | None = None, mask: np.ndarray | None = None) -> np.ndarray:
         """Start new episodes. `seed` int s -> scenario i gets s + i; a sequence gives one seed
         per scenario; None continues the stream of the last integer seed (fresh entropy before
         any). `mask` [N] bool resets only those scenarios."""
@@ -114,7 +117,7 @@ class BatchCore:
             self._block = None
         return self.obs
 
-    def _seeds_for(self, seed: int | Sequence[int | None] | None) -> list:
+    def _seeds_for(self, seed: int | Sequence[Seed] | None) -> list:
         """Each scenario's seed. An integer seed s also restarts the stream of the unseeded resets
         that follow (children spawned from SeedSequence(s), as the team vector env's autoresets
         are): Gymnasium's contract that reset() after reset(seed=s) continues the seeded stream
@@ -151,6 +154,7 @@ class BatchCore:
         if self._block is None or self._block_k == len(self._block[3]):
             self._compute_block()
             self._block_k = 0
+        assert self._block is not None  # (computed just above)
         k, (links, every, obs, states) = self._block_k, self._block
         self.links, self.obs = links.row(k, every[k]), obs[k : k + 1]
         mob = self.mobility

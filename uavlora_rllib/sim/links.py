@@ -57,7 +57,7 @@ class Links:
         self.g_serving, self.g_db_serving, self.d_h_serving = g_serving, g_db_serving, d_h_serving
         self.slot_of_ed, self.counts, self.pairs = slot_of_ed, counts, pairs
 
-    def row(self, k: int, all_associated: bool) -> "Links":
+    def row(self, k: int, all_associated: bool) -> Links:
         """The links of scenario k alone, as a batch of one (views; the pair channels left out;
         `all_associated`: whether scenario k's EDs all are, known to the caller). The lookahead
         computes a block of slots as a batch and plays it back one row per slot."""
@@ -109,6 +109,7 @@ class LinkStage(ABC):
         grp = serving_idx if all_associated else np.where(associated, serving_idx, u)
         # EDs by (serving UAV, descending gain, ED id): each UAV's EDs form a run in gain order
         order, grouped = group_sort(g_serving, grp, u + 1, descending=True)
+        assert grouped is not None  # (groups given)
         order += self._row_base  # flat indices into [N, V]
         grouped += self._grp_base
         counts = group_counts

@@ -19,7 +19,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Literal, Mapping
+from collections.abc import Mapping
+from typing import Any, Literal
 
 import pydantic
 from pydantic import Field, field_validator, model_validator
@@ -46,15 +47,15 @@ _STRICT = pydantic.ConfigDict(extra="forbid", frozen=True)
 class MobilityConfig:
     """Gauss-Markov ED mobility, the paper's Eq. (gm), with the decisions of docs/model.md#mobility."""
 
-    memory: float = Field(0.85, ge=0.0, le=1.0, description="eth, temporal correlation of the velocity, [0, 1]")
-    sigma: float = Field(0.5, ge=0.0, le=1e3, description="sigma-hat, randomness of the velocity (m/s), [0, 1e3]")
-    dt_s: float = Field(0.5, gt=0.0, le=3600.0, description="slot duration Delta t (s), (0, 3600]")
-    v_max_mps: float = Field(1.0, gt=0.0, le=1e3, description="speed clip (m/s), (0, 1e3]")
+    memory: float = Field(default=0.85, ge=0.0, le=1.0, description="eth, temporal correlation of the velocity, [0, 1]")
+    sigma: float = Field(default=0.5, ge=0.0, le=1e3, description="sigma-hat, randomness of the velocity (m/s), [0, 1e3]")
+    dt_s: float = Field(default=0.5, gt=0.0, le=3600.0, description="slot duration Delta t (s), (0, 3600]")
+    v_max_mps: float = Field(default=1.0, gt=0.0, le=1e3, description="speed clip (m/s), (0, 1e3]")
     mean_velocity_init_mps: float = Field(
-        0.005, ge=-1e3, le=1e3, description="v-bar on each axis at reset (m/s; the table's 0.005), [-1e3, 1e3]"
+        default=0.005, ge=-1e3, le=1e3, description="v-bar on each axis at reset (m/s; the table's 0.005), [-1e3, 1e3]"
     )
     mean_resample_prob: float = Field(
-        0.01, ge=0.0, le=1.0, description="per-step chance to re-draw v-bar, [0, 1]"
+        default=0.01, ge=0.0, le=1.0, description="per-step chance to re-draw v-bar, [0, 1]"
     )
 
 
@@ -64,16 +65,16 @@ class HoverConfig:
 
     # Lower bounds are positive minima, not "> 0": the formula takes rho^-1/2, A^-1/2 and
     # C_T^-3/2, which overflow for denormal inputs.
-    n_rotors: int = Field(4, ge=1, le=16, description="rotors n, [1, 16]")
+    n_rotors: int = Field(default=4, ge=1, le=16, description="rotors n, [1, 16]")
     weight_n: float = Field(
-        20.0, ge=1e-3, le=1e5, description="total weight (N); per-rotor W_r = weight_n / n_rotors, [1e-3, 1e5]"
+        default=20.0, ge=1e-3, le=1e5, description="total weight (N); per-rotor W_r = weight_n / n_rotors, [1e-3, 1e5]"
     )
-    air_density: float = Field(1.168, ge=1e-3, le=10.0, description="rho (kg/m^3), [1e-3, 10]")
-    solidity: float = Field(0.045, ge=1e-4, le=1.0, description="rotor solidity s, [1e-4, 1]")
-    disc_area_m2: float = Field(0.214, ge=1e-4, le=100.0, description="rotor disc area A (m^2), [1e-4, 100]")
-    thrust_coef: float = Field(0.001195, ge=1e-6, le=1.0, description="thrust coefficient C_T, [1e-6, 1]")
-    drag_coef: float = Field(0.011, ge=0.0, le=1.0, description="profile drag coefficient delta, [0, 1]")
-    induced_factor: float = Field(0.11, ge=0.0, le=10.0, description="induced power correction k, [0, 10]")
+    air_density: float = Field(default=1.168, ge=1e-3, le=10.0, description="rho (kg/m^3), [1e-3, 10]")
+    solidity: float = Field(default=0.045, ge=1e-4, le=1.0, description="rotor solidity s, [1e-4, 1]")
+    disc_area_m2: float = Field(default=0.214, ge=1e-4, le=100.0, description="rotor disc area A (m^2), [1e-4, 100]")
+    thrust_coef: float = Field(default=0.001195, ge=1e-6, le=1.0, description="thrust coefficient C_T, [1e-6, 1]")
+    drag_coef: float = Field(default=0.011, ge=0.0, le=1.0, description="profile drag coefficient delta, [0, 1]")
+    induced_factor: float = Field(default=0.11, ge=0.0, le=10.0, description="induced power correction k, [0, 10]")
 
 
 @dataclass(config=_STRICT)
@@ -81,42 +82,42 @@ class RewardWeights:
     """r = w1 EE_sys + w2 Xi + w3 beta - |w4| P_total (docs/model.md#metrics-and-reward: the w4 term is always a penalty)."""
 
     # |w| <= 1e6: times the largest EE_sys of the scenario box (~1e18) still finite
-    w1: float = Field(4e-4, ge=-1e6, le=1e6, description="weight of EE_sys, [-1e6, 1e6]")
-    w2: float = Field(5.0, ge=-1e6, le=1e6, description="weight of the success rate Xi, [-1e6, 1e6]")
-    w3: float = Field(1.0, ge=-1e6, le=1e6, description="weight of the SNR-margin score beta, [-1e6, 1e6]")
-    w4: float = Field(-1e-2, ge=-1e6, le=1e6, description="weight of P_total (always a penalty: |w4|), [-1e6, 1e6]")
+    w1: float = Field(default=4e-4, ge=-1e6, le=1e6, description="weight of EE_sys, [-1e6, 1e6]")
+    w2: float = Field(default=5.0, ge=-1e6, le=1e6, description="weight of the success rate Xi, [-1e6, 1e6]")
+    w3: float = Field(default=1.0, ge=-1e6, le=1e6, description="weight of the SNR-margin score beta, [-1e6, 1e6]")
+    w4: float = Field(default=-1e-2, ge=-1e6, le=1e6, description="weight of P_total (always a penalty: |w4|), [-1e6, 1e6]")
 
 
 @dataclass(config=_STRICT)
 class ScenarioConfig:
     """Every parameter of the system model. Defaults: docs/model.md#scenario."""
 
-    n_eds: int = Field(10, ge=1, le=10_000, description="V, end devices, [1, 10000]")
-    n_uavs: int = Field(2, ge=1, le=64, description="U, UAV gateways, [1, 64]")
-    area_m: float = Field(1000.0, ge=1.0, le=1e7, description="side L of the square area (m), [1, 1e7]")
-    altitude_m: float = Field(90.0, ge=1.0, le=1e4, description="UAV altitude h (m), [1, 1e4]")
-    comm_range_m: float = Field(600.0, ge=0.01, le=1e7, description="R_comm, horizontal range (m), [0.01, 1e7]")
+    n_eds: int = Field(default=10, ge=1, le=10_000, description="V, end devices, [1, 10000]")
+    n_uavs: int = Field(default=2, ge=1, le=64, description="U, UAV gateways, [1, 64]")
+    area_m: float = Field(default=1000.0, ge=1.0, le=1e7, description="side L of the square area (m), [1, 1e7]")
+    altitude_m: float = Field(default=90.0, ge=1.0, le=1e4, description="UAV altitude h (m), [1, 1e4]")
+    comm_range_m: float = Field(default=600.0, ge=0.01, le=1e7, description="R_comm, horizontal range (m), [0.01, 1e7]")
     max_eds_per_uav: int | None = Field(
-        None, ge=1, le=10_000, description="Lambda_max, [1, 10000]; None -> ceil(1.5 V / U)"
+        default=None, ge=1, le=10_000, description="Lambda_max, [1, 10000]; None -> ceil(1.5 V / U)"
     )
-    carrier_hz: float = Field(868e6, ge=1e6, le=1e11, description="carrier frequency f (Hz), [1e6, 1e11]")
-    speed_of_light_mps: float = Field(3e8, ge=1e6, le=1e9, description="c in the free-space term (m/s), [1e6, 1e9]")
+    carrier_hz: float = Field(default=868e6, ge=1e6, le=1e11, description="carrier frequency f (Hz), [1e6, 1e11]")
+    speed_of_light_mps: float = Field(default=3e8, ge=1e6, le=1e9, description="c in the free-space term (m/s), [1e6, 1e9]")
     los_a: float = Field(
-        4.88, ge=0.0, le=100.0, description="Al-Hourani 'a' (vartheta), elevation in degrees, [0, 100]"
+        default=4.88, ge=0.0, le=100.0, description="Al-Hourani 'a' (vartheta), elevation in degrees, [0, 100]"
     )
-    los_b: float = Field(0.43, ge=0.0, le=5.0, description="Al-Hourani 'b' (lambda), [0, 5]")
-    eta_los_db: float = Field(0.1, ge=0.0, le=150.0, description="excess loss in LoS (dB), [0, 150]")
-    eta_nlos_db: float = Field(21.0, ge=0.0, le=150.0, description="excess loss in NLoS (dB), [0, 150]")
-    noise_dbm: float = Field(-120.0, ge=-200.0, le=30.0, description="noise power sigma^2 (dBm), [-200, 30]")
+    los_b: float = Field(default=0.43, ge=0.0, le=5.0, description="Al-Hourani 'b' (lambda), [0, 5]")
+    eta_los_db: float = Field(default=0.1, ge=0.0, le=150.0, description="excess loss in LoS (dB), [0, 150]")
+    eta_nlos_db: float = Field(default=21.0, ge=0.0, le=150.0, description="excess loss in NLoS (dB), [0, 150]")
+    noise_dbm: float = Field(default=-120.0, ge=-200.0, le=30.0, description="noise power sigma^2 (dBm), [-200, 30]")
     tp_dbm: tuple[float, ...] = (2.0, 5.0, 8.0, 11.0, 14.0)  # distinct, each in [-30, 30] dBm
     sf_set: tuple[int, ...] = (7, 8, 9, 10, 11, 12)
     bw_khz: tuple[int, ...] = (125, 250, 500)
     interference: Literal["paper", "cross_gain"] = "paper"
     rate_model: Literal["shannon", "lora_phy"] = "shannon"
-    lora_coding_rate: int = Field(1, ge=1, le=4)  # CR in 4/(4+CR), used by rate_model=lora_phy
+    lora_coding_rate: int = Field(default=1, ge=1, le=4)  # CR in 4/(4+CR), used by rate_model=lora_phy
     association: Literal["greedy", "optimal"] = "greedy"
     action_mode: Literal["per_uav", "per_device"] = "per_uav"
-    episode_len: int = Field(150, ge=1, le=1_000_000, description="T, slots per episode, [1, 1e6]")
+    episode_len: int = Field(default=150, ge=1, le=1_000_000, description="T, slots per episode, [1, 1e6]")
     mobility: MobilityConfig = dataclasses.field(default_factory=MobilityConfig)
     hover: HoverConfig = dataclasses.field(default_factory=HoverConfig)
     reward: RewardWeights = dataclasses.field(default_factory=RewardWeights)
@@ -145,7 +146,7 @@ class ScenarioConfig:
         return tuple(sorted(v))
 
     @model_validator(mode="after")
-    def _check_quota(self) -> "ScenarioConfig":
+    def _check_quota(self) -> ScenarioConfig:
         if self.action_mode == "per_device" and self.quota > 64:
             raise ValueError(
                 f"action_mode per_device needs max_eds_per_uav <= 64 (action slots), got quota {self.quota}"
@@ -180,11 +181,11 @@ class ScenarioConfig:
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
-    def replace(self, **changes: Any) -> "ScenarioConfig":
+    def replace(self, **changes: Any) -> ScenarioConfig:
         """A validated copy with some fields changed (nested groups as dicts or objects)."""
         merged = self.to_dict()
         for key, value in changes.items():
-            if dataclasses.is_dataclass(value):
+            if dataclasses.is_dataclass(value) and not isinstance(value, type):
                 value = dataclasses.asdict(value)
             if isinstance(value, Mapping) and isinstance(merged.get(key), dict):
                 merged[key] = {**merged[key], **value}
@@ -193,7 +194,7 @@ class ScenarioConfig:
         return ScenarioConfig.from_dict(merged)
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any] | None, prefix: str = "scenario") -> "ScenarioConfig":
+    def from_dict(cls, data: Mapping[str, Any] | None, prefix: str = "scenario") -> ScenarioConfig:
         """Build from a plain mapping (a YAML section); raises ConfigError naming the bad field."""
         return build(cls, data, prefix)
 

@@ -39,6 +39,10 @@ class SlotScorer:
     ) -> tuple[dict[str, np.ndarray], tuple]:
         """physics.slot_metrics on each ED's allocation."""
         cfg, decoder = self.cfg, self.decoder
+        tp: np.ndarray | None
+        bw: np.ndarray | None
+        values: tuple | None
+        actions_idx: tuple | None
         if cfg.action_mode == "per_uav" and links.serving_idx.size > PER_UAV_GATHER_MIN:
             sf, values, actions_idx = decoder.per_uav_values(actions, links)
             tp = bw = None

@@ -1,7 +1,7 @@
 """Select the rows of learning.jsonl that ran the current registry defaults, for the seed-mean table.
 
     python docs/history/measurements/final_defaults.py > /tmp/final.jsonl
-    python -m uavlora_rllib.bench_learn --table /tmp/final.jsonl
+    python docs/history/measurements/learning_table.py /tmp/final.jsonl
 
 Tags name the defaults of their time, and a later session's tag does not re-run learners whose
 defaults it did not change. Which tags hold today's defaults, per learner:

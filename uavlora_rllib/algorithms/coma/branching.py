@@ -20,7 +20,7 @@ of one tensor and the baseline of all of them is one `counterfactual_advantage` 
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -35,6 +35,11 @@ class BranchLayout(nn.Module):
     """Where each branch's values live in a UAV's flat logits / one-hot vector of sum(row)
     entries, and the padded [L, W] grid the per-branch tensors use (see the module docstring).
     Holds only constant, non-persistent buffers (nothing in the state dict)."""
+
+    starts: torch.Tensor
+    index: torch.Tensor
+    valid: torch.Tensor
+    sizes: torch.Tensor
 
     def __init__(self, row: Sequence[int]):
         super().__init__()
@@ -77,6 +82,9 @@ class BranchQCritic(nn.Module):
     W x + b = W_s s + b + sum_{k,m} W[:, a_{k,m}] - W[:, a_{u,l}] + W[:, (u, l)] + W_o o_u,
     the same parameters and function, the joint action's sum computed once per step and the
     U L rows then differing by one column each. No Python loop over UAVs or branches."""
+
+    layout: BranchLayout
+    offsets: torch.Tensor
 
     def __init__(
         self,
@@ -124,6 +132,7 @@ class BranchQCritic(nn.Module):
         ids = torch.eye(self.n_ids, device=actions.device).reshape(u_n, l_n, self.n_ids).expand(*lead, u_n, l_n, self.n_ids)
         parts = [state[..., None, None, :].expand(*lead, u_n, l_n, self.state_dim), rows, ids]
         if self.obs_dim:
+            assert obs is not None  # (obs_dim > 0)
             parts.append(obs[..., :, None, :].expand(*lead, u_n, l_n, self.obs_dim))
         return torch.cat(parts, dim=-1)
 
@@ -138,6 +147,7 @@ class BranchQCritic(nn.Module):
         w_ids = w[:, s_dim + self.n_onehot : s_dim + self.n_onehot + self.n_ids].t()
         z = joint[..., None, None, :] - emb + w_ids.reshape(self.n_agents, self.layout.n_branches, -1)
         if self.obs_dim:
+            assert obs is not None  # (obs_dim > 0)
             z = z + nn.functional.linear(obs, w[:, s_dim + self.n_onehot + self.n_ids :]).unsqueeze(-2)
         h = self.body(z)  # starts with the first layer's ReLU
         y = torch.einsum("...lh,lhn->...ln", h, self.out_weight) + self.out_bias  # [..., U, L, n_out]

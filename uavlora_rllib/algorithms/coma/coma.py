@@ -53,57 +53,57 @@ NAME = "coma"
 class COMAHParams:
     """COMA's hyperparameters; defaults from the paper's training table where it has them."""
 
-    lr_actor: float = Field(1e-4, gt=0, le=1, description="Adam step size of the actor [1/update] (paper: lr 1e-4)")
+    lr_actor: float = Field(default=1e-4, gt=0, le=1, description="Adam step size of the actor [1/update] (paper: lr 1e-4)")
     lr_critic: float = Field(
-        5e-4,
+        default=5e-4,
         gt=0,
         le=1,
         description="Adam step size of the critic [1/update] (pymarl's COMA critic lr; the paper's 1e-4 is the "
         "actor's)",
     )
-    gamma: float = Field(0.99, gt=0, le=1, description="discount per slot [-]")
-    td_lambda: float = Field(0.8, ge=0, le=1, description="lambda of the critic's TD(lambda) targets [-] (Foerster et al.)")
-    entropy_coeff: float = Field(0.01, ge=0, description="weight of the mean per-agent policy entropy in the actor loss [1/nat]")
-    grad_clip: float = Field(10.0, gt=0, description="max global L2 gradient norm, per optimizer (actor, critic) [-]")
+    gamma: float = Field(default=0.99, gt=0, le=1, description="discount per slot [-]")
+    td_lambda: float = Field(default=0.8, ge=0, le=1, description="lambda of the critic's TD(lambda) targets [-] (Foerster et al.)")
+    entropy_coeff: float = Field(default=0.01, ge=0, description="weight of the mean per-agent policy entropy in the actor loss [1/nat]")
+    grad_clip: float = Field(default=10.0, gt=0, description="max global L2 gradient norm, per optimizer (actor, critic) [-]")
     batch_episodes: int = Field(
-        16, ge=1, description="whole episodes per update [episodes] (paper: batch 16); a multiple of all envs"
+        default=16, ge=1, description="whole episodes per update [episodes] (paper: batch 16); a multiple of all envs"
     )
-    tau: float = Field(0.01, gt=0, le=1, description="Polyak weight of the target critic per update [-] (paper)")
+    tau: float = Field(default=0.01, gt=0, le=1, description="Polyak weight of the target critic per update [-] (paper)")
     target_hard_update_every: int = Field(
-        0, ge=0, description="> 0: hard target copy every K updates instead of Polyak [updates]"
+        default=0, ge=0, description="> 0: hard target copy every K updates instead of Polyak [updates]"
     )
-    actor_hidden: int = Field(128, ge=1, description="width of the actor's ReLU layer before the GRU [units]")
-    gru_hidden: int = Field(128, ge=1, description="GRU width of the actor [units] (paper)")
+    actor_hidden: int = Field(default=128, ge=1, description="width of the actor's ReLU layer before the GRU [units]")
+    gru_hidden: int = Field(default=128, ge=1, description="GRU width of the actor [units] (paper)")
     actor_agent_heads: bool = Field(
-        True, description="each UAV also gets its own linear output layer, added to the shared one [bool]"
+        default=True, description="each UAV also gets its own linear output layer, added to the shared one [bool]"
     )
-    critic_hidden: tuple[int, ...] = Field((128, 128), description="ReLU layer widths of the critic MLP [units]")
-    critic_use_obs: bool = Field(True, description="also give the critic UAV u's own observation row [bool]")
+    critic_hidden: tuple[int, ...] = Field(default=(128, 128), description="ReLU layer widths of the critic MLP [units]")
+    critic_use_obs: bool = Field(default=True, description="also give the critic UAV u's own observation row [bool]")
     critic_factored_actions: bool = Field(
-        True,
+        default=True,
         description="per_uav: use the (SF, TP, BW) structure of an action in the critic: other UAVs' actions "
         "also as one-hot SF/TP/BW, and u's outputs share per-SF/TP/BW terms [bool] (per_device actions are "
         "factored already: no effect there, docs/model.md#coma-per-device)",
     )
     critic_dueling: bool = Field(
-        True, description="Q = V + (D - mean D) head: untried actions start at the state's value [bool]"
+        default=True, description="Q = V + (D - mean D) head: untried actions start at the state's value [bool]"
     )
     critic_steps: int = Field(
-        4, ge=0, description="critic-only gradient steps on each batch before the joint step [steps] (critic first, as in the paper)"
+        default=4, ge=0, description="critic-only gradient steps on each batch before the joint step [steps] (critic first, as in the paper)"
     )
     updates_per_iteration: int = Field(
-        8,
+        default=8,
         ge=1,
         description="learner updates (critic steps + joint step + target move) on each sampled batch [updates]; "
         "> 1 turns the actor's term into PPO's clipped surrogate, since from the second update on the batch is "
         "off-policy; 1: COMA's plain on-policy gradient (docs/model.md#training-defaults)",
     )
     ratio_clip: float = Field(
-        0.2, gt=0, le=1, description="clip of each UAV's probability ratio when updates_per_iteration > 1 [-]"
+        default=0.2, gt=0, le=1, description="clip of each UAV's probability ratio when updates_per_iteration > 1 [-]"
     )
-    critic_warmup_updates: int = Field(0, ge=0, description="first updates that train the critic only [updates]; 0: off")
-    normalize_advantages: bool = Field(False, description="standardise the advantages over the batch [bool] (not in COMA)")
-    reward_scale: float = Field(1.0, gt=0, description="factor on the rewards in the critic targets [-]")
+    critic_warmup_updates: int = Field(default=0, ge=0, description="first updates that train the critic only [updates]; 0: off")
+    normalize_advantages: bool = Field(default=False, description="standardise the advantages over the batch [bool] (not in COMA)")
+    reward_scale: float = Field(default=1.0, gt=0, description="factor on the rewards in the critic targets [-]")
 
     def check(self, scenario: ScenarioConfig, resources: Resources, path: str) -> None:
         """COMA learns from whole episodes, sampled in whole rounds of all envs of all runners;

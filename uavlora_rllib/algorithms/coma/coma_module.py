@@ -234,7 +234,7 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
             in_dim = critic_input_dim(
                 self.state_dim, self.obs_dim, self.n_agents, self.n_actions, self.use_obs, self.factors
             )
-            self.critic = QHead(
+            self.critic: nn.Module = QHead(
                 in_dim, tuple(mc["critic_hidden"]), self.n_actions, bool(mc["critic_dueling"]), self.factors
             )
 

@@ -22,6 +22,11 @@ from uavlora_rllib.algorithms.common.columns import HIDDEN
 class RecurrentActorForward:
     """Mixin: acting with the module's recurrent actor (see the module docstring)."""
 
+    # set by the module's setup()
+    n_agents: int
+    actor: Any  # a RecurrentAgentNet
+    head: Any  # an ActionHead
+
     @override(RLModule)
     def get_initial_state(self) -> dict[str, Any]:
         return {HIDDEN: torch.zeros(self.n_agents, self.actor.gru_hidden)}

@@ -24,7 +24,8 @@ Log-probabilities and entropies are summed over a UAV's components but kept per 
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -33,6 +34,10 @@ from torch import nn
 
 class _AgentStack(nn.Module):
     """One agent's layers: Linear+ReLU -> GRU -> [Linear+ReLU] -> Linear."""
+
+    inp: nn.Linear
+    gru: nn.GRU
+    out: nn.Sequential
 
     def __init__(self, in_dim: int, fc_hidden: int, gru_hidden: int, n_out: int, out_hidden: int | None):
         super().__init__()
@@ -54,6 +59,8 @@ class _AgentStack(nn.Module):
 
 class RecurrentAgentNet(nn.Module):
     """Decentralised recurrent network for U agents (see the module docstring)."""
+
+    agent_out: nn.Parameter | None
 
     def __init__(
         self,
@@ -78,9 +85,10 @@ class RecurrentAgentNet(nn.Module):
             _AgentStack(self.in_dim, fc_hidden, gru_hidden, n_out, out_hidden) for _ in range(1 if share else n_agents)
         )
         if out_gain is not None:  # e.g. 0.01 for a PPO actor: a near-uniform initial policy
-            for net in self.nets:
-                nn.init.orthogonal_(net.out[-1].weight, gain=out_gain)
-                nn.init.zeros_(net.out[-1].bias)
+            for net in self.stacks:
+                last = cast(nn.Linear, net.out[-1])
+                nn.init.orthogonal_(last.weight, gain=out_gain)
+                nn.init.zeros_(last.bias)
         self.agent_out = None
         if agent_heads:
             width = out_hidden or gru_hidden
@@ -88,6 +96,11 @@ class RecurrentAgentNet(nn.Module):
             self.agent_out = nn.Parameter(torch.empty(n_agents, width, n_out).uniform_(-bound, bound))
             if out_gain is not None:  # the heads start at zero: the near-uniform policy of out_gain stays
                 nn.init.zeros_(self.agent_out)
+
+    @property
+    def stacks(self) -> list[_AgentStack]:
+        """The agents' layer stacks (one when shared), typed."""
+        return cast(list[_AgentStack], list(self.nets))
 
     def initial_state(self, batch: int | None = None) -> torch.Tensor:
         """Zero GRU state: [U, H], or [batch, U, H]."""
@@ -102,12 +115,12 @@ class RecurrentAgentNet(nn.Module):
             raise ValueError(f"obs: expected [B, T, {self.n_agents}, {self.obs_dim}], got {tuple(obs.shape)}")
         if not self.share:
             outs, hs = [], []
-            for i, net in enumerate(self.nets):
+            for i, net in enumerate(self.stacks):
                 y, h_i = net.recurrent(torch.relu(net.inp(obs[:, :, i])), h[:, i])
                 outs.append(net.out(y))
                 hs.append(h_i)
             return torch.stack(outs, dim=2), torch.stack(hs, dim=1)
-        net = self.nets[0]
+        net = cast(_AgentStack, self.nets[0])
         first = net.inp
         z = nn.functional.linear(obs, first.weight[:, :d], first.bias)  # [B, T, U, fc]
         z = torch.relu(z + first.weight[:, d:].t())  # + the agent-id column of each agent
@@ -136,7 +149,8 @@ class ActionHead:
 
     def sample(self, logits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Random actions ([..., U] or [..., U, L]) and their per-agent logp [..., U]."""
-        acts, logp = [], 0.0
+        acts: list[torch.Tensor] = []
+        logp: Any = 0.0  # a tensor from the first component on
         for part in self._split(logits):
             lp = torch.log_softmax(part, dim=-1)
             a = torch.multinomial(lp.exp().reshape(-1, part.shape[-1]), 1).reshape(part.shape[:-1])
@@ -153,7 +167,8 @@ class ActionHead:
         """Per-agent log-probability [..., U] of actions [..., U] or [..., U, L], and per-agent
         entropy [..., U] (both summed over an agent's components), from one log-softmax."""
         actions = actions.long()
-        logp, ent = 0.0, 0.0
+        logp: Any = 0.0  # tensors from the first component on
+        ent: Any = 0.0
         for k, part in enumerate(self._split(logits)):
             lp = torch.log_softmax(part, dim=-1)
             a = actions[..., k] if self.multi else actions

@@ -3,7 +3,7 @@
 The convention every algorithm follows:
 
 * ONE typed config class, a pydantic dataclass (`MAPPOHParams`, `QMIXHParams`,
-  `COMAHParams`) whose every field is `Field(default, description="what it does [unit]")`.
+  `COMAHParams`) whose every field is `Field(default=default, description="what it does [unit]")`.
   The description is the documentation: `python -m uavlora_rllib.tune --list-hparams ALGO`
   prints it with the default (see `describe_hparams`). Checks between its own fields: a
   pydantic `model_validator`. Checks against the scenario and the trial's resources: its
@@ -47,9 +47,10 @@ def module_dims(scenario: ScenarioConfig) -> dict[str, int]:
 class HParamsConfig(abc.ABC):
     """Mixin for an AlgorithmConfig: the one way a typed hyperparameter object reaches RLlib."""
 
-    hparams_cls: ClassVar[type]  # the typed hyperparameters
+    hparams_cls: ClassVar[type[Any]]  # the typed hyperparameters
     module_class: ClassVar[type]  # the algorithm's RLModule
     learner_class: ClassVar[type]  # the algorithm's Learner
+    rl_module: Any  # AlgorithmConfig.rl_module (this class is its mixin)
 
     @override(AlgorithmConfig)
     def get_default_rl_module_spec(self) -> RLModuleSpec:
@@ -113,7 +114,7 @@ def hparams_model_config(hparams_cls: type, **entries: Any) -> dict[str, Any]:
     return {**dataclasses.asdict(hparams_cls()), "torch_threads": 1, **entries}
 
 
-def describe_hparams(cls: type) -> str:
+def describe_hparams(cls: type[Any]) -> str:
     """One block per field: name, type and default, then its description (--list-hparams)."""
     lines = []
     for name, info in cls.__pydantic_fields__.items():  # pydantic's FieldInfo of each field, in order

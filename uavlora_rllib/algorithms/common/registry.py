@@ -17,8 +17,9 @@ with no new test code. A plugin with a builder of its own registers an `Algorith
 from __future__ import annotations
 
 import importlib
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any
 
 from pydantic import Field
 from pydantic.dataclasses import dataclass as typed_dataclass
@@ -45,17 +46,17 @@ MODULES: dict[str, str] = {
 class Resources:
     """How one trial samples and learns (grid YAML `resources:`)."""
 
-    num_env_runners: int = Field(0, ge=0, description="remote env runners; 0: sample in the trial's own process")
-    num_envs_per_env_runner: int = Field(16, ge=1, description="scenarios per env runner, all in one BatchCore")
-    num_cpus_per_env_runner: float = Field(1.0, gt=0, description="CPUs reserved per remote env runner")
+    num_env_runners: int = Field(default=0, ge=0, description="remote env runners; 0: sample in the trial's own process")
+    num_envs_per_env_runner: int = Field(default=16, ge=1, description="scenarios per env runner, all in one BatchCore")
+    num_cpus_per_env_runner: float = Field(default=1.0, gt=0, description="CPUs reserved per remote env runner")
     num_learners: int = Field(
-        0, ge=0, description="remote learner actors (data-parallel updates); 0: learn in the trial's own process"
+        default=0, ge=0, description="remote learner actors (data-parallel updates); 0: learn in the trial's own process"
     )
     num_gpus_per_learner: float = Field(
-        0.0, ge=0, description="GPUs per learner (per the trial's own process when num_learners is 0)"
+        default=0.0, ge=0, description="GPUs per learner (per the trial's own process when num_learners is 0)"
     )
-    num_cpus_per_learner: float = Field(1.0, gt=0, description="CPUs per learner (the trial's process when num_learners is 0)")
-    torch_threads: int = Field(1, ge=1, description="torch intra-op threads per process")
+    num_cpus_per_learner: float = Field(default=1.0, gt=0, description="CPUs per learner (the trial's process when num_learners is 0)")
+    torch_threads: int = Field(default=1, ge=1, description="torch intra-op threads per process")
 
     def bundles(self) -> list[dict[str, float]]:
         """Placement-group bundles of one trial, in RLlib's layout
@@ -75,7 +76,7 @@ class Resources:
         return [main] + runners + learners
 
 
-def _team_policy(algo: "Algorithm", scenario: "ScenarioConfig", explore: bool = False, seed: int = 0) -> "Policy":
+def _team_policy(algo: Algorithm, scenario: ScenarioConfig, explore: bool = False, seed: int = 0) -> Policy:
     from uavlora_rllib.algorithms.common.policy import team_policy
 
     return team_policy(algo, scenario, explore=explore, seed=seed)
@@ -87,23 +88,23 @@ class AlgorithmEntry:
     hparams_cls: type  # the algorithm's typed config (pydantic dataclass, see common/config.py)
     action_modes: tuple[str, ...]  # scenario.action_mode values it supports
     # (scenario, hparams, resources, seed) -> an RLlib AlgorithmConfig ready for .build_algo()
-    build: Callable[["ScenarioConfig", Any, Resources, int], "AlgorithmConfig"]
+    build: Callable[[ScenarioConfig, Any, Resources, int], AlgorithmConfig]
     # (built or restored algorithm, scenario, explore, seed) -> the decentralised policy for
     # evaluation: greedy (explore=False, the paper's execution) or sampled (explore=True). The
     # default runs the algorithm's own team-view RLModule (common/policy.py).
-    make_policy: Callable[..., "Policy"] = _team_policy
+    make_policy: Callable[..., Policy] = _team_policy
 
     def hparams(self, overrides: dict | None, prefix: str | None = None) -> Any:
         return build(self.hparams_cls, overrides or {}, prefix or f"algorithms.{self.name}")
 
-    def policy(self, algo: "Algorithm", scenario: "ScenarioConfig", explore: bool = False, seed: int = 0) -> "Policy":
+    def policy(self, algo: Algorithm, scenario: ScenarioConfig, explore: bool = False, seed: int = 0) -> Policy:
         """Greedy (argmax per UAV) or, with explore=True, sampled execution of a trained algorithm."""
         return self.make_policy(algo, scenario, explore=explore, seed=seed)
 
-    def greedy_policy(self, algo: "Algorithm", scenario: "ScenarioConfig") -> "Policy":
+    def greedy_policy(self, algo: Algorithm, scenario: ScenarioConfig) -> Policy:
         return self.policy(algo, scenario, explore=False)
 
-    def check_scenario(self, scenario: "ScenarioConfig", prefix: str = "scenario.action_mode") -> None:
+    def check_scenario(self, scenario: ScenarioConfig, prefix: str = "scenario.action_mode") -> None:
         if scenario.action_mode not in self.action_modes:
             raise ConfigError(
                 f"{prefix}: algorithm {self.name!r} supports action modes {list(self.action_modes)}, "
@@ -118,11 +119,11 @@ def register(entry: AlgorithmEntry) -> None:
     _REGISTRY[entry.name] = entry
 
 
-def register_algorithm(name: str, config_cls: type, action_modes: tuple[str, ...]) -> AlgorithmEntry:
+def register_algorithm(name: str, config_cls: type[Any], action_modes: tuple[str, ...]) -> AlgorithmEntry:
     """Register algorithm `name`, whose trials are `config_cls` (an `HParamsConfig`
     AlgorithmConfig) set up by `config.team_config`; returns its entry."""
 
-    def build(scenario: "ScenarioConfig", hparams: Any, resources: Resources, seed: int) -> "AlgorithmConfig":
+    def build(scenario: ScenarioConfig, hparams: Any, resources: Resources, seed: int) -> AlgorithmConfig:
         from uavlora_rllib.algorithms.common.config import team_config
 
         entry = get(name)
@@ -165,7 +166,7 @@ def get(name: str, path: str = "algorithm") -> AlgorithmEntry:
     return _REGISTRY[name]
 
 
-def entry_for_algorithm(algo: "Algorithm") -> AlgorithmEntry:
+def entry_for_algorithm(algo: Algorithm) -> AlgorithmEntry:
     """The registry entry of a built or restored algorithm (stored in its config)."""
     name = getattr(algo.config, "uavlora_algorithm", None) or algo.config.env_config.get("uavlora_algorithm")
     if name is None:

@@ -48,59 +48,59 @@ class MAPPOHParams:
     Defaults: the paper's training table where it gives one, else this project's decision
     (docs/model.md#training-defaults)."""
 
-    lr: float = Field(1e-4, gt=0.0, le=1.0, description="Adam step size, actor and critic [1/update] (paper)")
-    gamma: float = Field(0.99, ge=0.0, le=1.0, description="discount per slot [-] (paper)")
+    lr: float = Field(default=1e-4, gt=0.0, le=1.0, description="Adam step size, actor and critic [1/update] (paper)")
+    gamma: float = Field(default=0.99, ge=0.0, le=1.0, description="discount per slot [-] (paper)")
     lambda_: float = Field(
-        0.0,
+        default=0.0,
         ge=0.0,
         le=1.0,
         description="GAE lambda [-]; 0: the one-step advantage, since a slot's action never changes later "
         "states (docs/model.md#training-defaults)",
     )
-    clip_param: float = Field(0.2, gt=0.0, le=1.0, description="PPO ratio clip epsilon, per agent [-] (paper)")
-    num_epochs: int = Field(15, ge=1, description="passes over each train batch [epochs] (paper)")
+    clip_param: float = Field(default=0.2, gt=0.0, le=1.0, description="PPO ratio clip epsilon, per agent [-] (paper)")
+    num_epochs: int = Field(default=15, ge=1, description="passes over each train batch [epochs] (paper)")
     batch_episodes: int = Field(
-        16, ge=1, description="train batch [episodes]: 16 x episode_len env steps, each holding all U agents (paper)"
+        default=16, ge=1, description="train batch [episodes]: 16 x episode_len env steps, each holding all U agents (paper)"
     )
     num_minibatches: int = Field(
-        4,
+        default=4,
         ge=1,
         description="minibatches per epoch [-]: minibatch = train batch / this (docs/model.md#training-defaults)",
     )
     max_seq_len: int = Field(
-        32,
+        default=32,
         ge=1,
         description="GRU backprop window [slots]; each window starts from the GRU state recorded during the "
         "rollout (docs/model.md#training-defaults)",
     )
-    gru_hidden: int = Field(128, ge=1, description="GRU width of the actor [units] (paper)")
-    fc_hidden: int = Field(128, ge=1, description="width of the actor's ReLU layers before and after the GRU [units]")
-    critic_hidden: int = Field(128, ge=1, description="width of the critic's two ReLU layers [units] (decision)")
+    gru_hidden: int = Field(default=128, ge=1, description="GRU width of the actor [units] (paper)")
+    fc_hidden: int = Field(default=128, ge=1, description="width of the actor's ReLU layers before and after the GRU [units]")
+    critic_hidden: int = Field(default=128, ge=1, description="width of the critic's two ReLU layers [units] (decision)")
     entropy_coeff: float = Field(
-        0.001,
+        default=0.001,
         ge=0.0,
         description="weight of the mean per-agent entropy bonus [-] (docs/model.md#training-defaults)",
     )
-    vf_loss_coeff: float = Field(1.0, ge=0.0, description="weight of the value loss [-] (actor and critic share Adam)")
-    grad_clip: float | None = Field(10.0, gt=0.0, description="global gradient-norm clip [-]; null: off (decision)")
+    vf_loss_coeff: float = Field(default=1.0, ge=0.0, description="weight of the value loss [-] (actor and critic share Adam)")
+    grad_clip: float | None = Field(default=10.0, gt=0.0, description="global gradient-norm clip [-]; null: off (decision)")
     share_actor: bool = Field(
-        False,
+        default=False,
         description="one actor for all UAVs (+ agent-id one-hot) [bool]; false: one actor per UAV, so that "
         "identical UAVs can pick different SFs (docs/model.md#training-defaults)",
     )
     actor_agent_heads: bool = Field(
-        False,
+        default=False,
         description="with share_actor=true: each UAV also gets its own linear output layer on the shared "
         "GRU trunk, added to the shared one (as COMA's actor) [bool]",
     )
     critic: Literal["central", "local"] | None = Field(
-        None,
+        default=None,
         description="'central' (V(s, u) on the global state, MAPPO) | 'local' (V(o_u, u), IPPO); "
         "null: the algorithm's own",
     )
-    value_norm: bool = Field(True, description="running mean/std normalisation of the value targets [bool] (MAPPO's ValueNorm)")
+    value_norm: bool = Field(default=True, description="running mean/std normalisation of the value targets [bool] (MAPPO's ValueNorm)")
     value_clip: float | None = Field(
-        0.2, gt=0.0, description="value-loss clip around the old prediction [normalised value units]; null: off"
+        default=0.2, gt=0.0, description="value-loss clip around the old prediction [normalised value units]; null: off"
     )
 
     def check(self, scenario: ScenarioConfig, resources: Resources, path: str) -> None:

@@ -29,7 +29,7 @@ Gradient-norm clipping: RLlib's `grad_clip` (global norm).
 
 from __future__ import annotations
 
-from typing import Any, Dict, List
+from typing import Any
 
 import numpy as np
 import torch
@@ -51,7 +51,7 @@ class AddGlobalStateToBatch(ConnectorV2):
     (including the phantom bootstrap step), so it is zero-padded like the observations."""
 
     @override(ConnectorV2)
-    def __call__(self, *, rl_module, batch: Dict[str, Any], episodes: List[Any], **kwargs) -> Any:
+    def __call__(self, *, rl_module, batch: dict[str, Any], episodes: list[Any], **kwargs) -> Any:
         if GLOBAL_STATE in batch:
             return batch
         for ep in self.single_agent_episode_iterator(episodes, agents_that_stepped_only=False):
@@ -103,7 +103,7 @@ class PerAgentGAE(ConnectorV2):
         self.gamma, self.lambda_ = gamma, lambda_
 
     @override(ConnectorV2)
-    def __call__(self, *, rl_module, batch: Dict[str, Any], episodes: List[Any], **kwargs) -> Any:
+    def __call__(self, *, rl_module, batch: dict[str, Any], episodes: list[Any], **kwargs) -> Any:
         for mid, mb in batch.items():
             module = rl_module[mid]
             if not isinstance(module, ValueFunctionAPI):
@@ -131,9 +131,9 @@ class PerAgentGAE(ConnectorV2):
             old = module.normalize(torch.as_tensor(flat_v, device=device, dtype=torch.float32)).cpu().numpy()
 
             def pad(x: np.ndarray) -> torch.Tensor:
-                out = np.zeros((b, t) + x.shape[1:], dtype=np.float32)
-                out[valid] = x
-                return torch.as_tensor(out, device=device)
+                out = np.zeros((b, t) + x.shape[1:], dtype=np.float32)  # noqa: B023 (called in this iteration)
+                out[valid] = x  # noqa: B023
+                return torch.as_tensor(out, device=device)  # noqa: B023
 
             mb[Postprocessing.ADVANTAGES] = pad(adv)
             mb[Postprocessing.VALUE_TARGETS] = pad(targets)
@@ -173,7 +173,7 @@ class MAPPOTorchLearner(TorchLearner):
         )
 
     @override(TorchLearner)
-    def compute_loss_for_module(self, *, module_id, config, batch: Dict[str, Any], fwd_out: Dict[str, Any]):
+    def compute_loss_for_module(self, *, module_id, config, batch: dict[str, Any], fwd_out: dict[str, Any]):
         module = self.module[module_id].unwrapped()
         mask = batch[Columns.LOSS_MASK].float().unsqueeze(-1)  # [B, T, 1]
         n_valid = mask.sum() * module.n_agents

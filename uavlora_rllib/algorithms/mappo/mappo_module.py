@@ -24,7 +24,7 @@ STATE_OUT. Inference: ACTIONS = argmax per agent (component).
 
 from __future__ import annotations
 
-from typing import Any, Dict, List
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -44,6 +44,10 @@ from uavlora_rllib.algorithms.common.threads import set_torch_threads
 class ValueNorm(nn.Module):
     """Running mean / std of the value targets (MAPPO's ValueNorm, a PopArt without the
     output-layer rescaling): debiased exponential moving averages of x and x^2."""
+
+    mean: torch.Tensor
+    mean_sq: torch.Tensor
+    debias: torch.Tensor
 
     def __init__(self, beta: float = 0.99, eps: float = 1e-5):
         super().__init__()
@@ -91,7 +95,7 @@ class Critic(nn.Module):
     def forward(self, x: torch.Tensor, shared: bool = False) -> torch.Tensor:
         """x [..., U, d] per agent, or [..., d] the same for every agent (shared=True), without
         the id -> values [..., U] (normalised space)."""
-        first = self.net[0]
+        first = cast(nn.Linear, self.net[0])
         d = self.in_dim - self.n_agents
         z = nn.functional.linear(x, first.weight[:, :d], first.bias)
         if shared:
@@ -133,16 +137,16 @@ class MAPPOTorchRLModule(RecurrentActorForward, TorchRLModule, ValueFunctionAPI,
             self.critic = Critic(in_dim, int(mc["critic_hidden"]), self.n_agents, bool(mc["value_norm"]))
 
     @override(InferenceOnlyAPI)
-    def get_non_inference_attributes(self) -> List[str]:
+    def get_non_inference_attributes(self) -> list[str]:
         return ["critic"]
 
     @override(RLModule)
-    def _forward_train(self, batch: Dict[str, Any], **kwargs) -> Dict[str, Any]:
+    def _forward_train(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
         logits, state = self.actor_logits(batch)
         return {Columns.ACTION_DIST_INPUTS: logits, Columns.STATE_OUT: state}
 
     # ---------------------------------------------------------------- critic
-    def critic_input(self, batch: Dict[str, Any]) -> torch.Tensor:
+    def critic_input(self, batch: dict[str, Any]) -> torch.Tensor:
         """The global state [..., S] (central; the same for every agent) or each agent's own
         observation row [..., U, d] (local)."""
         if self.critic_kind == "central":
@@ -150,7 +154,7 @@ class MAPPOTorchRLModule(RecurrentActorForward, TorchRLModule, ValueFunctionAPI,
         return batch[Columns.OBS].float()
 
     @override(ValueFunctionAPI)
-    def compute_values(self, batch: Dict[str, Any], embeddings: Any = None) -> torch.Tensor:
+    def compute_values(self, batch: dict[str, Any], embeddings: Any = None) -> torch.Tensor:
         """Per-agent values [B, T, U] in the critic's (normalised, if value_norm) space."""
         return self.critic(self.critic_input(batch), shared=self.critic_kind == "central")
 

@@ -12,16 +12,15 @@ K = quota slots, P = n_sf n_tp (SF, TP) pairs, L = 2 K + 1):
 
 from __future__ import annotations
 
-from typing import Any, Dict, Tuple
+from typing import Any
 
 import numpy as np
 import torch
-from torch import nn
-
 from ray.rllib.core.columns import Columns
 from ray.rllib.core.rl_module.apis import QNetAPI, TargetNetworkAPI
 from ray.rllib.core.rl_module.rl_module import RLModule
 from ray.rllib.utils.annotations import override
+from torch import nn
 
 from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE, HIDDEN
 from uavlora_rllib.algorithms.qmix import branching
@@ -58,7 +57,7 @@ class BranchingQMixModule(QMixModule):
         )
 
     # ------------------------------------------------------------------ acting (env runners)
-    def _step(self, batch: Dict[str, Any]) -> Tuple[Tuple[torch.Tensor, torch.Tensor], torch.Tensor]:
+    def _step(self, batch: dict[str, Any]) -> tuple[tuple[torch.Tensor, torch.Tensor], torch.Tensor]:
         """Branch utilities of one step: obs [B, 1, U, d] (or [B, U, d]) ->
         ((slot_q [B, U, K, P], bw_q [B, U, n_bw]), h [B, U, H])."""
         obs = batch[Columns.OBS].float()
@@ -68,14 +67,14 @@ class BranchingQMixModule(QMixModule):
         return (slot_q[:, -1], bw_q[:, -1]), h
 
     @override(RLModule)
-    def _forward_inference(self, batch: Dict[str, Any], **kwargs) -> Dict[str, Any]:
+    def _forward_inference(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
         with torch.no_grad():
             (slot_q, bw_q), h = self._step(batch)
             actions = branching.env_actions(*branching.greedy(slot_q, bw_q), self.n_tp)
             return {Columns.ACTIONS: actions.unsqueeze(1), Columns.STATE_OUT: {HIDDEN: h}}
 
     @override(RLModule)
-    def _forward_exploration(self, batch: Dict[str, Any], t: int | None = None, **kwargs) -> Dict[str, Any]:
+    def _forward_exploration(self, batch: dict[str, Any], t: int | None = None, **kwargs) -> dict[str, Any]:
         """Epsilon-greedy per branch (every slot and the BW of every UAV on its own); t as in QMixModule."""
         with torch.no_grad():
             (slot_q, bw_q), h = self._step(batch)
@@ -86,14 +85,14 @@ class BranchingQMixModule(QMixModule):
 
     # ------------------------------------------------------------------ learning
     @override(QNetAPI)
-    def compute_q_values(self, batch: Dict[str, Any]) -> Dict[str, Any]:
+    def compute_q_values(self, batch: dict[str, Any]) -> dict[str, Any]:
         """Online branch utilities over whole sequences, GRU started at zero: obs [B, T, U, d]."""
         obs = batch[Columns.OBS].float()
         slot_q, bw_q, _ = self.agent(obs, self._zero_h(obs))
         return {Q_SLOTS: slot_q, Q_BW: bw_q}
 
     @override(RLModule)
-    def _forward_train(self, batch: Dict[str, Any], **kwargs) -> Dict[str, Any]:
+    def _forward_train(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
         """Batch of whole episodes: obs [B, T+1, U, d], actions [B, T, U, L], state [B, T+1, S]."""
         obs = batch[Columns.OBS].float()
         q = self.compute_q_values(batch)
@@ -110,7 +109,7 @@ class BranchingQMixModule(QMixModule):
 
     # ------------------------------------------------------------------ target networks
     @override(TargetNetworkAPI)
-    def forward_target(self, batch: Dict[str, Any]) -> Dict[str, Any]:
+    def forward_target(self, batch: dict[str, Any]) -> dict[str, Any]:
         """Target Q_tot at s_{t+1}, t = 0..T-1. Double Q per branch: the ONLINE network picks
         each branch's argmax at t+1 (batch[Q_SLOTS], batch[Q_BW] if given), the target network
         evaluates it; the branches are averaged over the slots active at t+1 and mixed by the

@@ -39,12 +39,11 @@ restored run refills it (learning resumes after learning_starts_episodes new epi
 
 from __future__ import annotations
 
-import numpy as np
 from typing import Literal
 
+import numpy as np
 from pydantic import Field, model_validator
 from pydantic.dataclasses import dataclass as typed_dataclass
-
 from ray.rllib.algorithms.algorithm import Algorithm
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 from ray.rllib.core import DEFAULT_MODULE_ID
@@ -71,7 +70,7 @@ MIXERS = ("qmix", "vdn")
 def _updates_per_episode(default: float):
     """The `updates_per_episode` field: one meaning and range; QMIX and VDN each have their default."""
     return Field(
-        default,
+        default=default,
         gt=0,
         le=64,
         description="gradient updates per episode added to the replay [updates/episode]: the update-to-data "
@@ -83,74 +82,74 @@ def _updates_per_episode(default: float):
 class QMIXHParams:
     """QMIX/VDN hyperparameters (grid YAML `algorithms.qmix:` / `algorithms.vdn:`)."""
 
-    lr: float = Field(1e-4, gt=0, le=1, description="Adam step size, agent network and mixer [1/update] (paper)")
-    gamma: float = Field(0.99, ge=0, le=1, description="discount per slot [-] (paper)")
-    gru_hidden: int = Field(128, ge=1, description="GRU width of the agent network [units] (paper)")
-    fc_hidden: int = Field(128, ge=1, description="width of the ReLU layer before the GRU [units] (decision)")
+    lr: float = Field(default=1e-4, gt=0, le=1, description="Adam step size, agent network and mixer [1/update] (paper)")
+    gamma: float = Field(default=0.99, ge=0, le=1, description="discount per slot [-] (paper)")
+    gru_hidden: int = Field(default=128, ge=1, description="GRU width of the agent network [units] (paper)")
+    fc_hidden: int = Field(default=128, ge=1, description="width of the ReLU layer before the GRU [units] (decision)")
     share_agent_net: bool = Field(
-        False,
+        default=False,
         description="one agent network for all UAVs (+ one-hot UAV id) [bool]; false: one per UAV, which breaks "
         "the symmetry between identical UAVs from the start (docs/model.md#training-defaults)",
     )
     slot_head: Literal["per_slot", "shared"] = Field(
-        "per_slot",
+        default="per_slot",
         description="per_device only: each ED slot's (SF, TP) utility head has its own parameters (per_slot) or one "
         "head serves every slot, told apart by the slot's observation row (shared) [-] "
         "(docs/model.md#qmix-and-vdn-per-device)",
     )
     head_hidden: int = Field(
-        64,
+        default=64,
         ge=1,
         description="per_device only: hidden width of every branch head (each slot's and the BW's) [units] "
         "(docs/model.md#qmix-and-vdn-per-device)",
     )
     dueling: bool = Field(
-        True,
+        default=True,
         description="per_device only: the branch heads give advantages around a per-UAV state value V_u, "
         "BDQ's dueling form [bool] (docs/model.md#qmix-and-vdn-per-device)",
     )
     mixing_embed_dim: int = Field(
-        32, ge=1, description="mixing-network width of QMIX and width of V(s) [units] (Rashid et al.)"
+        default=32, ge=1, description="mixing-network width of QMIX and width of V(s) [units] (Rashid et al.)"
     )
     state_bias: bool = Field(
-        True,
+        default=True,
         description="Q_tot includes a state-value term V(s) (2-layer MLP on the global state) [bool]; VDN with it "
         "is Rashid et al.'s VDN-S, without it Sunehag et al.'s plain sum; execution never reads it "
         "(docs/model.md#training-defaults)",
     )
     hypernet_embed_dim: int = Field(
-        64, ge=1, description="hidden width of the 2-layer weight hypernetworks [units]; unused by VDN"
+        default=64, ge=1, description="hidden width of the 2-layer weight hypernetworks [units]; unused by VDN"
     )
-    double_q: bool = Field(True, description="double Q [bool]: the online net picks argmax at t+1, the target net evaluates it")
-    n_step: int = Field(1, ge=1, description="n of the n-step TD targets [slots] (truncated at the episode end)")
-    tau: float = Field(0.01, gt=0, le=1, description="soft target update weight after every gradient update [-] (paper)")
-    grad_clip: float = Field(10.0, gt=0, description="global gradient-norm clip [-] (decision)")
-    batch_size_episodes: int = Field(16, ge=1, description="whole episodes per gradient update [episodes] (paper)")
-    buffer_size_episodes: int = Field(32, ge=1, description="replay capacity |D| [episodes] (paper)")
-    learning_starts_episodes: int = Field(16, ge=1, description="episodes in the replay before the first update [episodes]")
+    double_q: bool = Field(default=True, description="double Q [bool]: the online net picks argmax at t+1, the target net evaluates it")
+    n_step: int = Field(default=1, ge=1, description="n of the n-step TD targets [slots] (truncated at the episode end)")
+    tau: float = Field(default=0.01, gt=0, le=1, description="soft target update weight after every gradient update [-] (paper)")
+    grad_clip: float = Field(default=10.0, gt=0, description="global gradient-norm clip [-] (decision)")
+    batch_size_episodes: int = Field(default=16, ge=1, description="whole episodes per gradient update [episodes] (paper)")
+    buffer_size_episodes: int = Field(default=32, ge=1, description="replay capacity |D| [episodes] (paper)")
+    learning_starts_episodes: int = Field(default=16, ge=1, description="episodes in the replay before the first update [episodes]")
     updates_per_episode: float = _updates_per_episode(0.25)
     updates_per_iteration: int | None = Field(
-        None,
+        default=None,
         ge=1,
         description="gradient updates per training iteration [updates], overriding updates_per_episode; "
         "null: updates_per_episode x the episodes the iteration added",
     )
-    epsilon_start: float = Field(1.0, ge=0, le=1, description="exploration epsilon at t = 0 [probability]")
+    epsilon_start: float = Field(default=1.0, ge=0, le=1, description="exploration epsilon at t = 0 [probability]")
     epsilon_end: float = Field(
-        0.05, ge=0, le=1, description="exploration epsilon after the anneal, also the sampled execution's [probability]"
+        default=0.05, ge=0, le=1, description="exploration epsilon after the anneal, also the sampled execution's [probability]"
     )
     epsilon_anneal_fraction: float = Field(
-        0.05, ge=0, le=1, description="share of t_max_env_steps over which epsilon anneals linearly [-] (paper)"
+        default=0.05, ge=0, le=1, description="share of t_max_env_steps over which epsilon anneals linearly [-] (paper)"
     )
     t_max_env_steps: int = Field(
-        2_000_000,
+        default=2_000_000,
         ge=1,
         description="the paper's training budget T_max [env steps]: the epsilon schedule is a share of it; "
         "independent of a grid's stop.env_steps, so a short run explores as the paper's first env steps do"
     )
 
     @model_validator(mode="after")
-    def _check(self) -> "QMIXHParams":
+    def _check(self) -> QMIXHParams:
         if self.epsilon_end > self.epsilon_start:
             raise ValueError(f"epsilon_end ({self.epsilon_end}) must be <= epsilon_start ({self.epsilon_start})")
         if self.batch_size_episodes > self.buffer_size_episodes:

@@ -10,10 +10,9 @@ After every gradient update: target <- (1 - tau) target + tau online (agent netw
 
 from __future__ import annotations
 
-from typing import Any, Dict
+from typing import Any
 
 import torch
-
 from ray.rllib.core.columns import Columns
 from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 from ray.rllib.core.rl_module.apis import QNetAPI
@@ -60,7 +59,7 @@ class QMIXTorchLearner(TargetNetworkLearner):
         )
 
     @override(TorchLearner)
-    def compute_loss_for_module(self, *, module_id, config, batch: Dict[str, Any], fwd_out: Dict[str, Any]):
+    def compute_loss_for_module(self, *, module_id, config, batch: dict[str, Any], fwd_out: dict[str, Any]):
         rewards = batch[Columns.REWARDS].float()
         q_tot = fwd_out[Q_TOT]
         y = nstep_targets(rewards, fwd_out[TARGET_Q_TOT_NEXT].detach(), batch[TERMINATED], config.gamma, config.hparams.n_step)
@@ -80,7 +79,7 @@ class QMIXTorchLearner(TargetNetworkLearner):
         return loss
 
     @override(TorchLearner)
-    def after_gradient_based_update(self, *, timesteps: Dict[str, Any]) -> None:
+    def after_gradient_based_update(self, *, timesteps: dict[str, Any]) -> None:
         super().after_gradient_based_update(timesteps=timesteps)
         for module_id in self.module.keys():
             self.update_target_networks(module_id, self.config.get_config_for_module(module_id).hparams.tau)

@@ -29,18 +29,17 @@ Env runners call it one step at a time with the GRU state carried by RLlib's con
 
 from __future__ import annotations
 
-from typing import Any, Dict, List, Tuple
+from typing import Any
 
 import torch
 import torch.nn.functional as F
-from torch import nn
-
 from ray.rllib.core.columns import Columns
 from ray.rllib.core.learner.utils import make_target_network
 from ray.rllib.core.rl_module.apis import InferenceOnlyAPI, QNetAPI, TargetNetworkAPI
 from ray.rllib.core.rl_module.rl_module import RLModule
 from ray.rllib.core.rl_module.torch import TorchRLModule
 from ray.rllib.utils.annotations import override
+from torch import nn
 
 from uavlora_rllib.algorithms.common.agent_net import RecurrentAgentNet
 from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE, HIDDEN
@@ -156,7 +155,7 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
 
     # ------------------------------------------------------------------ recurrent state
     @override(RLModule)
-    def get_initial_state(self) -> Dict[str, Any]:
+    def get_initial_state(self) -> dict[str, Any]:
         return {HIDDEN: torch.zeros(self.n_agents, self.gru_hidden)}
 
     def epsilon(self, t: int | float | None) -> float:
@@ -165,7 +164,7 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
         return self._eps[1] if t is None else linear_epsilon(t, *self._eps)
 
     # ------------------------------------------------------------------ acting (env runners)
-    def _step(self, batch: Dict[str, Any]) -> Tuple[torch.Tensor, torch.Tensor]:
+    def _step(self, batch: dict[str, Any]) -> tuple[Any, torch.Tensor]:
         """Greedy-ready Qs of one step: obs [B, 1, U, d] (or [B, U, d]) -> q [B, U, A], h [B, U, H]."""
         obs = batch[Columns.OBS].float()
         if obs.dim() == 3:
@@ -175,13 +174,13 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
         return q[:, -1], h
 
     @override(RLModule)
-    def _forward_inference(self, batch: Dict[str, Any], **kwargs) -> Dict[str, Any]:
+    def _forward_inference(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
         with torch.no_grad():
             q, h = self._step(batch)
             return {Columns.ACTIONS: q.argmax(-1).unsqueeze(1), Columns.STATE_OUT: {HIDDEN: h}}
 
     @override(RLModule)
-    def _forward_exploration(self, batch: Dict[str, Any], t: int | None = None, **kwargs) -> Dict[str, Any]:
+    def _forward_exploration(self, batch: dict[str, Any], t: int | None = None, **kwargs) -> dict[str, Any]:
         """Epsilon-greedy per UAV. RLlib's env runners pass t (env steps sampled so far);
         without it (sampled execution of a trained policy) epsilon is epsilon_end."""
         with torch.no_grad():
@@ -198,14 +197,14 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
         return obs.new_zeros(obs.shape[0], self.n_agents, self.gru_hidden)
 
     @override(QNetAPI)
-    def compute_q_values(self, batch: Dict[str, Any]) -> Dict[str, Any]:
+    def compute_q_values(self, batch: dict[str, Any]) -> dict[str, Any]:
         """Online per-UAV Qs over whole sequences, GRU started at zero: obs [B, T, U, d]."""
         obs = batch[Columns.OBS].float()
         q, _ = self.agent(obs, self._zero_h(obs))
         return {Q_ALL: q}
 
     @override(RLModule)
-    def _forward_train(self, batch: Dict[str, Any], **kwargs) -> Dict[str, Any]:
+    def _forward_train(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
         """Batch of whole episodes: obs [B, T+1, U, d], actions [B, T, U], state [B, T+1, S]."""
         q_all = self.compute_q_values(batch)[Q_ALL]
         actions = batch[Columns.ACTIONS].long()
@@ -225,11 +224,11 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
         self._target_mixer = make_target_network(self.mixer)
 
     @override(TargetNetworkAPI)
-    def get_target_network_pairs(self) -> List[Tuple[nn.Module, nn.Module]]:
+    def get_target_network_pairs(self) -> list[tuple[nn.Module, nn.Module]]:
         return [(self.agent, self._target_agent), (self.mixer, self._target_mixer)]
 
     @override(TargetNetworkAPI)
-    def forward_target(self, batch: Dict[str, Any]) -> Dict[str, Any]:
+    def forward_target(self, batch: dict[str, Any]) -> dict[str, Any]:
         """Target Q_tot at s_{t+1}, t = 0..T-1. Double Q: the ONLINE agent net picks the
         argmax at t+1 (batch[Q_ALL] if given), the target agent net evaluates it, and the
         target mixer mixes on s_{t+1}. The last transition bootstraps from the final
@@ -250,5 +249,5 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
 
     # ------------------------------------------------------------------ inference-only
     @override(InferenceOnlyAPI)
-    def get_non_inference_attributes(self) -> List[str]:
+    def get_non_inference_attributes(self) -> list[str]:
         return ["mixer", "_target_agent", "_target_mixer"]

@@ -18,10 +18,7 @@ The buffer lives in the algorithm's driver process and is not part of checkpoint
 
 from __future__ import annotations
 
-from typing import Dict
-
 import numpy as np
-
 from ray.rllib.core.columns import Columns
 
 from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE, TERMINATED
@@ -74,7 +71,7 @@ class EpisodeReplay:
         self.size = min(self.size + 1, self.capacity)
         self.added += 1
 
-    def sample(self, batch_size: int) -> Dict[str, np.ndarray]:
+    def sample(self, batch_size: int) -> dict[str, np.ndarray]:
         """batch_size whole episodes, uniformly (without replacement when the buffer allows)."""
         if self.size == 0:
             raise ValueError("replay: empty")
