@@ -50,9 +50,8 @@ are rliable's tasks, the seeds its runs:
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 from scipy import stats as _st

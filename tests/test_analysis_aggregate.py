@@ -155,7 +155,7 @@ def test_rows_use_the_scenarios_reference_shares():
     taus, prof = aggregate.performance_profiles(org, sets, "mappo")
     assert list(prof) == ["mappo", "ippo", "vdn", "best_fixed"]
     assert taus[0] < 0.5 and taus[-1] > 1.0  # every profile runs from 1 down to 0
-    for frac, lo, hi in prof.values():
+    for frac, _lo, _hi in prof.values():
         assert frac[0] == 1.0 and frac[-1] == 0.0 and np.all(np.diff(frac) <= 0)
     md = aggregate.improvement_probability_md(list(poi.values()), "mappo")
     assert "P(mappo > other)" in md and "| ippo | train | 2 (V10U2 V60U4) | 1.000 |" in md

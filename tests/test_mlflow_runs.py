@@ -25,11 +25,10 @@ import urllib.request
 
 import pytest
 import yaml
+from conftest import write_tiny_grid
 
 from uavlora_rllib.experiment import run_schema
 from uavlora_rllib.experiment.mlflow_client import Tracker, TrackingRefused, git_commit
-
-from conftest import write_tiny_grid
 
 TESTS_DIR = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(TESTS_DIR)

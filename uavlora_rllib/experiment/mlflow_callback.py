@@ -22,10 +22,9 @@ The runs' fields: `run_schema`; the retrying writer: `mlflow_client.Tracker`.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping
 from typing import Any
-
-import os
 
 from ray.tune import Callback
 
