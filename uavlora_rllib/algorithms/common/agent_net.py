@@ -180,10 +180,11 @@ class RecurrentAgentNet(nn.Module):
         projection of all T steps is one batched product, as nn.GRU does on the CPU."""
         u, b, t, f = z.shape
         w_ih, w_hh = self.stacked_gru_weight_ih_l0, self.stacked_gru_weight_hh_l0
-        gi = torch.baddbmm(self.stacked_gru_bias_ih_l0.unsqueeze(1), z.reshape(u, b * t, f), w_ih.transpose(1, 2))
+        z = z.transpose(1, 2).reshape(u, t * b, f)  # time-major rows, as nn.GRU sums its gradients
+        gi = torch.baddbmm(self.stacked_gru_bias_ih_l0.unsqueeze(1), z, w_ih.transpose(1, 2))
         w_hh_t, b_hh = w_hh.transpose(1, 2), self.stacked_gru_bias_hh_l0.unsqueeze(1)
         ys = []
-        for g in gi.reshape(u, b, t, -1).unbind(2):  # unbind: one backward node for all steps
+        for g in gi.reshape(u, t, b, -1).unbind(1):  # unbind: one backward node for all steps
             i_r, i_z, i_n = g.chunk(3, -1)
             h_r, h_z, h_n = torch.baddbmm(b_hh, h, w_hh_t).chunk(3, -1)
             r = torch.sigmoid(i_r + h_r)
