@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from torch import nn
 
 from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.algorithms.common.agent_net import ActionHead
@@ -129,7 +130,8 @@ def test_critic_reads_global_state_and_actor_only_local_rows():
     m = _module(cfg, "central")
     assert m.actor.in_dim == d + u
     assert m.actor.nets[0].inp.in_features == d + u
-    assert m.critic.in_dim == s_dim + u and m.critic.net[0].in_features == s_dim + u
+    assert m.critic.in_dim == s_dim and m.critic.net[0].in_features == s_dim  # the state once, no id
+    assert m.critic.net[-1].out_features == u  # one value head per agent
     local = _module(cfg, "local")
     assert local.critic.net[0].in_features == d + u
 
@@ -155,8 +157,9 @@ def test_critic_reads_global_state_and_actor_only_local_rows():
 
 @pytest.mark.parametrize("critic", ["central", "local"])
 def test_first_layers_equal_the_concatenated_one_hot_form(critic):
-    """Actor and critic evaluate W [x; one-hot(u)] + b as W_x x + b + W_e[:, u]: the result must
-    be the plain concatenated network's, values and gradients alike."""
+    """The actor and IPPO's local critic evaluate W [x; one-hot(u)] + b as W_x x + b + W_e[:, u]:
+    the result must be the plain concatenated network's, values and gradients alike. MAPPO's
+    central critic is per-agent heads on one trunk: agent u's value is head u of the MLP on s."""
     cfg = ScenarioConfig(n_eds=6, n_uavs=3, episode_len=20)
     u, d, s_dim = cfg.n_uavs, obs_dim(cfg), state_dim(cfg)
     m = _module(cfg, critic)
@@ -178,8 +181,11 @@ def test_first_layers_equal_the_concatenated_one_hot_form(critic):
     assert torch.allclose(logits, ref_logits, atol=1e-5) and torch.allclose(h_out, ref_h.reshape(b, u, -1), atol=1e-5)
 
     batch = {"obs": obs, "state": state}
-    per_agent = state.unsqueeze(-2).expand(b, t, u, s_dim) if critic == "central" else obs
-    ref_v = m.critic.net(torch.cat([per_agent, ids.expand(b, t, u, u)], dim=-1)).squeeze(-1)
+    if critic == "central":  # agent u's head on the trunk of s, one agent at a time
+        trunk, head = m.critic.net[:-1], m.critic.net[-1]
+        ref_v = torch.stack([nn.functional.linear(trunk(state), head.weight[i], head.bias[i]) for i in range(u)], -1)
+    else:
+        ref_v = m.critic.net(torch.cat([obs, ids.expand(b, t, u, u)], dim=-1)).squeeze(-1)
     v = m.compute_values(batch)
     assert v.shape == (b, t, u) and torch.allclose(v, ref_v, atol=1e-5)
     w = m.critic.net[0].weight
@@ -214,7 +220,8 @@ def test_inference_only_module_has_no_critic():
 
 def test_separate_actors_per_uav():
     m = _module(SMALL, share_actor=False)
-    assert len(m.actor.nets) == SMALL.n_uavs and m.actor.in_dim == obs_dim(SMALL)
+    assert m.actor.stacked_inp_weight.shape[0] == SMALL.n_uavs and m.actor.in_dim == obs_dim(SMALL)
+    assert {f"actor.nets.{i}.inp.weight" for i in range(SMALL.n_uavs)} <= set(m.state_dict())
     out = m.forward_train(
         {"obs": torch.zeros(2, 3, 2, obs_dim(SMALL)), "state": torch.zeros(2, 3, state_dim(SMALL)),
          "state_in": {"h": torch.zeros(2, 2, 128)}}
@@ -345,8 +352,8 @@ def test_trains_a_few_iterations(ray_session, name):
         module = algo.env_runner.module
         assert module.inference_only and not hasattr(module, "critic")  # env runners: actor only
         weights = algo.learner_group.get_weights(["default_policy"])["default_policy"]  # public API
-        expected = state_dim(SMALL) if name == "mappo" else obs_dim(SMALL)
-        assert weights["critic.net.0.weight"].shape[1] == expected + SMALL.n_uavs
+        expected = state_dim(SMALL) if name == "mappo" else obs_dim(SMALL) + SMALL.n_uavs  # local: + id
+        assert weights["critic.net.0.weight"].shape[1] == expected
         assert weights["critic.value_norm.debias"] > 0  # value normalisation updated
         res = run_episodes(registry.get(name).greedy_policy(algo, SMALL), SMALL, episodes=2)
         assert res.mean("ee_sys_mean") > 0

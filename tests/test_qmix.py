@@ -439,4 +439,4 @@ def test_agent_net_shapes_without_sharing():
     net = RecurrentAgentNet(5, 3, 7, fc_hidden=6, gru_hidden=4, share=False)
     q, h = net(torch.randn(2, 9, 3, 5), torch.zeros(2, 3, 4))
     assert q.shape == (2, 9, 3, 7) and h.shape == (2, 3, 4)
-    assert len(net.nets) == 3
+    assert net.stacked_inp_weight.shape[0] == 3  # one stacked network per UAV

@@ -8,8 +8,8 @@ MultiDiscrete [U] (per_uav) or [U, 2 quota + 1] (per_device).
   shared). Its GRU state [U, gru_hidden] per scenario is RLlib's `STATE_IN/STATE_OUT`
   {HIDDEN: ...}; RLlib resets it to zeros at every episode start.
 * `critic`: centralised V(s, u) on the GLOBAL state (train-batch column GLOBAL_STATE, filled by
-  `mappo_learner.AddGlobalStateToBatch` from info["state"]) with the agent id one-hot
-  (input state_dim + U) for `critic="central"` (MAPPO); V(o_u, u) on the agent's own
+  `mappo_learner.AddGlobalStateToBatch` from info["state"]): one trunk on s (input state_dim)
+  with one output head per agent, for `critic="central"` (MAPPO); V(o_u, u) on the agent's own
   observation row (input obs_dim + U) for `critic="local"` (IPPO). Output [B, T, U]. It
   also holds the running value-normalisation statistics.
 
@@ -79,27 +79,36 @@ class ValueNorm(nn.Module):
 
 
 class Critic(nn.Module):
-    """V(x, u): an MLP on [x; one-hot(u)]. The first layer is evaluated as W_x x + b + W_e[:, u]
-    (the same parameters and function as on the concatenated input): a global state shared by
-    all agents goes through W_x once per time step instead of once per agent."""
+    """V(x, u) for every agent u, an MLP of two ReLU layers (docs/model.md#central-critic).
 
-    def __init__(self, in_dim: int, hidden: int, n_agents: int, value_norm: bool):
+    * `shared=True` (MAPPO, x = the global state s, the same for every agent): per-agent heads
+      on one trunk, V(s, u) = w_u . f(s) + b_u, the last layer having one output per agent. The
+      trunk reads s once per slot, so the critic's cost does not grow with U but for that layer.
+    * `shared=False` (IPPO, x = each agent's own observation row): the MLP on [x_u; one-hot(u)];
+      the first layer is evaluated as W_x x_u + b + W_e[:, u] (the same parameters and function
+      as on the concatenated input, without building it)."""
+
+    def __init__(self, in_dim: int, hidden: int, n_agents: int, value_norm: bool, shared: bool = False):
         super().__init__()
-        self.in_dim = in_dim + n_agents  # per-agent input + agent-id one-hot
+        self.shared = shared
+        self.in_dim = in_dim if shared else in_dim + n_agents  # + agent-id one-hot per agent
         self.n_agents = n_agents
         self.net = nn.Sequential(
-            nn.Linear(self.in_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, 1)
+            nn.Linear(self.in_dim, hidden),
+            nn.ReLU(),
+            nn.Linear(hidden, hidden),
+            nn.ReLU(),
+            nn.Linear(hidden, n_agents if shared else 1),  # shared: one head per agent
         )
         self.value_norm = ValueNorm() if value_norm else None
 
-    def forward(self, x: torch.Tensor, shared: bool = False) -> torch.Tensor:
-        """x [..., U, d] per agent, or [..., d] the same for every agent (shared=True), without
-        the id -> values [..., U] (normalised space)."""
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """x [..., d] (shared) or [..., U, d] (per agent) -> values [..., U] (normalised space)."""
+        if self.shared:
+            return self.net(x)
         first = cast(nn.Linear, self.net[0])
         d = self.in_dim - self.n_agents
         z = nn.functional.linear(x, first.weight[:, :d], first.bias)
-        if shared:
-            z = z.unsqueeze(-2)  # broadcast over the agent axis
         z = z + first.weight[:, d:].t()  # [U, hidden]: the agent-id column of each agent
         return self.net[1:](z).squeeze(-1)
 
@@ -134,7 +143,9 @@ class MAPPOTorchRLModule(RecurrentActorForward, TorchRLModule, ValueFunctionAPI,
         self.critic_kind = mc["critic"]
         if not self.inference_only:  # TorchRLModule would delete it anyway (InferenceOnlyAPI)
             in_dim = int(mc["state_dim"]) if self.critic_kind == "central" else self.obs_dim
-            self.critic = Critic(in_dim, int(mc["critic_hidden"]), self.n_agents, bool(mc["value_norm"]))
+            self.critic = Critic(
+                in_dim, int(mc["critic_hidden"]), self.n_agents, bool(mc["value_norm"]), shared=self.critic_kind == "central"
+            )
 
     @override(InferenceOnlyAPI)
     def get_non_inference_attributes(self) -> list[str]:
@@ -156,7 +167,7 @@ class MAPPOTorchRLModule(RecurrentActorForward, TorchRLModule, ValueFunctionAPI,
     @override(ValueFunctionAPI)
     def compute_values(self, batch: dict[str, Any], embeddings: Any = None) -> torch.Tensor:
         """Per-agent values [B, T, U] in the critic's (normalised, if value_norm) space."""
-        return self.critic(self.critic_input(batch), shared=self.critic_kind == "central")
+        return self.critic(self.critic_input(batch))
 
     def denormalize(self, values: torch.Tensor) -> torch.Tensor:
         vn = self.critic.value_norm
