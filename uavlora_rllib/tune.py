@@ -54,11 +54,14 @@ from uavlora_rllib.experiment.grid import (
     algorithm_overrides,
     TrialSpec,
     baseline_runs,
+    eval_interval,
     hparams_dict,
     check_local_resources,
     check_storage,
+    is_sweep,
     load_grid,
-    run_name,
+    trial_count,
+    trial_run_name,
     trials,
 )
 
@@ -145,6 +148,8 @@ def trial_table(grid: GridConfig, specs: list[TrialSpec]) -> str:
     ]
     for i, s in enumerate(specs, 1):
         lines.append(f"{i:>4}  {s.algorithm:<12} {s.seed:>6} {s.n_eds:>6} {s.n_uavs:>6} {grid.stop.env_steps:>17}")
+    if is_sweep(grid, specs):
+        lines += sweep_lines(grid, specs)
     lines.append(f"baseline evaluations ({grid.evaluation.episodes} episodes each):")
     if base:
         lines.append(f"{'#':>4}  {'baseline':<12} {'seed':>6} {'n_eds':>6} {'n_uavs':>6}")
@@ -155,18 +160,48 @@ def trial_table(grid: GridConfig, specs: list[TrialSpec]) -> str:
     return "\n".join(lines)
 
 
+def sweep_lines(grid: GridConfig, specs: list[TrialSpec]) -> list[str]:
+    """The dry run's description of a sweep: spaces, samples, scheduler, search algorithm."""
+    from uavlora_rllib.experiment import sweep
+
+    lines = [f"sweep: {trial_count(grid, specs)} trials = {len(specs)} grid points x grid_search values x "
+             f"num_samples {grid.num_samples}" if grid.search_alg is None else
+             f"sweep: {grid.num_samples} trials (num_samples) suggested by {grid.search_alg.type}"]
+    seen = set()
+    for s in specs:
+        for name, space in s.spaces.items():
+            if (s.algorithm, name) not in seen:
+                seen.add((s.algorithm, name))
+                lines.append(f"  algorithms.{s.algorithm}.{name}: {space.describe()}")
+    if grid.scheduler is not None:
+        interval = grid.scheduler.interval(eval_interval(grid))
+        what = "perturbation_interval" if grid.scheduler.type == "pbt" else "grace_period"
+        lines.append(f"  scheduler: {grid.scheduler.type} ({what} {interval} env steps)")
+    if grid.search_alg is not None:
+        lines.append(f"  search_alg: {grid.search_alg.type} ({grid.search_alg.sampler} sampler, seed {grid.search_alg.seed})")
+    if grid.scheduler is not None or grid.search_alg is not None:
+        lines.append(f"  metric: {sweep.METRIC} (max), the greedy policy evaluated every {eval_interval(grid)} env steps")
+    return lines
+
+
 # --------------------------------------------------------------------------- the trainable
-def trial_config(spec: TrialSpec, grid: GridConfig) -> dict[str, Any]:
-    """What one trial needs (and what its MLflow run records), plain data only."""
+def trial_config(spec: TrialSpec, grid: GridConfig, sweeping: bool = False) -> dict[str, Any]:
+    """What one trial needs (and what its MLflow run records), plain data only; a sampled
+    hyperparameter is a Tune search space in ``overrides`` (resolved per trial by Tune) and
+    named in ``sampled``."""
     from uavlora_rllib.experiment import periodic_eval  # imports RLlib: not at module import
 
+    overrides = {k: (spec.spaces[k].to_tune() if k in spec.spaces else v)
+                 for k, v in algorithm_overrides(grid, spec.algorithm).items()}
     return {
         "algorithm": spec.algorithm,
         "seed": spec.seed,
         "n_eds": spec.n_eds,
         "n_uavs": spec.n_uavs,
         "scenario": spec.scenario.to_dict(),
-        "overrides": algorithm_overrides(grid, spec.algorithm),
+        "overrides": overrides,
+        "sampled": sorted(spec.spaces),
+        "sweep": sweeping,
         "hparams": hparams_dict(spec.hparams),
         "resources": dataclasses.asdict(grid.resources),
         "budget_env_steps": grid.stop.env_steps,
@@ -184,8 +219,7 @@ def trial_resources(grid: GridConfig):
 
 
 def _trial_name(trial) -> str:
-    c = trial.config.get("trial", trial.config)
-    return run_name(c["algorithm"], c["n_eds"], c["n_uavs"], c["seed"])
+    return trial_run_name(trial.config.get("trial", trial.config), trial.trial_id)
 
 
 def _trial_dirname(trial) -> str:
@@ -230,7 +264,7 @@ def baseline_logger(grid: GridConfig, tracker):
     return log
 
 
-def status_reporter():
+def status_reporter(sampled: Sequence[str] = ()):
     """Tune's status table: one row per trial, with its name, algorithm, V, U, seed and progress.
 
     Ray 2.60's default table ("new output") shows the grid-search value, here the whole
@@ -242,7 +276,7 @@ def status_reporter():
 
     return CLIReporter(
         parameter_columns={"trial/algorithm": "algorithm", "trial/n_eds": "V", "trial/n_uavs": "U",
-                           "trial/seed": "seed"},
+                           "trial/seed": "seed", **{f"trial/overrides/{k}": k for k in sampled}},
         metric_columns={"env_steps": "env steps", "episode_return_mean": "return", "ee_sys_mean": "EE"},
         max_report_frequency=30,
         sort_by_metric=False,
@@ -255,11 +289,21 @@ def make_tuner(grid: GridConfig, specs: list[TrialSpec], storage: str, uri: str,
     from uavlora_rllib.experiment.mlflow_callback import MlflowTrialCallback
     from uavlora_rllib.experiment.trainable import UavLoraTrainable
 
+    from uavlora_rllib.experiment import sweep
+
     callback = MlflowTrialCallback(uri, grid.experiment, grid_file, commit, retry_timeout_s=grid.mlflow.retry_timeout_s)
+    sweeping = is_sweep(grid, specs)
+    configs = [trial_config(s, grid, sweeping) for s in specs]
+    # a search algorithm suggests the sampled values of one grid point (sweep.check_sweep)
+    param_space = {"trial": configs[0] if grid.search_alg is not None else tune.grid_search(configs)}
+    spaces = {k: v for s in specs for k, v in s.spaces.items()}
     return tune.Tuner(
         tune.with_resources(UavLoraTrainable, trial_resources(grid)),
-        param_space={"trial": tune.grid_search([trial_config(s, grid) for s in specs])},
+        param_space=param_space,
         tune_config=tune.TuneConfig(
+            num_samples=grid.num_samples,
+            scheduler=sweep.make_scheduler(grid, spaces, eval_interval(grid)),
+            search_alg=sweep.make_search_alg(grid),
             max_concurrent_trials=grid.max_concurrent_trials,
             trial_name_creator=_trial_name,
             trial_dirname_creator=_trial_dirname,
@@ -273,7 +317,7 @@ def make_tuner(grid: GridConfig, specs: list[TrialSpec], storage: str, uri: str,
                 checkpoint_frequency=grid.checkpoint_every, checkpoint_at_end=True, num_to_keep=2
             ),
             failure_config=tune.FailureConfig(max_failures=grid.failure.max_failures),
-            progress_reporter=status_reporter(),
+            progress_reporter=status_reporter(sorted(spaces)),
             verbose=1,
         ),
     )
@@ -334,7 +378,7 @@ def _run_locked(grid: GridConfig, grid_file: str, args: argparse.Namespace, spec
         results = _fit(tuner, pool)
         if results is None:
             return EXIT_FAILED
-        done, interrupted = _progress(results, specs)
+        done, interrupted = _progress(results, trial_count(grid, specs))
         _settle_baselines(pool, interrupted)
         if pool.error is not None:
             print(f"error: {pool.error}", file=sys.stderr)
@@ -432,10 +476,10 @@ def _fit(tuner, pool):
         return None
 
 
-def _progress(results, specs: list[TrialSpec]) -> tuple[int, bool]:
-    """(trials done, whether the grid stopped before every trial finished or failed)."""
+def _progress(results, total: int) -> tuple[int, bool]:
+    """(trials done, whether the grid stopped before every one of its `total` trials finished or failed)."""
     done = sum(1 for r in results if r.metrics and r.metrics.get("done"))
-    return done, done + len(results.errors) < len(specs)
+    return done, done + len(results.errors) < total
 
 
 def _settle_baselines(pool, interrupted: bool) -> None:
@@ -467,7 +511,7 @@ def _report(grid: GridConfig, args: argparse.Namespace, specs: list[TrialSpec], 
             pool, done: int, interrupted: bool, wall: float) -> int:
     """Print the grid's outcome and where its results are; the exit code."""
     failed = len(results.errors)
-    print(f"\n{done}/{len(specs)} trials finished, {failed} failed, in {wall:.0f} s")
+    print(f"\n{done}/{trial_count(grid, specs)} trials finished, {failed} failed, in {wall:.0f} s")
     if pool.failed:
         print(f"{len(pool.failed)} baseline evaluation(s) failed: {', '.join(n for n, _ in pool.failed)}")
     print(f"MLflow: {describe_uri(uri)} (experiment {grid.experiment!r}; view with: mlflow ui --backend-store-uri {uri})")
