@@ -140,8 +140,9 @@ def check_storage_writable(storage: str) -> None:
 # --------------------------------------------------------------------------- dry run
 def trial_table(grid: GridConfig, specs: list[TrialSpec]) -> str:
     base = baseline_runs(grid)
+    what = "grid points" if is_sweep(grid, specs) else "trials"  # a sweep's trials: sweep_lines
     lines = [
-        f"experiment {grid.experiment!r}: {len(specs)} trials = {len(grid.algorithms)} algorithms x "
+        f"experiment {grid.experiment!r}: {len(specs)} {what} = {len(grid.algorithms)} algorithms x "
         f"{len(grid.seeds)} seeds x {len(grid.n_eds)} n_eds x {len(grid.n_uavs)} n_uavs; "
         f"{len(base)} baseline evaluations",
         f"{'#':>4}  {'algorithm':<12} {'seed':>6} {'n_eds':>6} {'n_uavs':>6} {'budget_env_steps':>17}",
