@@ -21,6 +21,10 @@
   ``evaluation.episodes`` episodes) reported as ``eval/*``. A trial that fails (its node
   died) is retried from its last checkpoint up to ``failure.max_failures`` times, into the
   same MLflow run. `mlflow_callback.MlflowTrialCallback` logs everything to MLflow from the driver.
+* Sweeps (experiment/sweep.py): hyperparameters given as Tune search spaces are sampled per
+  trial (``num_samples`` per grid point), optionally under a ``scheduler`` (asha, pbt,
+  median_stopping) or a ``search_alg`` (optuna), all on the periodic greedy evaluation
+  ``eval/ee_sys_mean``; trial and run names then end in the trial's number (``-t00003``).
 * ``--resume`` restores the Tune experiment ``<storage>/<experiment>``: finished trials are
   not rerun, interrupted or errored ones continue from their last checkpoint, and each trial
   keeps its one MLflow run (found again by its trial_id tag). If the driver died before Tune
@@ -315,7 +319,9 @@ def make_tuner(grid: GridConfig, specs: list[TrialSpec], storage: str, uri: str,
             storage_path=storage,
             callbacks=[callback],
             checkpoint_config=tune.CheckpointConfig(
-                checkpoint_frequency=grid.checkpoint_every, checkpoint_at_end=True, num_to_keep=2
+                checkpoint_frequency=grid.checkpoint_every, checkpoint_at_end=True,
+                # PBT restores a trial from another's checkpoint some iterations later: keep them all
+                num_to_keep=None if grid.scheduler is not None and grid.scheduler.type == "pbt" else 2,
             ),
             failure_config=tune.FailureConfig(max_failures=grid.failure.max_failures),
             progress_reporter=status_reporter(sorted(spaces)),
