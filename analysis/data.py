@@ -29,6 +29,7 @@ REFERENCE_BASELINES = (OPTIMAL, GREEDY)  # the "share of reference" denominator,
 BEST_FIXED = "best_fixed"  # the open-loop check: the best constant action
 BOUND_KEY = f"eval/{BOUND_METRIC}"  # the references' upper bound on the per-slot optimum
 RETURN_METRIC = "episode_return_mean"  # training return of the sampled (exploring) policy
+SAMPLED_PARAM = "hparam."  # a sweep's sampled hyperparameter (run_schema.sampled_params)
 # params whose values must agree inside a cell (n_eds / n_uavs are the cell's key already)
 _IDENTITY_PARAMS = ("stop.env_steps", "eval.episodes")
 
@@ -135,6 +136,26 @@ class Organised:
         return next((a for a in self.algorithms("train") if a.lower() == name.lower()), None)
 
 
+def cell_name(r: RunRecord) -> str:
+    """The cell a run joins: its algorithm, and for a trial of a sweep its sampled values
+    (params ``hparam.<name>``, experiment/sweep.py): ``mappo[entropy_coeff=0.01,lr=0.000316]``,
+    so that the seeds of one sampled configuration are averaged and different ones are not."""
+    from uavlora_rllib.experiment.sweep import variant_label
+
+    sampled = {k[len(SAMPLED_PARAM):]: _as_number(v) for k, v in r.params.items() if k.startswith(SAMPLED_PARAM)}
+    return f"{r.algorithm}[{variant_label(sampled)}]" if sampled and r.kind == "train" else str(r.algorithm)
+
+
+def _as_number(text: str):
+    try:
+        return int(text)
+    except ValueError:
+        try:
+            return float(text)
+        except ValueError:
+            return text
+
+
 def organise(records: list[RunRecord]) -> Organised:
     warnings: list[str] = []
     train_names = {r.algorithm for r in records if r.kind == "train" and r.algorithm}
@@ -149,7 +170,7 @@ def organise(records: list[RunRecord]) -> Organised:
         if r.scenario_key is None:
             warnings.append(f"{r.label}: no n_eds / n_uavs tag or scenario param; skipped")
             continue
-        name = r.algorithm
+        name = cell_name(r)
         if r.kind == "baseline" and name in train_names:
             name = f"{name} (baseline)"  # a baseline named like a learner must not join its cell
         key = (r.n_eds, r.n_uavs, name)
@@ -241,7 +262,7 @@ def curves(history, org: Organised, metric: str, smooth: float, points: int, min
     groups: dict[tuple[int, int, str], list[RunRecord]] = defaultdict(list)
     for r in org.records:
         if r.kind == "train" and r.algorithm and r.scenario_key is not None:
-            groups[(r.n_eds, r.n_uavs, r.algorithm)].append(r)
+            groups[(r.n_eds, r.n_uavs, cell_name(r))].append(r)
     for (v, u, alg), runs in sorted(groups.items()):
         finished = [r for r in runs if r.status == "FINISHED"]
         use = finished or runs

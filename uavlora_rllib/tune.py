@@ -22,6 +22,10 @@
   died) is retried from its last checkpoint up to ``failure.max_failures`` times, into the
   same MLflow run. `mlflow_callback.MlflowTrialCallback` logs everything to MLflow from the driver;
   trials and baselines are nested under the grid's one parent run (docs/model.md#mlflow-runs).
+* Sweeps (experiment/sweep.py): hyperparameters given as Tune search spaces are sampled per
+  trial (``num_samples`` per grid point), optionally under a ``scheduler`` (asha, pbt,
+  median_stopping) or a ``search_alg`` (optuna), all on the periodic greedy evaluation
+  ``eval/ee_sys_mean``; trial and run names then end in the trial's number (``-t00003``).
 * ``--resume`` restores the Tune experiment ``<storage>/<experiment>``: finished trials are
   not rerun, interrupted or errored ones continue from their last checkpoint, and each trial
   keeps its one MLflow run (found again by its trial_id tag). If the driver died before Tune
@@ -58,9 +62,12 @@ from uavlora_rllib.experiment.grid import (
     baseline_runs,
     check_local_resources,
     check_storage,
+    eval_interval,
     hparams_dict,
+    is_sweep,
     load_grid,
-    run_name,
+    trial_count,
+    trial_run_name,
     trials,
 )
 
@@ -139,14 +146,17 @@ def check_storage_writable(storage: str) -> None:
 # --------------------------------------------------------------------------- dry run
 def trial_table(grid: GridConfig, specs: list[TrialSpec]) -> str:
     base = baseline_runs(grid)
+    what = "grid points" if is_sweep(grid, specs) else "trials"  # a sweep's trials: sweep_lines
     lines = [
-        f"experiment {grid.experiment!r}: {len(specs)} trials = {len(grid.algorithms)} algorithms x "
+        f"experiment {grid.experiment!r}: {len(specs)} {what} = {len(grid.algorithms)} algorithms x "
         f"{len(grid.seeds)} seeds x {len(grid.n_eds)} n_eds x {len(grid.n_uavs)} n_uavs; "
         f"{len(base)} baseline evaluations",
         f"{'#':>4}  {'algorithm':<12} {'seed':>6} {'n_eds':>6} {'n_uavs':>6} {'budget_env_steps':>17}",
     ]
     for i, s in enumerate(specs, 1):
         lines.append(f"{i:>4}  {s.algorithm:<12} {s.seed:>6} {s.n_eds:>6} {s.n_uavs:>6} {grid.stop.env_steps:>17}")
+    if is_sweep(grid, specs):
+        lines += sweep_lines(grid, specs)
     lines.append(f"baseline evaluations ({grid.evaluation.episodes} episodes each):")
     if base:
         lines.append(f"{'#':>4}  {'baseline':<12} {'seed':>6} {'n_eds':>6} {'n_uavs':>6}")
@@ -157,18 +167,48 @@ def trial_table(grid: GridConfig, specs: list[TrialSpec]) -> str:
     return "\n".join(lines)
 
 
+def sweep_lines(grid: GridConfig, specs: list[TrialSpec]) -> list[str]:
+    """The dry run's description of a sweep: spaces, samples, scheduler, search algorithm."""
+    from uavlora_rllib.experiment import sweep
+
+    lines = [f"sweep: {trial_count(grid, specs)} trials = {len(specs)} grid points x grid_search values x "
+             f"num_samples {grid.num_samples}" if grid.search_alg is None else
+             f"sweep: {grid.num_samples} trials (num_samples) suggested by {grid.search_alg.type}"]
+    seen = set()
+    for s in specs:
+        for name, space in s.spaces.items():
+            if (s.algorithm, name) not in seen:
+                seen.add((s.algorithm, name))
+                lines.append(f"  algorithms.{s.algorithm}.{name}: {space.describe()}")
+    if grid.scheduler is not None:
+        interval = grid.scheduler.interval(eval_interval(grid))
+        what = "perturbation_interval" if grid.scheduler.type == "pbt" else "grace_period"
+        lines.append(f"  scheduler: {grid.scheduler.type} ({what} {interval} env steps)")
+    if grid.search_alg is not None:
+        lines.append(f"  search_alg: {grid.search_alg.type} ({grid.search_alg.sampler} sampler, seed {grid.search_alg.seed})")
+    if grid.scheduler is not None or grid.search_alg is not None:
+        lines.append(f"  metric: {sweep.METRIC} (max), the greedy policy evaluated every {eval_interval(grid)} env steps")
+    return lines
+
+
 # --------------------------------------------------------------------------- the trainable
-def trial_config(spec: TrialSpec, grid: GridConfig) -> dict[str, Any]:
-    """What one trial needs (and what its MLflow run records), plain data only."""
+def trial_config(spec: TrialSpec, grid: GridConfig, sweeping: bool = False) -> dict[str, Any]:
+    """What one trial needs (and what its MLflow run records), plain data only; a sampled
+    hyperparameter is a Tune search space in ``overrides`` (resolved per trial by Tune) and
+    named in ``sampled``."""
     from uavlora_rllib.experiment import periodic_eval  # imports RLlib: not at module import
 
+    overrides = {k: (spec.spaces[k].to_tune() if k in spec.spaces else v)
+                 for k, v in algorithm_overrides(grid, spec.algorithm).items()}
     return {
         "algorithm": spec.algorithm,
         "seed": spec.seed,
         "n_eds": spec.n_eds,
         "n_uavs": spec.n_uavs,
         "scenario": spec.scenario.to_dict(),
-        "overrides": algorithm_overrides(grid, spec.algorithm),
+        "overrides": overrides,
+        "sampled": sorted(spec.spaces),
+        "sweep": sweeping,
         "hparams": hparams_dict(spec.hparams),
         "resources": dataclasses.asdict(grid.resources),
         "budget_env_steps": grid.stop.env_steps,
@@ -186,8 +226,7 @@ def trial_resources(grid: GridConfig):
 
 
 def _trial_name(trial) -> str:
-    c = trial.config.get("trial", trial.config)
-    return run_name(c["algorithm"], c["n_eds"], c["n_uavs"], c["seed"])
+    return trial_run_name(trial.config.get("trial", trial.config), trial.trial_id)
 
 
 def _trial_dirname(trial) -> str:
@@ -232,7 +271,7 @@ def baseline_logger(grid: GridConfig, tracker):
     return log
 
 
-def status_reporter():
+def status_reporter(sampled: Sequence[str] = ()):
     """Tune's status table: one row per trial, with its name, algorithm, V, U, seed and progress.
 
     Ray 2.60's default table ("new output") shows the grid-search value, here the whole
@@ -244,7 +283,7 @@ def status_reporter():
 
     return CLIReporter(
         parameter_columns={"trial/algorithm": "algorithm", "trial/n_eds": "V", "trial/n_uavs": "U",
-                           "trial/seed": "seed"},
+                           "trial/seed": "seed", **{f"trial/overrides/{k}": k for k in sampled}},
         metric_columns={"env_steps": "env steps", "episode_return_mean": "return", "ee_sys_mean": "EE"},
         max_report_frequency=30,
         sort_by_metric=False,
@@ -254,15 +293,24 @@ def status_reporter():
 def make_tuner(grid: GridConfig, specs: list[TrialSpec], storage: str, uri: str, grid_file: str, commit: str):
     from ray import tune
 
+    from uavlora_rllib.experiment import sweep
     from uavlora_rllib.experiment.mlflow_callback import MlflowTrialCallback
     from uavlora_rllib.experiment.trainable import UavLoraTrainable
 
     callback = MlflowTrialCallback(uri, grid.experiment, grid_file, commit, retry_timeout_s=grid.mlflow.retry_timeout_s,
                                    checkpoint_artifact_max_mb=grid.mlflow.checkpoint_artifact_max_mb)
+    sweeping = is_sweep(grid, specs)
+    configs = [trial_config(s, grid, sweeping) for s in specs]
+    # a search algorithm suggests the sampled values of one grid point (sweep.check_sweep)
+    param_space = {"trial": configs[0] if grid.search_alg is not None else tune.grid_search(configs)}
+    spaces = {k: v for s in specs for k, v in s.spaces.items()}
     return tune.Tuner(
         tune.with_resources(UavLoraTrainable, trial_resources(grid)),
-        param_space={"trial": tune.grid_search([trial_config(s, grid) for s in specs])},
+        param_space=param_space,
         tune_config=tune.TuneConfig(
+            num_samples=grid.num_samples,
+            scheduler=sweep.make_scheduler(grid, spaces, eval_interval(grid)),
+            search_alg=sweep.make_search_alg(grid),
             max_concurrent_trials=grid.max_concurrent_trials,
             trial_name_creator=_trial_name,
             trial_dirname_creator=_trial_dirname,
@@ -273,10 +321,12 @@ def make_tuner(grid: GridConfig, specs: list[TrialSpec], storage: str, uri: str,
             storage_path=storage,
             callbacks=[callback],
             checkpoint_config=tune.CheckpointConfig(
-                checkpoint_frequency=grid.checkpoint_every, checkpoint_at_end=True, num_to_keep=2
+                checkpoint_frequency=grid.checkpoint_every, checkpoint_at_end=True,
+                # PBT restores a trial from another's checkpoint some iterations later: keep them all
+                num_to_keep=None if grid.scheduler is not None and grid.scheduler.type == "pbt" else 2,
             ),
             failure_config=tune.FailureConfig(max_failures=grid.failure.max_failures),
-            progress_reporter=status_reporter(),
+            progress_reporter=status_reporter(sorted(spaces)),
             verbose=1,
         ),
     )
@@ -339,7 +389,7 @@ def _run_locked(grid: GridConfig, grid_file: str, args: argparse.Namespace, spec
         if results is None:
             grid_status = "FAILED"
             return EXIT_FAILED
-        done, interrupted = _progress(results, specs)
+        done, interrupted = _progress(results, trial_count(grid, specs))
         _settle_baselines(pool, interrupted)
         if pool.error is not None:
             print(f"error: {pool.error}", file=sys.stderr)
@@ -444,10 +494,10 @@ def _fit(tuner, pool):
         return None
 
 
-def _progress(results, specs: list[TrialSpec]) -> tuple[int, bool]:
-    """(trials done, whether the grid stopped before every trial finished or failed)."""
+def _progress(results, total: int) -> tuple[int, bool]:
+    """(trials done, whether the grid stopped before every one of its `total` trials finished or failed)."""
     done = sum(1 for r in results if r.metrics and r.metrics.get("done"))
-    return done, done + len(results.errors) < len(specs)
+    return done, done + len(results.errors) < total
 
 
 def _settle_baselines(pool, interrupted: bool) -> None:
@@ -481,7 +531,7 @@ def _report(grid: GridConfig, args: argparse.Namespace, specs: list[TrialSpec], 
             pool, done: int, interrupted: bool, wall: float) -> int:
     """Print the grid's outcome and where its results are; the exit code."""
     failed = len(results.errors)
-    print(f"\n{done}/{len(specs)} trials finished, {failed} failed, in {wall:.0f} s")
+    print(f"\n{done}/{trial_count(grid, specs)} trials finished, {failed} failed, in {wall:.0f} s")
     if pool.failed:
         print(f"{len(pool.failed)} baseline evaluation(s) failed: {', '.join(n for n, _ in pool.failed)}")
     print(f"MLflow: {describe_uri(uri)} (experiment {grid.experiment!r}; view with: mlflow ui --backend-store-uri {uri})")

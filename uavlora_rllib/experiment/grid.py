@@ -28,6 +28,13 @@ Schema (see tune_configs/smoke.yaml for a complete example)::
     storage: ./ray_results       # Ray Tune storage (a shared path on a cluster)
     max_concurrent_trials: null  # optional cap
     plugins: []                  # optional: modules to import that register more algorithms
+    num_samples: 1               # sweeps (experiment/sweep.py): samples of the search spaces
+    scheduler: null              #   {type: asha | pbt | median_stopping, ...}
+    search_alg: null             #   {type: optuna, sampler: tpe, seed: 0}
+
+Any algorithm hyperparameter may be a Ray Tune search space instead of one value
+(`{grid_search: [...]}`, `{choice: [...]}`, `{uniform: [lo, hi]}`, `{loguniform: [lo, hi]}`,
+`{randint: [lo, hi]}`): experiment/sweep.py, which also validates them.
 
 `t_max_env_steps` (QMIX/VDN: the epsilon schedule is a fraction of T_max) is NOT tied to
 `stop.env_steps`: it stays at the paper's 2M unless the YAML sets it, so a short grid explores
@@ -65,6 +72,8 @@ from pydantic.dataclasses import dataclass as typed_dataclass
 
 from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.config_errors import ConfigError, build
+from uavlora_rllib.experiment import sweep
+from uavlora_rllib.experiment.sweep import SchedulerConfig, SearchAlgConfig, SearchSpace
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
 _STRICT = ConfigDict(extra="forbid", frozen=True)
@@ -204,6 +213,9 @@ class GridConfig:
     storage: str = Field(default="./ray_results", min_length=1)
     max_concurrent_trials: int | None = Field(default=None, ge=1, le=100_000)
     plugins: list[str] = dataclasses.field(default_factory=list)
+    num_samples: int = Field(1, ge=1, le=100_000)
+    scheduler: SchedulerConfig | None = None
+    search_alg: SearchAlgConfig | None = None
 
     @field_validator("experiment")
     @classmethod
@@ -251,7 +263,9 @@ class TrialSpec:
     n_eds: int
     n_uavs: int
     scenario: ScenarioConfig
-    hparams: Any  # the algorithm's validated hyperparameter dataclass
+    hparams: Any  # the algorithm's validated hyperparameter dataclass (sampled fields at their defaults)
+    # hyperparameters given as Tune search spaces: name -> space (sweep.py); empty: none
+    spaces: Mapping[str, SearchSpace] = dataclasses.field(default_factory=dict)
 
     @property
     def name(self) -> str:
@@ -275,6 +289,14 @@ class BaselineSpec:
 
 def run_name(algorithm: str, n_eds: int, n_uavs: int, seed: int) -> str:
     return f"{algorithm}-V{n_eds}-U{n_uavs}-s{seed}"
+
+
+def trial_run_name(cfg: Mapping[str, Any], trial_id: str) -> str:
+    """The name of a trial (Tune) and of its MLflow run: `run_name`, and in a sweep (the trial
+    config's ``sweep``) the trial's number in the experiment too (``-t00003``), since there
+    (algorithm, V, U, seed) repeats."""
+    name = run_name(cfg["algorithm"], cfg["n_eds"], cfg["n_uavs"], cfg["seed"])
+    return f"{name}-t{str(trial_id).rsplit('_', 1)[-1]}" if cfg.get("sweep") else name
 
 
 # --------------------------------------------------------------------------- loading
@@ -350,8 +372,27 @@ def import_plugins(modules: list[str], prefix: str = "plugins") -> None:
 
 
 def algorithm_overrides(grid: GridConfig, name: str) -> dict[str, Any]:
-    """The YAML overrides of one algorithm (a copy)."""
+    """The YAML overrides of one algorithm (a copy; search spaces included)."""
     return dict(grid.algorithms.get(name) or {})
+
+
+def algorithm_spaces(grid: GridConfig, entry: Any) -> tuple[dict[str, Any], dict[str, SearchSpace]]:
+    """(fixed overrides, search spaces) of one algorithm, validated (sweep.split_overrides)."""
+    return sweep.split_overrides(entry.hparams_cls, algorithm_overrides(grid, entry.name), f"algorithms.{entry.name}")
+
+
+def eval_interval(grid: GridConfig) -> int:
+    """periodic_eval.resolve_interval of the grid (env steps between greedy evaluations; 0: none),
+    without importing RLlib: null -> stop.env_steps / 20 (at least 1)."""
+    interval = grid.evaluation.interval_env_steps
+    return max(1, grid.stop.env_steps // 20) if interval is None else int(interval)
+
+
+def is_sweep(grid: GridConfig, specs: list[TrialSpec]) -> bool:
+    """Whether trials are sampled (search spaces, num_samples, scheduler or search algorithm):
+    then trial and run names carry the trial's number, since (algorithm, V, U, seed) repeats."""
+    return (grid.num_samples > 1 or grid.scheduler is not None or grid.search_alg is not None
+            or any(s.spaces for s in specs))
 
 
 def scenario_for(grid: GridConfig, n_eds: int, n_uavs: int) -> ScenarioConfig:
@@ -365,10 +406,15 @@ def _validate(grid: GridConfig) -> None:
             raise ConfigError(f"scenario.{key}: set by the top-level '{key}' list; remove it from scenario")
     import_plugins(grid.plugins)
     entries = {}
+    spaces = {}
     for name in grid.algorithms:
         entry = registry.get(name, path=f"algorithms.{name}")
-        hparams = entry.hparams(algorithm_overrides(grid, name), prefix=f"algorithms.{name}")
+        fixed, spaces[name] = algorithm_spaces(grid, entry)
+        # every checked combination of sampled values (one, the fixed values, without spaces)
+        hparams = [entry.hparams({**fixed, **combo}, prefix=f"algorithms.{name}")
+                   for combo in sweep.representative_combinations(spaces[name])]
         entries[name] = (entry, hparams)
+    sweep.check_sweep(grid, spaces, eval_interval(grid))
 
     from uavlora_rllib.baselines.policies import BASELINES, make_baseline
 
@@ -381,14 +427,16 @@ def _validate(grid: GridConfig) -> None:
             scenario = scenario_for(grid, n_eds, n_uavs)
         except ConfigError as exc:
             raise ConfigError(f"{exc}{where}") from None
-        for entry, hparams in entries.values():
+        for name, (entry, candidates) in entries.items():
             entry.check_scenario(scenario, prefix="scenario.action_mode")
             # the entry's own cross-checks (hyperparameters x resources x scenario); builds
             # only the AlgorithmConfig, not the algorithm
-            try:
-                entry.build(scenario, hparams, grid.resources, grid.seeds[0])
-            except ConfigError as exc:
-                raise ConfigError(f"{exc}{where}") from None
+            for hparams in candidates:
+                try:
+                    entry.build(scenario, hparams, grid.resources, grid.seeds[0])
+                except ConfigError as exc:
+                    sampled = ", ".join(f"{k}={getattr(hparams, k)!r}" for k in spaces[name])
+                    raise ConfigError(f"{exc}{where}{f' (sampled: {sampled})' if sampled else ''}") from None
         for i, name in enumerate(grid.baselines):
             try:
                 make_baseline(name, scenario, seed=0)
@@ -440,10 +488,19 @@ def trials(grid: GridConfig) -> list[TrialSpec]:
     out = []
     for name in grid.algorithms:
         entry = registry.get(name, path=f"algorithms.{name}")
-        hparams = entry.hparams(algorithm_overrides(grid, name), prefix=f"algorithms.{name}")
+        fixed, spaces = algorithm_spaces(grid, entry)
+        hparams = entry.hparams(fixed, prefix=f"algorithms.{name}")
         for seed, n_eds, n_uavs in itertools.product(grid.seeds, grid.n_eds, grid.n_uavs):
-            out.append(TrialSpec(name, seed, n_eds, n_uavs, scenario_for(grid, n_eds, n_uavs), hparams))
+            out.append(TrialSpec(name, seed, n_eds, n_uavs, scenario_for(grid, n_eds, n_uavs), hparams, spaces))
     return out
+
+
+def trial_count(grid: GridConfig, specs: list[TrialSpec]) -> int:
+    """Trials Tune runs: each grid point x its grid_search product x num_samples (a search
+    algorithm: num_samples)."""
+    if grid.search_alg is not None:
+        return grid.num_samples
+    return grid.num_samples * sum(sweep.grid_search_size(s.spaces) for s in specs)
 
 
 def baseline_runs(grid: GridConfig) -> list[BaselineSpec]:

@@ -42,6 +42,7 @@ from uavlora_rllib.experiment.run_schema import (
     number,
     read_trial_results,
     run_params,
+    sampled_params,
     trial_config_yaml,
 )
 
@@ -130,9 +131,11 @@ class MlflowTrialCallback(Callback):
             if existing.info.status != "RUNNING":
                 self.tracker.reopen(run_id)
         else:
-            from uavlora_rllib.experiment.grid import run_name
+            from uavlora_rllib.experiment.grid import run_name, trial_run_name
+            from uavlora_rllib.experiment.sweep import sampled_values
 
-            replaced = self.tracker.replace_orphans(cfg, tid)
+            # in a sweep several trials share (algorithm, seed, V, U): a sibling's run is no orphan
+            replaced = [] if cfg.get("sweep") else self.tracker.replace_orphans(cfg, tid)
             if replaced:
                 print(f"MLflow: replaced {len(replaced)} unfinished run(s) of a trial whose Tune state was lost "
                       f"({run_name(cfg['algorithm'], cfg['n_eds'], cfg['n_uavs'], cfg['seed'])})", flush=True)
@@ -141,10 +144,13 @@ class MlflowTrialCallback(Callback):
             )
             tags["trial_id"] = tid
             tags["checkpoint"] = ""
+            sampled = sampled_values(cfg)  # a sweep's values for this trial, as Tune resolved them
             params = {**identity, **run_params(
-                cfg["scenario"], cfg["budget_env_steps"], cfg["eval_episodes"], cfg["hparams"], cfg["resources"]
+                cfg["scenario"], cfg["budget_env_steps"], cfg["eval_episodes"], {**cfg["hparams"], **sampled},
+                cfg["resources"]
             )}
-            name = run_name(cfg["algorithm"], cfg["n_eds"], cfg["n_uavs"], cfg["seed"])
+            params.update(sampled_params(sampled))
+            name = trial_run_name(cfg, tid)
             run_id = self.tracker.create_run(name, tags, params)
             self._last_step[tid] = -1
         self.tracker.log_text(run_id, trial_config_yaml(cfg, tid), TRIAL_CONFIG_ARTIFACT)

@@ -15,7 +15,9 @@ The analysis step reads exactly this schema:
   a path, or a URI on cloud storage; updated at every save and at the end) and
   ``checkpoint_artifact`` (whether the final checkpoint was uploaded, see below).
 * params: ``algorithm``, ``seed``, ``n_eds``, ``n_uavs`` (to filter and group by in the UI),
-  ``algo.<field>`` (hyperparameters; none for baselines), ``scenario.<field>``
+  ``algo.<field>`` (hyperparameters; none for baselines; a sweep's sampled values
+  also as ``hparam.<field>``, with ``hparam/<field>`` metrics of the value trained with at
+  each step, which PBT's mutations change), ``scenario.<field>``
   (`scenario.flatten`), ``resources.<field>`` (train runs), ``stop.env_steps``,
   ``eval.episodes``; values are strings, cut to MLflow's length limit.
 * artifacts of a train run: ``trial_config.yaml`` (the resolved trial config it trained with),
@@ -60,6 +62,7 @@ TRAIN_METRICS = ("episode_return_mean", "ee_sys_mean", "success_rate", "env_step
 ENV_STEPS = "env_steps"  # key of the env-step counter in the trainable's results
 LEARNER_PREFIX = "learner/"
 EVAL_PREFIX = "eval/"
+HPARAM_PREFIX = "hparam/"  # a sampled hyperparameter's current value (experiment/sweep.py)
 
 KIND_TRAIN = "train"
 KIND_BASELINE = "baseline"
@@ -136,6 +139,12 @@ def run_params(
         params["stop.env_steps"] = str(int(budget_env_steps))
     params["eval.episodes"] = str(int(eval_episodes))
     return params
+
+
+def sampled_params(sampled: Mapping[str, Any]) -> dict[str, str]:
+    """``hparam.<name>``: the values a sweep sampled for a trial (its start; PBT's later
+    mutations are the ``hparam/<name>`` metrics)."""
+    return {safe_name(f"hparam.{k}"): param_value(v) for k, v in sampled.items()}
 
 
 def eval_metrics(summary: Mapping[str, Any]) -> dict[str, float]:
@@ -235,7 +244,7 @@ def metrics_to_log(result: Mapping[str, Any]) -> tuple[dict[str, float], dict[st
         x = number(value)
         if x is None:
             continue
-        if key in TRAIN_METRICS or key.startswith(LEARNER_PREFIX):
+        if key in TRAIN_METRICS or key.startswith((LEARNER_PREFIX, HPARAM_PREFIX)):
             train[safe_name(key)] = x
         elif key.startswith((EVAL_PREFIX, "eval_sampled/")):  # periodic_eval.EVAL_SAMPLED_PREFIX
             evals[safe_name(key)] = x

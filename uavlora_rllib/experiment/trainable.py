@@ -35,12 +35,16 @@ class UavLoraTrainable(tune.Trainable):
         set_torch_threads(resources.torch_threads)
         self.entry = registry.get(cfg["algorithm"])
         self.scenario = ScenarioConfig.from_dict(cfg["scenario"])
-        hparams = self.entry.hparams(cfg["overrides"])
-        algo_config = self.entry.build(self.scenario, hparams, resources, int(cfg["seed"]))
-        periodic_eval.attach(algo_config, periodic_eval.PeriodicEvalSettings(
-            self.scenario, int(cfg.get("eval_interval_env_steps", 0)), int(cfg["eval_episodes"]), int(cfg["seed"])))
+        # overrides as Tune resolved them: sampled values (and PBT's mutations, which reach a
+        # running trial through reset_config / a new actor, then restore) included
+        self.hparams = self.entry.hparams(cfg["overrides"])
+        algo_config = self.entry.build(self.scenario, self.hparams, resources, int(cfg["seed"]))
+        self._eval_settings = periodic_eval.PeriodicEvalSettings(
+            self.scenario, int(cfg.get("eval_interval_env_steps", 0)), int(cfg["eval_episodes"]), int(cfg["seed"]))
+        periodic_eval.attach(algo_config, self._eval_settings)
         self.algo = algo_config.build_algo()
         self._last_steps: int | None = 0
+        self._latest_eval: float | None = None  # sweep.SWEEP_METRIC: the latest greedy evaluation
         self._node_id = cluster.node_id()  # which raylet ran it (two may share a host)
 
     def step(self) -> dict:
@@ -63,7 +67,31 @@ class UavLoraTrainable(tune.Trainable):
         if steps >= int(self.cfg["budget_env_steps"]):
             out.update(self.evaluate())
             out["done"] = True
+        out.update(self._sweep_metrics(out))
         return out
+
+    def _sweep_metrics(self, out: dict) -> dict:
+        """The latest greedy evaluation in every result (sweep.SWEEP_METRIC, what schedulers and
+        search algorithms read), and the current value of every sampled hyperparameter as the
+        algorithm holds it (``hparam/<name>``, numeric ones; MLflow logs them as metrics, so a
+        PBT mutation shows as a step in the series)."""
+        from uavlora_rllib.experiment import periodic_eval, sweep
+        from uavlora_rllib.experiment.run_schema import number
+
+        extra: dict[str, Any] = {}
+        if sweep.METRIC in out:
+            self._latest_eval = float(out[sweep.METRIC])
+        elif self._latest_eval is None and self._eval_settings.interval_env_steps > 0:
+            # no evaluation since this actor started (e.g. restored elsewhere): one now
+            self._latest_eval = float(periodic_eval.evaluate_policies(self.algo, self._eval_settings)[sweep.METRIC])
+        if self._latest_eval is not None:
+            extra[sweep.SWEEP_METRIC] = self._latest_eval
+        held = getattr(self.algo.config, "hparams", None) or self.hparams
+        for name in self.cfg.get("sampled", ()):
+            value = number(getattr(held, name, None))
+            if value is not None:
+                extra[f"{sweep.HPARAM_PREFIX}{name}"] = value
+        return extra
 
     def evaluate(self) -> dict:
         from uavlora_rllib.experiment.evaluation import run_episodes
@@ -80,6 +108,10 @@ class UavLoraTrainable(tune.Trainable):
         path = checkpoint if isinstance(checkpoint, (str, os.PathLike)) else checkpoint.get("checkpoint_dir")
         self.algo.restore_from_path(os.fspath(path))
         self._last_steps = None
+        # The optimizers' state in the checkpoint carries the learning rate they ran with; a
+        # trial restored with another config (PBT's exploit: another trial's checkpoint, this
+        # trial's mutated lr) must train with its own from the first update on.
+        self.algo.learner_group.foreach_learner(_apply_configured_lr)
 
     def reset_config(self, new_config: dict) -> bool:
         """Reuse this actor for the next trial (saves a process start and the RLlib import)."""
@@ -92,3 +124,10 @@ class UavLoraTrainable(tune.Trainable):
         if algo is not None:
             algo.stop()
             self.algo = None
+
+
+def _apply_configured_lr(learner) -> None:
+    """Set every optimizer's learning rate to the value its lr schedule (built from the
+    learner's config) gives now, as RLlib does after each update."""
+    for optimizer, schedule in getattr(learner, "_optimizer_lr_schedules", {}).items():
+        learner._set_optimizer_lr(optimizer, lr=schedule.get_current_value())
