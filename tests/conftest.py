@@ -6,6 +6,10 @@ that records everything a test may want to compare bit for bit.
 
 from __future__ import annotations
 
+import subprocess
+import time
+import urllib.request
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -107,3 +111,19 @@ def write_tiny_grid(
     path = tmp_path / f"{name}.yaml"
     path.write_text(yaml.safe_dump(grid, sort_keys=False))
     return str(path)
+
+
+def wait_for_mlflow_server(uri: str, proc: subprocess.Popen, timeout_s: float, why: Callable[[], str] = lambda: "") -> None:
+    """Poll `uri`/health until the `mlflow server` answers 200; fail if `proc` exits first (with
+    `why()`, e.g. the tail of its log) or after `timeout_s` seconds."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            with urllib.request.urlopen(f"{uri}/health", timeout=2) as r:
+                if r.status == 200:
+                    return
+        except OSError:
+            pass
+        assert proc.poll() is None, f"mlflow server exited {why()}"
+        assert time.monotonic() < deadline, "mlflow server did not come up"
+        time.sleep(0.5)

@@ -20,10 +20,9 @@ import subprocess
 import sys
 import tempfile
 import time
-import urllib.request
 
 import pytest
-from conftest import write_tiny_grid
+from conftest import wait_for_mlflow_server, write_tiny_grid
 
 pytestmark = pytest.mark.slow
 
@@ -206,17 +205,7 @@ def mlflow_server(tmp_path):
             cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
         )
         state["proc"] = proc
-        deadline = time.monotonic() + 120
-        while True:
-            try:
-                with urllib.request.urlopen(f"{state['uri']}/health", timeout=2) as r:
-                    if r.status == 200:
-                        return
-            except OSError:
-                pass
-            assert proc.poll() is None, "mlflow server exited"
-            assert time.monotonic() < deadline, "mlflow server did not come up"
-            time.sleep(0.5)
+        wait_for_mlflow_server(state["uri"], proc, 120)
 
     def stop():
         proc = state["proc"]

@@ -21,11 +21,10 @@ import subprocess
 import sys
 import tempfile
 import time
-import urllib.request
 
 import pytest
 import yaml
-from conftest import write_tiny_grid
+from conftest import wait_for_mlflow_server, write_tiny_grid
 
 from uavlora_rllib.experiment import run_schema
 from uavlora_rllib.experiment.mlflow_client import Tracker, TrackingRefused, git_commit
@@ -190,17 +189,7 @@ def auth_server(tmp_path_factory):
         cwd=tmp, env=env, stdout=open(tmp / "server.log", "w"), stderr=subprocess.STDOUT, start_new_session=True)
     uri = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.monotonic() + 240
-        while True:
-            try:
-                with urllib.request.urlopen(f"{uri}/health", timeout=2) as r:
-                    if r.status == 200:
-                        break
-            except OSError:
-                pass
-            assert proc.poll() is None, (tmp / "server.log").read_text()[-3000:]
-            assert time.monotonic() < deadline, "mlflow server did not come up"
-            time.sleep(0.5)
+        wait_for_mlflow_server(uri, proc, 240, lambda: (tmp / "server.log").read_text()[-3000:])
         yield {"uri": uri, "tmp": tmp}
     finally:
         if proc.poll() is None:
