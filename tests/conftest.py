@@ -6,7 +6,9 @@ that records everything a test may want to compare bit for bit.
 
 from __future__ import annotations
 
+import os
 import subprocess
+import tempfile
 import time
 import urllib.request
 from collections.abc import Callable
@@ -127,3 +129,29 @@ def wait_for_mlflow_server(uri: str, proc: subprocess.Popen, timeout_s: float, w
         assert proc.poll() is None, f"mlflow server exited {why()}"
         assert time.monotonic() < deadline, "mlflow server did not come up"
         time.sleep(0.5)
+
+
+@pytest.fixture(scope="module")
+def ray_address():
+    """A local Ray with 2 CPUs for a test module (reused when one is already up), its GCS address:
+    a private RAY_TMPDIR (short, for socket paths; never somebody else's `ray start` cluster), and
+    PYTHONPATH with tests/ and the repo so that workers import the test plugins too."""
+    import ray
+
+    tests_dir = os.path.dirname(os.path.abspath(__file__))
+    saved = {k: os.environ.get(k) for k in ("RAY_TMPDIR", "PYTHONPATH")}
+    # also for the drivers a test starts as subprocesses with --address
+    os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (tests_dir, os.path.dirname(tests_dir), saved["PYTHONPATH"]) if p)
+    started = not ray.is_initialized()
+    if started:
+        os.environ["RAY_TMPDIR"] = tempfile.mkdtemp(prefix="rt", dir="/tmp")
+        ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray.get_runtime_context().gcs_address
+    if started:
+        ray.shutdown()
+    for k, v in saved.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+

@@ -19,7 +19,6 @@ import signal
 import socket
 import subprocess
 import sys
-import tempfile
 import time
 
 import pytest
@@ -29,8 +28,6 @@ from conftest import wait_for_mlflow_server, write_tiny_grid
 from uavlora_rllib.experiment import run_schema
 from uavlora_rllib.experiment.mlflow_client import Tracker, TrackingRefused, git_commit
 
-TESTS_DIR = os.path.dirname(os.path.abspath(__file__))
-REPO = os.path.dirname(TESTS_DIR)
 SOURCE_TAGS = ("mlflow.source.name", "mlflow.source.type", "mlflow.source.git.commit", "mlflow.user")
 
 
@@ -197,25 +194,6 @@ def auth_server(tmp_path_factory):
         proc.wait()
 
 
-@pytest.fixture(scope="module")
-def local_ray():
-    """Ray in this process with 2 CPUs under a private RAY_TMPDIR (reused when already up)."""
-    import ray
-
-    saved = os.environ.get("RAY_TMPDIR")
-    started = not ray.is_initialized()
-    if started:
-        os.environ["RAY_TMPDIR"] = tempfile.mkdtemp(prefix="rt", dir="/tmp")  # short: socket paths
-        ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield
-    if started:
-        ray.shutdown()
-        if saved is None:
-            os.environ.pop("RAY_TMPDIR", None)
-        else:
-            os.environ["RAY_TMPDIR"] = saved
-
-
 def _artifacts(client, run_id: str, path: str | None = None) -> dict[str, int]:
     """{artifact path: size} of every file under `path`, recursively."""
     out = {}
@@ -228,7 +206,7 @@ def _artifacts(client, run_id: str, path: str | None = None) -> dict[str, int]:
 
 
 @pytest.mark.slow
-def test_grid_against_an_authenticated_server(auth_server, local_ray, tmp_path, monkeypatch, capsys):
+def test_grid_against_an_authenticated_server(auth_server, ray_address, tmp_path, monkeypatch, capsys):
     from mlflow.tracking import MlflowClient
 
     from uavlora_rllib import tune as tune_cli

@@ -287,18 +287,6 @@ def test_shipped_sweep_examples(name, capsys):
 
 
 # --------------------------------------------------------------------------- with Ray (slow)
-@pytest.fixture(scope="module")
-def ray_address():
-    import ray
-
-    started = not ray.is_initialized()
-    if started:
-        ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield ray.get_runtime_context().gcs_address
-    if started:
-        ray.shutdown()
-
-
 def _optimizer_lrs(trainable) -> list[float]:
     learner = trainable.algo.learner_group._learner  # num_learners 0: the trial's own process
     return [g["lr"] for opt in learner._named_optimizers.values() for g in opt.param_groups]

@@ -24,8 +24,6 @@ from uavlora_rllib.experiment.mlflow_client import git_commit
 
 pytestmark = pytest.mark.slow
 
-TESTS_DIR = os.path.dirname(os.path.abspath(__file__))
-REPO = os.path.dirname(TESTS_DIR)
 ALGO = "mappo"
 TINY_MAPPO = {
     "lr": 3e-4,
@@ -38,29 +36,6 @@ TINY_MAPPO = {
     "max_seq_len": 10,
 }
 EPISODE_LEN = 10  # 2 episodes of 10 slots = 20 env steps per training iteration
-
-
-@pytest.fixture(scope="module")
-def ray_address():
-    import ray
-
-    from uavlora_rllib.algorithms.common import registry
-
-    if ALGO not in registry.available():
-        pytest.skip(f"{ALGO} is not implemented yet")
-    # workers must import the test plugins too (test_grid registers stock_ppo in this process)
-    old = os.environ.get("PYTHONPATH")
-    os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (TESTS_DIR, REPO, old) if p)
-    started = not ray.is_initialized()
-    if started:
-        ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield ray.get_runtime_context().gcs_address
-    if started:
-        ray.shutdown()
-    if old is None:
-        os.environ.pop("PYTHONPATH", None)
-    else:
-        os.environ["PYTHONPATH"] = old
 
 
 def make_grid(tmp_path, name: str, budget: int, max_concurrent: int | None = None) -> str:
