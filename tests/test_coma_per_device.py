@@ -142,6 +142,27 @@ def test_branch_critic_is_an_mlp_on_its_concatenated_rows():
                 assert not torch.allclose(q2[:, u, sibling], q[:, u, sibling])  # and u's other branches
 
 
+@pytest.mark.parametrize("hidden", [[32], [32, 16]])
+def test_branch_critic_gradients_are_the_concatenated_mlps(hidden):
+    """The in-place, branch-major forward has the gradients of the plain MLP on the concatenated
+    rows, for every parameter."""
+    m = _module(critic_hidden=hidden)
+    c = m.critic
+    state, obs, actions = torch.randn(3, 4, STATE_DIM), torch.rand(3, 4, U, OBS_DIM), _actions(3, 4)
+    target = torch.randn(3, 4, U, L, W)
+    h = c.body(c.first(c.inputs(state, obs, actions)))
+    y = torch.einsum("...lh,lhn->...ln", h, c.out_weight) + c.out_bias
+    value, diff = y[..., :1], y[..., 1:].masked_fill(~m.layout.valid, 0.0)
+    concatenated = (value + diff - diff.sum(-1, keepdim=True) / m.layout.sizes[:, None]).masked_fill(~m.layout.valid, 0.0)
+    grads = []
+    for q in (c(state, obs, actions), concatenated):
+        c.zero_grad()
+        ((q - target) ** 2).mean().backward()
+        grads.append({k: p.grad.clone() for k, p in c.named_parameters()})
+    for k in grads[0]:
+        torch.testing.assert_close(grads[0][k], grads[1][k], atol=1e-6, rtol=1e-5, msg=k)
+
+
 def test_counterfactual_baseline_equals_a_loop_over_branch_values():
     """The learner's one-call baseline equals, for every UAV u and branch l, the loop
     sum_c pi_{u,l}(c) Q_{u,l}(s, a with branch l of u set to c); A = Q(s, a) - baseline; and

@@ -85,6 +85,8 @@ class BranchQCritic(nn.Module):
 
     layout: BranchLayout
     offsets: torch.Tensor
+    columns: torch.Tensor
+    table_rows: torch.Tensor
 
     def __init__(
         self,
@@ -118,6 +120,12 @@ class BranchQCritic(nn.Module):
         # one-hot column of (UAV k, branch m) value 0 within the action block: k * sum(row) + start_m
         offsets = torch.arange(self.n_agents)[:, None] * per_agent + layout.starts[None, :]
         self.register_buffer("offsets", offsets, persistent=False)  # [U, L]
+        # one-hot column of (UAV k, branch m, value c) for every padded c (clamped to the branch): [U, L, W]
+        columns = torch.arange(self.n_agents)[:, None, None] * per_agent + layout.index[None]
+        self.register_buffer("columns", columns, persistent=False)
+        # row of (u, l, c) in the flattened [U L W, H] table of `forward`: (u L + l) W + c
+        table_rows = torch.arange(self.n_ids).reshape(self.n_agents, layout.n_branches) * layout.width
+        self.register_buffer("table_rows", table_rows, persistent=False)  # [U, L]
 
     def inputs(self, state: torch.Tensor, obs: torch.Tensor | None, actions: torch.Tensor) -> torch.Tensor:
         """The concatenated rows x_{u,l} [..., U, L, in_dim] (what `forward` computes without
@@ -138,19 +146,33 @@ class BranchQCritic(nn.Module):
 
     def forward(self, state: torch.Tensor, obs: torch.Tensor | None, actions: torch.Tensor) -> torch.Tensor:
         """state [..., S], obs [..., U, obs_dim] (None without obs_dim), actions [..., U, L] ->
-        Q [..., U, L, W] (padding entries 0)."""
-        w, s_dim = self.first.weight, self.state_dim
-        z_state = nn.functional.linear(state, w[:, :s_dim], self.first.bias)  # [..., H]
-        w_act = w[:, s_dim : s_dim + self.n_onehot].t()  # [n_onehot, H]: one column per (UAV, branch, value)
-        emb = nn.functional.embedding(actions.long() + self.offsets, w_act)  # [..., U, L, H]
-        joint = z_state + emb.sum(dim=(-3, -2))  # [..., H]: the state and the whole joint action
-        w_ids = w[:, s_dim + self.n_onehot : s_dim + self.n_onehot + self.n_ids].t()
-        z = joint[..., None, None, :] - emb + w_ids.reshape(self.n_agents, self.layout.n_branches, -1)
+        Q [..., U, L, W] (padding entries 0).
+
+        The first layer as in the class docstring, in one gather: the joint term (state and the
+        whole joint action, a [..., H] per step) plus table[u, l, a_{u,l}], where
+        table[u, l, c] = W[:, (u, l)] - W[:, (u, l, c)] is what row (u, l) differs by when a_{u,l} = c.
+        The U L rows are laid out branch-major ([L, ..., U, H]) so the per-branch output layers are one
+        batched matrix product, and the hidden layers run in place on one [rows, H] buffer."""
+        w, s_dim, n_act = self.first.weight, self.state_dim, self.n_onehot
+        u_n, l_n, hid = self.n_agents, self.layout.n_branches, w.shape[0]
+        lead = actions.shape[:-2]
+        actions = actions.long()
+        w_act = w[:, s_dim : s_dim + n_act].t()  # [n_onehot, H]: one column per (UAV, branch, value)
+        w_ids = w[:, s_dim + n_act : s_dim + n_act + self.n_ids].t().reshape(u_n, l_n, 1, hid)
+        table = (w_ids - w_act[self.columns]).reshape(-1, hid)  # [U L W, H]
+        onehot = torch.zeros(*lead, n_act, device=actions.device, dtype=w.dtype)
+        onehot.scatter_(-1, (actions + self.offsets).flatten(-2), 1.0)
+        joint = nn.functional.linear(state, w[:, :s_dim], self.first.bias) + onehot @ w_act  # [..., H]
+        z = nn.functional.embedding((self.table_rows + actions).movedim(-1, 0), table)  # [L, ..., U, H]
+        z += joint.unsqueeze(-2)
         if self.obs_dim:
             assert obs is not None  # (obs_dim > 0)
-            z = z + nn.functional.linear(obs, w[:, s_dim + self.n_onehot + self.n_ids :]).unsqueeze(-2)
-        h = self.body(z)  # starts with the first layer's ReLU
-        y = torch.einsum("...lh,lhn->...ln", h, self.out_weight) + self.out_bias  # [..., U, L, n_out]
+            z += nn.functional.linear(obs, w[:, s_dim + n_act + self.n_ids :])
+        h = z.relu_().view(-1, hid)  # the body's first module (its ReLU), in place
+        for layer in list(self.body)[1:]:
+            h = layer(h) if isinstance(layer, nn.Linear) else h.relu_()
+        y = torch.baddbmm(self.out_bias[:, None, :], h.view(l_n, -1, h.shape[-1]), self.out_weight)
+        y = y.view(l_n, *lead, u_n, -1).movedim(0, -2)  # [..., U, L, n_out]
         valid = self.layout.valid
         if not self.dueling:
             return y.masked_fill(~valid, 0.0)

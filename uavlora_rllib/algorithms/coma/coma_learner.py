@@ -115,8 +115,8 @@ class COMATorchLearner(TargetNetworkLearner):
             module = self.module[module_id].unwrapped()
             cols = {k: torch.as_tensor(np.asarray(v)).to(self.device) for k, v in columns.items()}
             actions = cols[ACTIONS].long()
-            with torch.no_grad():
-                fwd = module.forward_train(cols)
+            with torch.no_grad():  # the target critic's side only: the critic itself is evaluated per step below
+                fwd = module.forward_target({**cols, LOGITS: module.episode_logits(cols[OBS])})
                 q_target_taken = taken(fwd[Q_TARGET], actions)
                 targets = lambda_returns(
                     cols[REWARDS] * hp.reward_scale, q_target_taken, fwd[BOOTSTRAP], hp.gamma, hp.td_lambda

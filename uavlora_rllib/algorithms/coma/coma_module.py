@@ -340,12 +340,17 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
         branch_logp = taken(self.layout.log_probs(logits), actions)
         return {Columns.ACTIONS: actions, Columns.ACTION_LOGP: logp, BRANCH_LOGP: branch_logp, Columns.STATE_OUT: state}
 
+    def episode_logits(self, obs: torch.Tensor) -> torch.Tensor:
+        """Actor logits [B, T+1, U, n_logits] over whole episodes obs [B, T+1, U, d], the GRU
+        unrolled from a zero state as the env runners did while sampling."""
+        return self.actor(obs, self.actor.initial_state(obs.shape[0]).to(obs.device))[0]
+
     @override(RLModule)
     def _forward_train(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
         """Whole episodes: obs [B, T+1, U, d], actions [B, T, U], global_state [B, T+1, S]."""
         obs, actions, state = batch[OBS], batch[ACTIONS].long(), batch[GLOBAL_STATE]
         steps = actions.shape[1]
-        logits, _ = self.actor(obs, self.actor.initial_state(obs.shape[0]).to(obs.device))
+        logits = self.episode_logits(obs)
         q = self.critic_q(self.critic, state[:, :steps], obs[:, :steps], actions)
         with torch.no_grad():
             target = self.forward_target({**batch, LOGITS: logits})
