@@ -67,15 +67,37 @@ def test_td_lambda_targets_by_hand():
 
 
 # ------------------------------------------------------------------ module structure
-def _module(inference_only: bool, n_agents=3, obs_dim=7, n_actions=4, state_dim=11) -> COMATorchRLModule:
+def _module(inference_only: bool, n_agents=3, obs_dim=7, n_actions=4, state_dim=11, **overrides) -> COMATorchRLModule:
+    config = {"state_dim": state_dim, "actor_hidden": 16, "gru_hidden": 8, "critic_hidden": [32, 32], "action_factors": [2, 2]}
     return COMATorchRLModule(
         observation_space=gym.spaces.Box(-1.0, 1.0, (n_agents, obs_dim), np.float32),
         action_space=gym.spaces.MultiDiscrete([n_actions] * n_agents),
         inference_only=inference_only,
-        model_config=hparams_model_config(
-            COMAHParams, state_dim=state_dim, actor_hidden=16, gru_hidden=8, critic_hidden=[32, 32], action_factors=[2, 2]
-        ),
+        model_config=hparams_model_config(COMAHParams, **{**config, **overrides}),
     )
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [{}, {"action_factors": [], "critic_use_obs": False}, {"critic_hidden": [32]}, {"critic_dueling": False}],
+)
+def test_critic_without_rows_is_the_mlp_on_its_concatenated_rows(overrides):
+    """critic_q (the first layer as summed gathers, no input rows built) has the outputs and the
+    gradients of the critic network applied to critic_inputs' rows."""
+    torch.manual_seed(0)
+    m = _module(False, **overrides)
+    state, obs, actions = torch.randn(5, 2, 11), torch.rand(5, 2, 3, 7), torch.randint(0, 4, (5, 2, 3))
+    factors = tuple(m.factors)
+    rows = critic_inputs(state, obs if m.use_obs else None, actions, 4, factors)
+    target = torch.randn(5, 2, 3, 4)
+    grads = []
+    for q in (m.critic_q(m.critic, state, obs, actions), m.critic(rows)):
+        m.critic.zero_grad()
+        ((q - target) ** 2).mean().backward()
+        grads.append((q.detach(), {k: p.grad.clone() for k, p in m.critic.named_parameters()}))
+    torch.testing.assert_close(grads[0][0], grads[1][0], atol=1e-5, rtol=1e-5)
+    for k in grads[0][1]:
+        torch.testing.assert_close(grads[0][1][k], grads[1][1][k], atol=1e-6, rtol=1e-5, msg=k)
 
 
 def test_factor_onehot_matches_the_simulators_decoding():

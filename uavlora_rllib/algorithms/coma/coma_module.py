@@ -105,6 +105,45 @@ def critic_inputs(
     return torch.cat(parts, dim=-1)
 
 
+def first_layer_of_rows(
+    first: nn.Linear,
+    state: torch.Tensor,
+    obs: torch.Tensor | None,
+    actions: torch.Tensor,
+    n_actions: int,
+    factor_map: torch.Tensor | None,
+) -> torch.Tensor:
+    """first(critic_inputs(state, obs, actions, ...)) [..., U, H] without building the rows.
+
+    Row u's first layer is W_s s + b + sum_{k != u} T_p(k, u)[a_k] + W_id[:, u] + W_o o_u, where
+    p(k, u) is k's position among u's others (k, or k - 1 past u) and T_p[a] = W_a,p[:, a] (+ the
+    columns of a's SF/TP/BW, `factor_map` [A, F]) is what an other agent at position p adds when it
+    plays a: one summed gather (embedding_bag) per row instead of a product with its one-hot
+    (U - 1) (A + F) columns. Same parameters, same function (docs/model.md#coma)."""
+    lead, n_agents = actions.shape[:-1], actions.shape[-1]
+    w, s_dim, hid = first.weight, state.shape[-1], first.weight.shape[0]
+    n_other, n_fac = n_agents - 1, (factor_map.shape[1] if factor_map is not None else 0)
+    col = s_dim
+    w_act = w[:, col : col + n_other * n_actions].reshape(hid, n_other, n_actions).permute(1, 2, 0)  # [U-1, A, H]
+    col += n_other * n_actions
+    if factor_map is not None:
+        w_fac = w[:, col : col + n_other * n_fac].reshape(hid, n_other, n_fac)
+        w_act = w_act + torch.einsum("hpf,af->pah", w_fac, factor_map)
+        col += n_other * n_fac
+    w_ids, col = w[:, col : col + n_agents].t(), col + n_agents  # [U, H]
+    # others[u] = the agents k != u in id order; entry j of row u indexes table row j A + a_k
+    eye = torch.eye(n_agents, dtype=torch.bool, device=actions.device)
+    others = torch.arange(n_agents, device=actions.device).expand(n_agents, n_agents)[~eye].view(n_agents, n_other)
+    flat = actions.long().reshape(-1, n_agents)  # [N, U]
+    index = flat[:, others] + torch.arange(n_other, device=actions.device) * n_actions  # [N, U, U-1]
+    z = nn.functional.embedding_bag(index.reshape(-1, n_other), w_act.reshape(-1, hid), mode="sum")
+    z = z.view(*lead, n_agents, hid) + w_ids
+    z += nn.functional.linear(state, w[:, :s_dim], first.bias).unsqueeze(-2)
+    if obs is not None:
+        z += nn.functional.linear(obs, w[:, col:])
+    return z
+
+
 def critic_input_dim(
     state_dim: int, obs_dim: int, n_agents: int, n_actions: int, use_obs: bool, factors: tuple[int, ...] = ()
 ) -> int:
@@ -171,6 +210,9 @@ class QHead(nn.Module):
     interference between UAVs on the same SF (a plain 90-way head sees each action ~1/90 of
     the time and learned that interaction far too slowly on the small scenario)."""
 
+    factor_map: torch.Tensor
+    trunk: nn.Sequential | nn.Identity
+
     def __init__(self, in_dim: int, hidden: tuple[int, ...], n_actions: int, dueling: bool, factors=()):
         super().__init__()
         self.dueling = dueling
@@ -184,7 +226,21 @@ class QHead(nn.Module):
 
     @override(nn.Module)
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        h = self.act(self.trunk(x))
+        first = self.first
+        return self.after_first(first(x) if first is not None else x)
+
+    @property
+    def first(self) -> nn.Linear | None:
+        """The first linear layer (on the concatenated input rows); None without hidden layers."""
+        if not isinstance(self.trunk, nn.Sequential):
+            return None
+        layer = self.trunk[0]
+        assert isinstance(layer, nn.Linear)
+        return layer
+
+    def after_first(self, z: torch.Tensor) -> torch.Tensor:
+        """Q values from the first layer's output z (or from the input row, without hidden layers)."""
+        h = self.act(self.trunk[1:](z) if isinstance(self.trunk, nn.Sequential) else z)
         y = self.out(h)
         value, diff = (y[..., :1], y[..., 1:]) if self.dueling else (None, y)
         if self.factor_out is not None:
@@ -308,7 +364,12 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
         """Q [..., U, A] (per_uav) or [..., U, L, W] (per_device) of the critic `net` (or its target)."""
         if self.per_device:
             return net(state, obs if self.use_obs else None, actions)
-        return net(critic_inputs(state, obs if self.use_obs else None, actions, self.n_actions, self.factors))
+        obs_in = obs if self.use_obs else None
+        assert isinstance(net, QHead)
+        if net.first is None or self.n_agents == 1:
+            return net(critic_inputs(state, obs_in, actions, self.n_actions, self.factors))
+        factor_map = net.factor_map if self.factors else None
+        return net.after_first(first_layer_of_rows(net.first, state, obs_in, actions, self.n_actions, factor_map))
 
     def policy_terms(
         self, logits: torch.Tensor, actions: torch.Tensor
