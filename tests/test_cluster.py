@@ -161,10 +161,7 @@ def test_ray_job_submit(two_nodes, tmp_path):
     ray_bin = os.path.join(os.path.dirname(sys.executable), "ray")
 
     def submit(name: str, env_vars: dict) -> subprocess.CompletedProcess:
-        # The grid is passed by absolute path, without --working-dir: with two raylets on one
-        # host, Ray 2.60's runtime-env agents fail to fetch a working_dir package for the job's
-        # tasks ("Failed to download runtime_env file package"); a real cluster has one raylet
-        # per machine, and deploy/ uses an installed package instead of a working_dir too.
+        # the grid by absolute path, without --working-dir (tests/test_cluster_netns.py submits one)
         grid = make_grid(tmp_path, name, uri="sqlite:///mlflow.db")
         deadline = time.monotonic() + 120
         while True:
@@ -186,6 +183,7 @@ def test_ray_job_submit(two_nodes, tmp_path):
     good = submit("job", {"UAVLORA_LAUNCH_DIR": str(tmp_path)})
     assert good.returncode == 0, (good.stdout + good.stderr)[-4000:]
     assert "1/1 trials finished" in good.stdout
+    assert "Ray: 2 node(s), 2 CPU" in good.stdout  # the job's cluster, not a private Ray on the head
     assert_one_finished_run_each(f"sqlite:///{tmp_path / 'mlflow.db'}", "job", {"mappo-V6-U2-s0"},
                                  {"random-V6-U2-s0"})
 

@@ -56,6 +56,16 @@ def test_under_ray_jobs_a_relative_path_needs_the_launch_dir(tmp_path, monkeypat
     assert err.count("\n") == 1 and err.startswith("error: mlflow.tracking_uri:") and "read-only" in err
 
 
+def test_under_ray_jobs_the_driver_uses_the_jobs_cluster(monkeypatch, no_job_env):
+    monkeypatch.setenv("RAY_ADDRESS", "10.0.0.1:6379")
+    assert cluster.job_address(None) is None  # not a job: a private local Ray
+    monkeypatch.setenv(cluster.RAY_JOB_ENV, "{}")
+    assert cluster.job_address(None) == "10.0.0.1:6379"  # what the job supervisor set
+    assert cluster.job_address("ray://head:10001") == "ray://head:10001"  # --address wins
+    monkeypatch.delenv("RAY_ADDRESS")
+    assert cluster.job_address(None) == "auto"
+
+
 def test_infeasible_bundles_are_named():
     nodes = [{"CPU": 2.0}, {"CPU": 1.0, "GPU": 1.0}]
     assert cluster.infeasible([{"CPU": 2.0}, {"CPU": 1.0}], nodes) is None

@@ -95,7 +95,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--resume", action="store_true", help="continue the grid's Tune experiment")
     p.add_argument("--dry-run", action="store_true", help="print the trials and baseline runs, start nothing")
-    p.add_argument("--address", default=None, help="Ray cluster address (default: start a local Ray)")
+    p.add_argument("--address", default=None,
+                   help="Ray cluster address (default: start a local Ray; under `ray job submit`: the job's cluster)")
     p.add_argument(
         "--storage", type=_storage_arg, default=None, help="Ray results directory (overrides the grid's storage)"
     )
@@ -550,6 +551,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     quiet_known_warnings()
     try:
         args = build_parser().parse_args(argv)
+        args.address = cluster.job_address(args.address)
         if args.list_hparams is not None:
             from uavlora_rllib.algorithms.common.config import describe_hparams
 

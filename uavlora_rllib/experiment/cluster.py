@@ -7,7 +7,7 @@ Four ways to run a grid (docs/cluster.md):
 * ``--address auto`` on a cluster node, or ``--address HOST:PORT`` (the head's GCS port);
 * ``--address ray://HEAD:10001`` (Ray Client; needs the ``ray[client]`` extra);
 * ``ray job submit -- python -m uavlora_rllib.tune GRID`` (Ray sets RAY_ADDRESS for the
-  entrypoint, which is then used like ``--address``).
+  entrypoint, which is then used like ``--address``: `job_address`).
 
 Everything that can fail before the first baseline or trial is checked here (`preflight`):
 the connection, authentication, the Ray extras an address needs, and that one trial's
@@ -78,6 +78,15 @@ def resolve_tracking_uri(uri: str, field: str = "mlflow.tracking_uri") -> str:
 
 
 # --------------------------------------------------------------------------- connecting
+def job_address(address: str | None) -> str | None:
+    """The address to use: --address when given; under Ray Jobs, the job's own cluster (the GCS
+    address Ray sets in RAY_ADDRESS for the entrypoint), not a private local Ray, which would
+    neither use the cluster nor find the job's --working-dir package in its own GCS."""
+    if address or not under_ray_job():
+        return address
+    return os.environ.get("RAY_ADDRESS") or "auto"
+
+
 def address_kind(address: str | None) -> str:
     if not address:
         return "local"
