@@ -156,6 +156,15 @@ def test_actor_input_and_inference_only_module():
 
 
 # ------------------------------------------------------------------ config errors (no Ray)
+def test_per_uav_actors_are_separate_networks():
+    """share_actor=false: one batched actor per UAV (no id one-hot), the same output shapes."""
+    m = _module(False, share_actor=False, actor_agent_heads=False)
+    assert not m.actor.share and m.actor.in_dim == 7
+    assert any(k.startswith("actor.nets.2.") for k in m.state_dict())
+    logits = m.episode_logits(torch.rand(2, 4, 3, 7))
+    assert logits.shape == (2, 4, 3, 4)
+
+
 def test_bad_configs_raise_clear_config_errors():
     entry = registry.get("coma")
     assert entry.action_modes == ("per_uav", "per_device")
@@ -166,6 +175,8 @@ def test_bad_configs_raise_clear_config_errors():
     with pytest.raises(ConfigError, match="batch_episodes"):
         resources = registry.Resources(num_envs_per_env_runner=4)
         entry.build(ScenarioConfig(), entry.hparams({"batch_episodes": 6}), resources, 0)
+    with pytest.raises(ConfigError, match=r"algorithms\.coma\.actor_agent_heads: true needs share_actor: true"):
+        entry.build(ScenarioConfig(), entry.hparams({"share_actor": False}), registry.Resources(), 0)
     hp = entry.hparams({"lr_critic": 5e-4, "critic_hidden": [64]})
     assert isinstance(hp, COMAHParams) and hp.lr_critic == 5e-4 and hp.critic_hidden == (64,)
 

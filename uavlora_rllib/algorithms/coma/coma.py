@@ -74,8 +74,14 @@ class COMAHParams:
     )
     actor_hidden: int = Field(default=128, ge=1, description="width of the actor's ReLU layer before the GRU [units]")
     gru_hidden: int = Field(default=128, ge=1, description="GRU width of the actor [units] (paper)")
+    share_actor: bool = Field(
+        default=True,
+        description="one actor for all UAVs (+ agent-id one-hot) [bool]; false: one actor per UAV, batched "
+        "(docs/model.md#batched-agent-networks)",
+    )
     actor_agent_heads: bool = Field(
-        default=True, description="each UAV also gets its own linear output layer, added to the shared one [bool]"
+        default=True,
+        description="with share_actor=true: each UAV also gets its own linear output layer, added to the shared one [bool]",
     )
     critic_hidden: tuple[int, ...] = Field(default=(128, 128), description="ReLU layer widths of the critic MLP [units]")
     critic_use_obs: bool = Field(default=True, description="also give the critic UAV u's own observation row [bool]")
@@ -107,7 +113,13 @@ class COMAHParams:
 
     def check(self, scenario: ScenarioConfig, resources: Resources, path: str) -> None:
         """COMA learns from whole episodes, sampled in whole rounds of all envs of all runners;
-        the per_device critic (branching.BranchQCritic) needs a hidden layer."""
+        the per_device critic (branching.BranchQCritic) needs a hidden layer; per-UAV heads need the
+        shared actor they sit on."""
+        if self.actor_agent_heads and not self.share_actor:
+            raise ConfigError(
+                f"{path}.actor_agent_heads: true needs share_actor: true (one actor per UAV already has "
+                "its own output layer); allowed: false, or share_actor: true"
+            )
         if scenario.action_mode == "per_device" and not self.critic_hidden:
             raise ConfigError(
                 f"{path}.critic_hidden: per_device needs at least one critic layer (the per-branch critic "

@@ -6,7 +6,8 @@ global state under info["state"]. This docstring describes per_uav; per_device (
 [U, L], L = 2 quota + 1 branches) has the same actor with one logit group per branch and the
 per-branch critic of branching.py (`setup_per_device`).
 
-* Actor (the common `RecurrentAgentNet`, decentralised, shared by all UAVs; its forward passes
+* Actor (the common `RecurrentAgentNet`, decentralised, shared by all UAVs unless `share_actor`
+  is false (one batched network per UAV); its forward passes
   are the common `RecurrentActorForward`): row u of the observation, concatenated with the
   one-hot id of u, -> Linear + ReLU (actor_hidden) -> GRU (gru_hidden) -> Linear -> A logits;
   with `actor_agent_heads` each UAV adds its own linear output layer to the shared one's
@@ -282,7 +283,7 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
             self.n_actions,
             fc_hidden=int(mc["actor_hidden"]),
             gru_hidden=int(mc["gru_hidden"]),
-            share=True,
+            share=bool(mc["share_actor"]),
             agent_heads=bool(mc["actor_agent_heads"]),
         )
         self.head = ActionHead([self.n_actions])
@@ -310,7 +311,7 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
             self.head.n_logits,
             fc_hidden=int(mc["actor_hidden"]),
             gru_hidden=int(mc["gru_hidden"]),
-            share=True,
+            share=bool(mc["share_actor"]),
             agent_heads=bool(mc["actor_agent_heads"]),
         )
         if not self.inference_only:
