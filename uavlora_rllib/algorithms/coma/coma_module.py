@@ -120,7 +120,7 @@ def first_layer_of_rows(
     p(k, u) is k's position among u's others (k, or k - 1 past u) and T_p[a] = W_a,p[:, a] (+ the
     columns of a's SF/TP/BW, `factor_map` [A, F]) is what an other agent at position p adds when it
     plays a: one summed gather (embedding_bag) per row instead of a product with its one-hot
-    (U - 1) (A + F) columns. Same parameters, same function (docs/model.md#coma)."""
+    (U - 1) (A + F) columns. Same parameters, same function (docs/model.md#training-defaults)."""
     lead, n_agents = actions.shape[:-1], actions.shape[-1]
     w, s_dim, hid = first.weight, state.shape[-1], first.weight.shape[0]
     n_other, n_fac = n_agents - 1, (factor_map.shape[1] if factor_map is not None else 0)
