@@ -5,7 +5,8 @@
         [--set key=value ...]
 
 Builds ALGO from the registry (hyperparameter overrides with --set, validated like the grid
-YAML), trains K iterations after one warm-up iteration, and prints env steps per second end
+YAML), trains K iterations after one warm-up iteration (`experiment.training_rate`, the
+measurement the grid calibration uses too), and prints env steps per second end
 to end (env steps sampled / wall-clock of the timed iterations) and how each iteration's
 time splits between sampling and learning (RLlib's `timers`: env_runner_sampling_timer,
 learner_update_timer, synch_weights). Also the wall-clock this rate implies for the paper's
@@ -19,29 +20,12 @@ import argparse
 import json
 import os
 import sys
-import time
 
 import yaml
 
 from uavlora_rllib.cli_args import SEED_MAX, Parser, UsageError, fail, int_in
 
 T_MAX = 2_000_000
-TIMER_KEYS = {"env_runner_sampling_timer": "sample_s", "learner_update_timer": "learn_s", "synch_weights": "sync_s"}
-EMA_COEFF = 0.01  # RLlib's default for `metrics.log_time` (Stats with ema_coeff=0.01)
-
-
-def _timers(result: dict) -> dict:
-    return dict(result.get("timers", {}))
-
-
-def _this_iteration(ema_now: float | None, ema_before: float | None) -> float:
-    """RLlib reports timers as an EMA (coefficient 0.01) over all iterations; recover this
-    iteration's own value: x = (ema_now - (1 - c) ema_before) / c."""
-    if ema_now is None:
-        return float("nan")
-    if ema_before is None:
-        return float(ema_now)
-    return max(0.0, (ema_now - (1.0 - EMA_COEFF) * ema_before) / EMA_COEFF)
 
 
 def _parse_set(items: list[str]) -> dict:
@@ -123,36 +107,19 @@ def main(argv: list[str] | None = None) -> int:
     except (UsageError, ConfigError) as exc:
         return fail(exc)
 
-    from uavlora_rllib.algorithms.common.threads import set_torch_threads
-
-    set_torch_threads(args.torch_threads)
     import ray
+
+    from uavlora_rllib.experiment.training_rate import measure_training
 
     ray.init(num_cpus=args.num_cpus, include_dashboard=False, log_to_driver=False)
     try:
-        t0 = time.perf_counter()
-        algo = entry.build(scenario, hparams, resources, args.seed).build_algo()
-        t_build = time.perf_counter() - t0
-        prev = _timers(algo.train())  # warm-up: first sampling, connector setup, optimizer state
-        rows = []
-        start = time.perf_counter()
-        for _ in range(args.iterations):
-            t = time.perf_counter()
-            res = algo.train()
-            wall = time.perf_counter() - t
-            cur = _timers(res)
-            row = {"wall_s": wall, "env_steps": res["env_runners"].get("num_env_steps_sampled", 0)}
-            for key, name in TIMER_KEYS.items():
-                row[name] = _this_iteration(cur.get(key), prev.get(key))
-            prev = cur
-            rows.append(row)
-        total = time.perf_counter() - start
-        algo.stop()
+        m = measure_training(entry, scenario, hparams, resources, args.seed, args.iterations)
     finally:
         ray.shutdown()
 
-    env_steps = sum(r["env_steps"] for r in rows)
-    rate = env_steps / total
+    rows, total, t_build = m.rows, m.total_s, m.build_s
+    env_steps = m.env_steps
+    rate = m.env_steps_per_s
     # Sum of the timed iterations' own timer values.
     last = {k: sum(r[k] for r in rows) for k in ("wall_s", "env_steps", "sample_s", "learn_s", "sync_s")}
     share = {k: last[k] / max(last["wall_s"], 1e-9) for k in ("sample_s", "learn_s", "sync_s")}

@@ -2,10 +2,12 @@
 
     python -m uavlora_rllib.tune GRID.yaml [--resume] [--dry-run] [--address ADDR]
                                            [--storage DIR] [--num-cpus N]
+    python -m uavlora_rllib.tune GRID.yaml --calibrate [--calibrate-iterations N]
 
 * The grid is validated first (`grid.load_grid`); a bad grid prints ONE line on stderr and
-  exits with code 2 before Ray starts. ``--dry-run`` prints the trial table and the baseline
-  evaluations and exits 0 without starting Ray.
+  exits with code 2 before Ray starts. ``--dry-run`` prints the trial table, the baseline
+  evaluations and the grid's estimated cost (experiment.cost, from the calibration that
+  ``--calibrate`` measures on this machine: experiment.calibration) and exits 0 without starting Ray.
 * Before any baseline or trial starts: the driver lock (one driver per experiment,
   `experiment.driver_lock`), the connection to Ray (`experiment.cluster`: a private local
   Ray without ``--address``; ``auto``, ``HOST:PORT`` or ``ray://HOST:10001`` otherwise; under
@@ -94,7 +96,13 @@ def build_parser() -> argparse.ArgumentParser:
         f"descriptions, and exit; ALGO one of {sorted(registry.MODULES)}",
     )
     p.add_argument("--resume", action="store_true", help="continue the grid's Tune experiment")
-    p.add_argument("--dry-run", action="store_true", help="print the trials and baseline runs, start nothing")
+    p.add_argument("--dry-run", action="store_true",
+                   help="print the trials, the baseline runs and the grid's estimated cost (from --calibrate), start nothing")
+    p.add_argument("--calibrate", action="store_true",
+                   help="measure on this machine what each distinct trial and baseline of the grid costs (short runs), "
+                        "store it for --dry-run's estimate, then print the dry run")
+    p.add_argument("--calibrate-iterations", type=int_in(1, 100), default=None, metavar="N",
+                   help="with --calibrate: timed training iterations per trial cell, after the warm-up (default 2)")
     p.add_argument("--address", default=None,
                    help="Ray cluster address (default: start a local Ray; under `ray job submit`: the job's cluster)")
     p.add_argument(
@@ -545,6 +553,26 @@ def _report(grid: GridConfig, args: argparse.Namespace, specs: list[TrialSpec], 
     return EXIT_OK
 
 
+def _calibrate(grid: GridConfig, specs: list[TrialSpec], args: argparse.Namespace) -> int | None:
+    """--calibrate: measure the grid's cells on this machine (experiment.calibration); an exit
+    code if interrupted, else None."""
+    from uavlora_rllib.experiment import calibration
+
+    if not args.calibrate:
+        raise UsageError("--calibrate-iterations: only with --calibrate")
+    if args.resume or args.address:
+        raise UsageError("--calibrate: measures this machine in a private local Ray and runs no trial; "
+                         "drop --resume and --address")
+    try:
+        calibration.calibrate(grid, specs, iterations=args.calibrate_iterations or calibration.DEFAULT_ITERATIONS,
+                              num_cpus=args.num_cpus)
+    except KeyboardInterrupt:
+        print(f"interrupted: the cells measured so far are kept; measure the rest with  "
+              f"python -m uavlora_rllib.tune {args.grid} --calibrate", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    return None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     from uavlora_rllib.experiment.quiet import quiet_known_warnings
 
@@ -569,10 +597,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             except ConfigError as exc:
                 local_problem = f"{args.grid}: {exc}"
         specs = trials(grid)
-        if args.dry_run:  # a preview (e.g. of a cluster grid on a laptop): say it, do not refuse
+        if (args.calibrate or args.calibrate_iterations is not None) and _calibrate(grid, specs, args) is not None:
+            return EXIT_INTERRUPTED
+        if args.dry_run or args.calibrate:  # a preview (e.g. of a cluster grid on a laptop): say it, do not refuse
+            from uavlora_rllib.experiment.cost import dry_run_report
+
             print(trial_table(grid, specs))
             if local_problem:
                 print(f"note: a local run would be refused: {local_problem}")
+            print(dry_run_report(grid, specs, args.grid, args.num_cpus))
             return EXIT_OK
         if local_problem:
             raise ConfigError(local_problem)

@@ -1,0 +1,358 @@
+"""The grid calibration and `tune --dry-run`'s cost estimate (issue 25 item 4): cells ignore the
+seed and follow what sets a trial's speed, the estimate is the hand-computed arithmetic on a
+hand-written calibration, missing cells are named (never guessed), the file is written
+atomically, bad flags are one line and exit code 2. Only the last test starts Ray (slow)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+
+import pytest
+import yaml
+
+from uavlora_rllib import tune as tune_cli
+from uavlora_rllib.config_errors import ConfigError
+from uavlora_rllib.experiment import calibration, cost
+from uavlora_rllib.experiment.grid import load_grid, trials
+from uavlora_rllib.experiment.training_rate import measure_training
+
+VERSION = calibration.package_version()
+
+
+def grid_data(tmp_path, **changes) -> dict:
+    data = {
+        "experiment": "calib",
+        "algorithms": {"mappo": None},
+        "baselines": ["random"],
+        "seeds": [0, 1],
+        "n_eds": [4],
+        "n_uavs": [2],
+        "scenario": {"episode_len": 5},
+        "stop": {"env_steps": 12000},
+        "resources": {"num_env_runners": 2, "num_envs_per_env_runner": 4, "num_cpus_per_env_runner": 1,
+                      "num_cpus_per_learner": 1},
+        "evaluation": {"episodes": 4},
+        "storage": str(tmp_path / "ray_results"),
+        "mlflow": {"tracking_uri": f"sqlite:///{tmp_path / 'mlflow.db'}"},
+    }
+    data.update(changes)
+    return data
+
+
+def write_grid(tmp_path, data, name="grid.yaml") -> str:
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return str(path)
+
+
+@pytest.fixture
+def calib_file(tmp_path, monkeypatch):
+    path = tmp_path / "cache" / "calibration.json"
+    monkeypatch.setenv(calibration.PATH_ENV, str(path))
+    return path
+
+
+def train_record(cell, machine, **fields) -> dict:
+    return {"cell_key": cell.key, "kind": "train", "label": cell.label, "cell": dict(cell.content), "machine": machine,
+            "version": VERSION, "measured_at": "2026-01-01T00:00:00+00:00", "learning_started": True, **fields}
+
+
+def baseline_record(cell, machine, seconds: float, episodes: int) -> dict:
+    return {"cell_key": cell.key, "kind": "baseline", "label": cell.label, "cell": dict(cell.content),
+            "machine": machine, "version": VERSION, "measured_at": "2026-01-01T00:00:00+00:00",
+            "seconds": seconds, "timed_episodes": episodes, "timed_s": seconds, "episodes": episodes}
+
+
+# the hand-computed case: 12000 env steps at 100 env steps/s (300 per iteration, so 40
+# iterations), an evaluation every 12000 / 20 = 600 env steps: the first iteration's and one per
+# 600 steps, 1 + 20 = 21 evaluations of 6 s; build 42 s, final evaluation 2 s:
+# wall = 42 + 120 + 21 x 6 + 2 = 290 s per trial; 3 CPUs (learner + 2 env runners) x 2 seeds
+# -> 1740 CPU-s; 2 random baselines of 30 s on 1 CPU -> 60 CPU-s; 1800 CPU-s = 0.50 CPU-hours.
+HAND = {"env_steps_per_s": 100.0, "env_steps_per_iteration": 300.0, "seconds_per_iteration": 3.0, "build_s": 42.0,
+        "periodic_eval_s": 6.0, "final_eval_s": 2.0, "eval_episodes": 4, "iterations": 2, "warmup_iterations": 1}
+
+
+def write_hand_calibration(tmp_path, calib_file, machine) -> tuple:
+    grid = load_grid(write_grid(tmp_path, grid_data(tmp_path)))
+    specs = trials(grid)
+    [(tcell, _)] = calibration.grid_train_cells(grid, specs).values()
+    [(bcell, _)] = calibration.grid_baseline_cells(grid).values()
+    store = calibration.Store(str(calib_file))
+    store.put(train_record(tcell, machine, **HAND))
+    store.put(baseline_record(bcell, machine, 30.0, 4))
+    return grid, specs
+
+
+# --------------------------------------------------------------------------- cells
+def test_cell_key_ignores_the_seed_and_follows_what_sets_the_speed(tmp_path):
+    def keys(**changes):
+        grid = load_grid(write_grid(tmp_path, grid_data(tmp_path, **changes)))
+        return [calibration.train_cell(s, grid.resources).key for s in trials(grid)]
+
+    base = keys()
+    assert len(base) == 2 and base[0] == base[1]  # two seeds, one cell
+    assert keys(seeds=[7])[0] == base[0]
+    assert keys(algorithms={"mappo": {"lr": 3e-4}})[0] != base[0]  # a hyperparameter
+    assert keys(algorithms={"ippo": None})[0] != base[0]  # the algorithm
+    assert keys(n_eds=[5])[0] != base[0]  # the scenario
+    assert keys(scenario={"episode_len": 6})[0] != base[0]
+    assert keys(scenario={"episode_len": 5, "action_mode": "per_device"})[0] != base[0]
+    res = dict(grid_data(tmp_path)["resources"])
+    assert keys(resources={**res, "num_envs_per_env_runner": 2})[0] != base[0]
+    assert keys(resources={**res, "torch_threads": 2})[0] != base[0]
+    assert keys(resources={**res, "num_cpus_per_env_runner": 2})[0] == base[0]  # a reservation, not a speed
+    assert keys(evaluation={"episodes": 7})[0] == base[0]  # evaluation time is scaled by episodes
+    assert keys(stop={"env_steps": 99})[0] == base[0]
+
+
+def test_cell_key_does_not_depend_on_dict_order():
+    assert calibration.cell_key("train", {"a": 1, "b": {"x": 1, "y": 2}}) == \
+        calibration.cell_key("train", {"b": {"y": 2, "x": 1}, "a": 1})
+
+
+# --------------------------------------------------------------------------- arithmetic
+@pytest.mark.parametrize(
+    "budget, interval, per_iteration, expected",
+    [(12000, 600, 300, 21), (12000, 0, 300, 0), (1000, 10, 300, 4), (1000, 1000, 1000, 1), (1000, 300, 250, 4)],
+)
+def test_periodic_evaluations(budget, interval, per_iteration, expected):
+    # (1000, 10, 300): every one of the 4 iterations evaluates; (1000, 300, 250): at 250, 500, 750, 1000
+    assert cost.periodic_evaluations(budget, interval, per_iteration) == expected
+
+
+def test_estimate_is_the_hand_computed_arithmetic(tmp_path, calib_file):
+    machine = calibration.this_machine()
+    grid, specs = write_hand_calibration(tmp_path, calib_file, machine)
+    est = cost.estimate(grid, specs, calibration.Store.load(str(calib_file)), machine, VERSION)
+    assert est.complete and est.cpus_per_trial == 3
+    assert [r.wall_s for r in est.rows] == [290.0, 290.0]
+    assert est.trial_cpu_s() == 1740.0 and est.baseline_cpu_s() == 60.0
+    assert cost.wall_clock_s(est, 3, None) == (600.0, 1)  # one trial at a time: 580 s of trials; 1800 CPU-s / 3
+    assert cost.wall_clock_s(est, 6, None) == (300.0, 2)  # two at once: 290 s; 1800 / 6 = 300
+    assert cost.wall_clock_s(est, 6, 1) == (580.0, 1)  # max_concurrent_trials 1
+    assert math.isnan(cost.wall_clock_s(est, 2, None)[0])  # a trial needs 3 CPUs
+    assert est.notes == []
+
+
+def test_dry_run_prints_the_estimate(tmp_path, calib_file, capsys):
+    import ray
+
+    write_hand_calibration(tmp_path, calib_file, calibration.this_machine())
+    rc = tune_cli.main([str(tmp_path / "grid.yaml"), "--dry-run", "--num-cpus", "3"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    rows = [ln.split() for ln in out.splitlines() if ln.split()[1:2] in (["mappo-V4-U2-s0"], ["mappo-V4-U2-s1"])]
+    assert rows == [["1", "mappo-V4-U2-s0", "100", "0.08", "3", "0.24"],
+                    ["2", "mappo-V4-U2-s1", "100", "0.08", "3", "0.24"]]
+    assert "grid: 0.50 CPU-hours = 2 trials 0.48 (wall x 3 CPUs each) + baselines 0.02" in out
+    assert "wall-clock: about 0.17 h on 3 CPUs (--num-cpus) (1 trial(s) at once" in out
+    assert "another machine" not in out and "not calibrated" not in out
+    assert not ray.is_initialized()
+
+
+def test_another_machines_calibration_is_used_and_said_once(tmp_path, calib_file, capsys):
+    other = {"cpu_model": "Some Other CPU 9000", "cpus": 64}
+    write_hand_calibration(tmp_path, calib_file, other)
+    assert tune_cli.main([str(tmp_path / "grid.yaml"), "--dry-run", "--num-cpus", "6"]) == 0
+    out = capsys.readouterr().out
+    notes = [ln for ln in out.splitlines() if "another machine" in ln]
+    assert notes == [f"note: measured on another machine (Some Other CPU 9000, 64 CPUs); this one is "
+                     f"{calibration.describe_machine(calibration.this_machine())}"]
+    assert "grid: 0.50 CPU-hours" in out and "wall-clock: about 0.08 h on 6 CPUs" in out
+
+
+def test_evaluation_time_is_scaled_by_episodes(tmp_path, calib_file):
+    machine = calibration.this_machine()
+    write_hand_calibration(tmp_path, calib_file, machine)
+    grid = load_grid(write_grid(tmp_path, grid_data(tmp_path, evaluation={"episodes": 8}), "g8.yaml"))
+    est = cost.estimate(grid, trials(grid), calibration.Store.load(str(calib_file)), machine, VERSION)
+    assert est.rows[0].wall_s == 42 + 120 + 21 * 12 + 4
+    assert any("scaled by episodes from [4] to the grid's 8" in n for n in est.notes)
+    assert not est.complete  # the baseline cell holds its episodes: 8 is another cell
+
+
+def test_dry_run_without_calibration_names_the_cells_and_the_command(tmp_path, calib_file, capsys):
+    path = write_grid(tmp_path, grid_data(tmp_path))
+    assert tune_cli.main([path, "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert "not calibrated: none of the grid's 1 trial cell(s) and 1 baseline cell(s)" in out
+    assert f"calibrate with: python -m uavlora_rllib.tune {path} --calibrate" in out
+    assert "CPU-hours" not in out  # nothing invented
+    assert not calib_file.exists()
+
+
+def test_partly_calibrated_grid_lists_the_rest(tmp_path, calib_file, capsys):
+    write_hand_calibration(tmp_path, calib_file, calibration.this_machine())
+    path = write_grid(tmp_path, grid_data(tmp_path, n_uavs=[2, 3]), "two.yaml")
+    assert tune_cli.main([path, "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert "not calibrated for version" in out and "1 trial cell(s), 1 baseline cell(s)" in out
+    assert "mappo V=4 U=3 per_uav T=5 runners=2 envs/runner=4 (trials 2, 4)" in out
+    assert "partial: 0.50 CPU-hours for the calibrated part only (2 of 4 trials" in out
+    assert "\ngrid:" not in out and "wall-clock" not in out
+
+
+def test_other_versions_are_not_used(tmp_path, calib_file, capsys):
+    write_hand_calibration(tmp_path, calib_file, calibration.this_machine())
+    data = json.loads(calib_file.read_text())
+    for rec in data["records"].values():
+        rec["version"] = "0.0.0-old"
+    calib_file.write_text(json.dumps(data))
+    assert tune_cli.main([str(tmp_path / "grid.yaml"), "--dry-run"]) == 0
+    assert "not calibrated: none of the grid's" in capsys.readouterr().out
+
+
+# --------------------------------------------------------------------------- the file
+def test_store_writes_atomically_and_keeps_other_records(tmp_path):
+    path = tmp_path / "sub" / "calibration.json"
+    machine = calibration.this_machine()
+    a = calibration.Cell("baseline", {"x": 1}, "a")
+    b = calibration.Cell("baseline", {"x": 2}, "b")
+    calibration.Store(str(path)).put(baseline_record(a, machine, 1.0, 1))
+    stale = calibration.Store(str(path))  # holds no records: put re-reads the file first
+    stale.put(baseline_record(b, machine, 2.0, 1))
+    loaded = calibration.Store.load(str(path))
+    assert {r["label"] for r in loaded.records.values()} == {"a", "b"}
+    assert loaded.find(a.key, machine, VERSION)["seconds"] == 1.0
+    assert loaded.find(a.key, machine, "9.9") is None
+    assert sorted(os.listdir(path.parent)) == ["calibration.json", "calibration.json.lock"]  # no temp file left
+
+
+def test_unreadable_calibration(tmp_path, calib_file, capsys):
+    calib_file.parent.mkdir(parents=True)
+    calib_file.write_text("{not json")
+    with pytest.raises(ConfigError, match="cannot read it"):
+        calibration.Store.load(str(calib_file))
+    path = write_grid(tmp_path, grid_data(tmp_path))
+    assert tune_cli.main([path, "--dry-run"]) == 0  # a preview still works, and says so
+    assert f"note: calibration file {calib_file}: cannot read it" in capsys.readouterr().out
+    assert tune_cli.main([path, "--calibrate"]) == 2  # never overwritten
+    err = capsys.readouterr().err
+    assert err.startswith("error: calibration file") and err.count("\n") == 1
+    assert calib_file.read_text() == "{not json"
+
+
+# --------------------------------------------------------------------------- flags
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--calibrate", "--calibrate-iterations", "0"], "--calibrate-iterations: must be an integer in [1, 100], got 0"),
+        (["--calibrate", "--calibrate-iterations", "x"], "--calibrate-iterations: expected an integer, got 'x'"),
+        (["--calibrate-iterations", "3"], "--calibrate-iterations: only with --calibrate"),
+        (["--calibrate", "--resume"], "--calibrate: measures this machine in a private local Ray"),
+        (["--calibrate", "--address", "auto"], "drop --resume and --address"),
+    ],
+)
+def test_bad_calibrate_flags(tmp_path, calib_file, capsys, extra, message):
+    import ray
+
+    rc = tune_cli.main([write_grid(tmp_path, grid_data(tmp_path)), *extra])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert err.startswith("error: ") and err.count("\n") == 1 and message in err, err
+    assert not ray.is_initialized() and not calib_file.exists()
+
+
+def test_calibrate_measures_each_cell_once_and_records_it(tmp_path, calib_file, capsys, monkeypatch):
+    """The calibration's bookkeeping, with the measurements replaced (no Ray)."""
+    import ray
+
+    measured: list[str] = []
+
+    def fake_train(grid, spec, iterations):
+        measured.append(spec.name)
+        return {**HAND, "iterations": iterations, "learning_started": True}
+
+    def fake_baseline(spec, episodes):
+        measured.append(spec.name)
+        return {"seconds": 30.0, "timed_episodes": episodes, "timed_s": 30.0, "episodes": episodes}
+
+    monkeypatch.setattr(calibration, "measure_train_cell", fake_train)
+    monkeypatch.setattr(calibration, "measure_baseline_cell", fake_baseline)
+    monkeypatch.setattr(ray, "init", lambda **kw: None)
+    monkeypatch.setattr(ray, "shutdown", lambda: None)
+    path = write_grid(tmp_path, grid_data(tmp_path))
+    assert tune_cli.main([path, "--calibrate", "--calibrate-iterations", "3", "--num-cpus", "3"]) == 0
+    out = capsys.readouterr().out
+    assert measured == ["mappo-V4-U2-s0", "random-V4-U2-s0"]  # one per cell, not per seed
+    records = json.loads(calib_file.read_text())["records"]
+    assert {r["kind"] for r in records.values()} == {"train", "baseline"}
+    assert next(r for r in records.values() if r["kind"] == "train")["iterations"] == 3
+    assert "grid: 0.50 CPU-hours" in out  # then the dry run, from what was written
+    assert tune_cli.main([path, "--calibrate"]) == 0  # a second run keeps what is there
+    assert measured == ["mappo-V4-U2-s0", "random-V4-U2-s0"]
+    assert "0 trial cells and 0 baseline cells to measure" in capsys.readouterr().out
+
+
+# --------------------------------------------------------------------------- measurement
+class _FakeAlgo:
+    """train() results as RLlib reports them: 10 env steps, the learner timer once learning starts."""
+
+    def __init__(self, learns_from: int):
+        self.calls, self.learns_from, self.stopped = 0, learns_from, False
+
+    def train(self) -> dict:
+        self.calls += 1
+        timers = {"env_runner_sampling_timer": 0.1}
+        if self.calls >= self.learns_from:
+            timers["learner_update_timer"] = 0.2
+        return {"timers": timers, "env_runners": {"num_env_steps_sampled": 10}}
+
+    def stop(self) -> None:
+        self.stopped = True
+
+
+class _FakeEntry:
+    def __init__(self, algo):
+        self.algo = algo
+
+    def build(self, scenario, hparams, resources, seed):
+        return self
+
+    def build_algo(self):
+        return self.algo
+
+
+class _Resources:
+    torch_threads = None
+
+
+@pytest.mark.parametrize("until_learning, learns_from, warmup", [(False, 3, 1), (True, 3, 3), (True, 1, 1)])
+def test_measure_training_warms_up_then_times(until_learning, learns_from, warmup):
+    algo = _FakeAlgo(learns_from)
+    m = measure_training(_FakeEntry(algo), None, None, _Resources(), 0, 2, warmup_until_learning=until_learning,
+                         after=lambda a: a.calls)
+    assert m.warmup_iterations == warmup and len(m.rows) == 2 and m.env_steps == 20
+    assert m.after == warmup + 2 and algo.stopped
+    assert m.learning_started == (warmup + 2 >= learns_from)
+    assert m.env_steps_per_iteration == 10 and m.env_steps_per_s > 0
+
+
+def test_cost_modules_import_neither_ray_nor_torch():
+    code = ("import sys, uavlora_rllib.experiment.cost, uavlora_rllib.experiment.calibration; "
+            "print(sorted({m.split('.')[0] for m in sys.modules} & {'ray', 'torch'}))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True).stdout
+    assert out.strip() == "[]"
+
+
+# --------------------------------------------------------------------------- for real
+@pytest.mark.slow
+def test_calibrate_a_tiny_grid_then_dry_run(tmp_path, calib_file, capsys):
+    data = grid_data(tmp_path, algorithms={"mappo": {"batch_episodes": 4, "num_minibatches": 1, "num_epochs": 1}},
+                     resources={"num_env_runners": 0, "num_envs_per_env_runner": 2}, stop={"env_steps": 1000},
+                     evaluation={"episodes": 2})
+    path = write_grid(tmp_path, data)
+    assert tune_cli.main([path, "--calibrate", "--calibrate-iterations", "1"]) == 0
+    out = capsys.readouterr().out
+    records = json.loads(calib_file.read_text())["records"]
+    assert sorted(r["kind"] for r in records.values()) == ["baseline", "train"]
+    train = next(r for r in records.values() if r["kind"] == "train")
+    assert train["env_steps_per_s"] > 0 and train["iterations"] == 1 and train["machine"] == calibration.this_machine()
+    assert "grid: " in out and "CPU-hours" in out
+    assert tune_cli.main([path, "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert "grid: " in out and "wall-clock: about" in out and "not calibrated" not in out

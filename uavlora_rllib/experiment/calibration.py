@@ -1,0 +1,363 @@
+"""The grid calibration: what each distinct part of a grid costs on this machine, measured once
+(`tune GRID.yaml --calibrate`) and read by `tune --dry-run`'s cost estimate (experiment.cost).
+
+A *cell* is what decides the cost, without the seed: for a trial the algorithm, its resolved
+hyperparameters, the whole scenario and the resources that change speed (SPEED_RESOURCES); for a
+baseline run the baseline, the scenario and the number of evaluation episodes. Its key is a hash
+of that content, so a grid that differs in anything that matters gets new cells, and two grids
+that share a cell share its measurement.
+
+The file lives in the user's cache directory (`default_path`; $UAVLORA_CALIBRATION names
+another), not in the grid's storage: the numbers describe a machine, not an experiment, one file
+serves every grid and every storage (including cloud URIs no plain file can be written to), and a
+dry run needs no storage. Each record names the machine (CPU model and count) and the package
+version it was measured with; the estimate prefers this machine's records and says when it uses
+another machine's. Every write is atomic (a temporary file renamed over the old one, under a
+lock), one record at a time, so a killed calibration keeps what it measured and a rerun
+measures only the rest.
+
+Nothing here imports Ray or torch at module level: a dry run reads the file without them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import datetime
+import hashlib
+import json
+import math
+import os
+import sys
+import tempfile
+import time
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from typing import Any, TextIO
+
+from uavlora_rllib.config_errors import ConfigError
+
+FORMAT = 1
+PATH_ENV = "UAVLORA_CALIBRATION"  # another calibration file (a shared one, or a test's)
+# Resources fields that change how fast a trial trains (the CPUs reserved do not: Ray does not pin)
+SPEED_RESOURCES = ("num_env_runners", "num_envs_per_env_runner", "torch_threads", "num_learners",
+                   "num_gpus_per_learner")
+DEFAULT_ITERATIONS = 2  # timed training iterations per cell (after the warm-up)
+# A baseline whose (unloaded, single-core) cost model, `baselines.policies.evaluation_seconds`,
+# exceeds this many seconds is timed on fewer episodes and scaled by episodes (except best_fixed,
+# whose one-off selection does not scale with episodes)
+BASELINE_MEASURE_S = 20.0
+ONE_OFF_BASELINES = ("best_fixed",)
+
+
+# --------------------------------------------------------------------------- cells
+@dataclass(frozen=True)
+class Cell:
+    """What one measurement stands for: `kind` "train" or "baseline", and its content."""
+
+    kind: str
+    content: Mapping[str, Any]
+    label: str  # for people: "mappo V=60 U=2 per_uav T=150"
+
+    @property
+    def key(self) -> str:
+        return cell_key(self.kind, self.content)
+
+
+def _canonical(obj: Any) -> str:
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), default=str)
+
+
+def cell_key(kind: str, content: Mapping[str, Any]) -> str:
+    """A stable hash of a cell's content (sorted-key JSON, so dict order does not matter)."""
+    return hashlib.sha256(_canonical({"kind": kind, **content}).encode()).hexdigest()[:16]
+
+
+def _scenario_label(scenario: Mapping[str, Any]) -> str:
+    return f"V={scenario['n_eds']} U={scenario['n_uavs']} {scenario['action_mode']} T={scenario['episode_len']}"
+
+
+def train_cell(spec, resources) -> Cell:
+    """The cell of a trial (grid.TrialSpec) under `resources` (registry.Resources)."""
+    from uavlora_rllib.experiment.grid import hparams_dict
+
+    scenario = spec.scenario.to_dict()
+    content = {
+        "algorithm": spec.algorithm,
+        "hparams": hparams_dict(spec.hparams),
+        "scenario": scenario,
+        "resources": {k: getattr(resources, k) for k in SPEED_RESOURCES},
+    }
+    r = content["resources"]
+    label = (f"{spec.algorithm} {_scenario_label(scenario)} runners={r['num_env_runners']} "
+             f"envs/runner={r['num_envs_per_env_runner']}")
+    return Cell("train", json.loads(_canonical(content)), label)
+
+
+def baseline_cell(spec, episodes: int) -> Cell:
+    """The cell of a baseline run (grid.BaselineSpec) of `episodes` evaluation episodes."""
+    scenario = spec.scenario.to_dict()
+    content = {"baseline": spec.baseline, "scenario": scenario, "episodes": int(episodes)}
+    return Cell("baseline", json.loads(_canonical(content)),
+                f"{spec.baseline} {_scenario_label(scenario)} {episodes} episodes")
+
+
+def grid_train_cells(grid, specs) -> dict[str, tuple[Cell, list[int]]]:
+    """key -> (cell, indices into `specs` of the trials in it), in the order of `specs`."""
+    out: dict[str, tuple[Cell, list[int]]] = {}
+    for i, spec in enumerate(specs):
+        cell = train_cell(spec, grid.resources)
+        out.setdefault(cell.key, (cell, []))[1].append(i)
+    return out
+
+
+def grid_baseline_cells(grid) -> dict[str, tuple[Cell, list]]:
+    """key -> (cell, the grid's BaselineSpecs in it), in the grid's order."""
+    from uavlora_rllib.experiment.grid import baseline_runs
+
+    out: dict[str, tuple[Cell, list]] = {}
+    for spec in baseline_runs(grid):
+        cell = baseline_cell(spec, grid.evaluation.episodes)
+        out.setdefault(cell.key, (cell, []))[1].append(spec)
+    return out
+
+
+# --------------------------------------------------------------------------- machine
+def cpu_model() -> str:
+    """The CPU's model name (/proc/cpuinfo on Linux), else what `platform` knows."""
+    import platform
+
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as fh:
+            for line in fh:
+                key, sep, value = line.partition(":")
+                if sep and key.strip() in ("model name", "Hardware", "cpu model"):
+                    return " ".join(value.split())
+    except OSError:
+        pass
+    return platform.processor() or platform.machine() or "unknown"
+
+
+def this_machine() -> dict[str, Any]:
+    return {"cpu_model": cpu_model(), "cpus": os.cpu_count() or 1}
+
+
+def describe_machine(machine: Mapping[str, Any]) -> str:
+    return f"{machine.get('cpu_model', 'unknown CPU')}, {machine.get('cpus', '?')} CPUs"
+
+
+def package_version() -> str:
+    import uavlora_rllib
+
+    return str(uavlora_rllib.__version__)
+
+
+def default_path() -> str:
+    """$UAVLORA_CALIBRATION if set, else $XDG_CACHE_HOME/uavlora_rllib/calibration.json
+    (XDG_CACHE_HOME unset or relative: ~/.cache)."""
+    if os.environ.get(PATH_ENV):
+        return os.path.abspath(os.path.expanduser(os.environ[PATH_ENV]))
+    base = os.environ.get("XDG_CACHE_HOME", "")
+    if not os.path.isabs(base):
+        base = os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "uavlora_rllib", "calibration.json")
+
+
+# --------------------------------------------------------------------------- the file
+def _record_id(key: str, machine: Mapping[str, Any], version: str) -> str:
+    return f"{key}/{cell_key('machine', machine)}/{version}"
+
+
+@dataclass
+class Store:
+    """The calibration file's records: record id (cell key / machine hash / version) -> record."""
+
+    path: str
+    records: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
+
+    @classmethod
+    def load(cls, path: str) -> Store:
+        """The file's records (none if it does not exist); ConfigError if it cannot be read."""
+        try:
+            with open(path, encoding="utf-8") as fh:
+                data = json.load(fh)
+        except FileNotFoundError:
+            return cls(path)
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f"calibration file {path}: cannot read it ({exc}); delete it to start over") from None
+        if not isinstance(data, dict) or data.get("format") != FORMAT or not isinstance(data.get("records"), dict):
+            raise ConfigError(f"calibration file {path}: not a calibration of format {FORMAT}; delete it to start over")
+        return cls(path, dict(data["records"]))
+
+    def find(self, key: str, machine: Mapping[str, Any], version: str) -> dict[str, Any] | None:
+        """The record of cell `key` for `version`: this machine's, else the newest of another
+        machine (its "machine" field tells which); records of other versions are not used."""
+        found = [r for r in self.records.values() if r.get("cell_key") == key and r.get("version") == version]
+        own = [r for r in found if r.get("machine") == dict(machine)]
+        return max(own or found, key=lambda r: str(r.get("measured_at", ""))) if found else None
+
+    def has(self, key: str, machine: Mapping[str, Any], version: str) -> bool:
+        """Whether cell `key` is measured on `machine` for `version`."""
+        found = self.find(key, machine, version)
+        return found is not None and found.get("machine") == dict(machine)
+
+    def put(self, record: dict[str, Any]) -> None:
+        """Add (or replace) one record: the file is re-read, merged and replaced atomically."""
+        directory = os.path.dirname(os.path.abspath(self.path))
+        os.makedirs(directory, exist_ok=True)
+        with _locked(self.path + ".lock"):
+            current = Store.load(self.path).records
+            current[_record_id(record["cell_key"], record["machine"], record["version"])] = record
+            fd, tmp = tempfile.mkstemp(prefix=".calibration-", suffix=".tmp", dir=directory)
+            try:
+                with os.fdopen(fd, "w", encoding="utf-8") as fh:
+                    json.dump({"format": FORMAT, "records": current}, fh, indent=1, sort_keys=True)
+                    fh.flush()
+                    os.fsync(fh.fileno())
+                os.replace(tmp, self.path)
+            except BaseException:
+                with contextlib.suppress(OSError):
+                    os.unlink(tmp)
+                raise
+        self.records = current
+
+
+@contextlib.contextmanager
+def _locked(path: str) -> Iterator[None]:
+    """An exclusive advisory lock on `path` (two calibrations may run at once)."""
+    import fcntl
+
+    with open(path, "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def _stamp(cell: Cell, machine: Mapping[str, Any], version: str, **fields: Any) -> dict[str, Any]:
+    now = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    return {"cell_key": cell.key, "kind": cell.kind, "label": cell.label, "cell": dict(cell.content),
+            "machine": dict(machine), "version": version, "measured_at": now, "load_1min": load, **fields}
+
+
+# --------------------------------------------------------------------------- measuring
+def trial_cpus(resources) -> float:
+    """CPUs one trial reserves: its placement group's bundles (learner process, env runners, learners)."""
+    return float(sum(b.get("CPU", 0.0) for b in resources.bundles()))
+
+
+def _evaluation_timer(entry, scenario, episodes: int, seed: int):
+    """algo -> (seconds of one periodic evaluation, seconds of the final greedy evaluation),
+    with the code a trial runs (periodic_eval.evaluate_policies; the trainable's evaluate)."""
+
+    def run(algo) -> tuple[float, float]:
+        from uavlora_rllib.experiment.evaluation import run_episodes
+        from uavlora_rllib.experiment.periodic_eval import PeriodicEvalSettings, evaluate_policies
+
+        evaluate_policies(algo, PeriodicEvalSettings(scenario, 1, 1, seed))  # first-call costs, untimed
+        t0 = time.perf_counter()
+        evaluate_policies(algo, PeriodicEvalSettings(scenario, 1, episodes, seed))
+        t1 = time.perf_counter()
+        run_episodes(entry.greedy_policy(algo, scenario), scenario, episodes, seed)
+        return t1 - t0, time.perf_counter() - t1
+
+    return run
+
+
+def measure_train_cell(grid, spec, iterations: int) -> dict[str, Any]:
+    """The measured fields of one trial cell (Ray must be running)."""
+    from uavlora_rllib.algorithms.common import registry
+    from uavlora_rllib.experiment.training_rate import measure_training
+
+    entry = registry.get(spec.algorithm)
+    episodes = grid.evaluation.episodes
+    m = measure_training(entry, spec.scenario, spec.hparams, grid.resources, spec.seed, iterations,
+                         warmup_until_learning=True,
+                         after=_evaluation_timer(entry, spec.scenario, episodes, spec.seed))
+    periodic_s, final_s = m.after
+    return {"env_steps_per_s": m.env_steps_per_s, "seconds_per_iteration": m.seconds_per_iteration,
+            "env_steps_per_iteration": m.env_steps_per_iteration, "build_s": m.build_s,
+            "iterations": len(m.rows), "warmup_iterations": m.warmup_iterations,
+            "learning_started": m.learning_started, "periodic_eval_s": periodic_s, "final_eval_s": final_s,
+            "eval_episodes": episodes}
+
+
+def baseline_episodes_to_time(name: str, scenario, episodes: int) -> int:
+    """Episodes to time a baseline on: all of them, unless its cost model says that is long and its
+    cost grows with episodes; then fewer (at least 1), and the time is scaled."""
+    from uavlora_rllib.baselines.policies import evaluation_seconds
+
+    if name in ONE_OFF_BASELINES:
+        return episodes
+    estimate = evaluation_seconds(name, scenario, episodes)
+    if estimate <= BASELINE_MEASURE_S:
+        return episodes
+    return max(1, min(episodes, int(episodes * BASELINE_MEASURE_S / estimate)))
+
+
+def measure_baseline_cell(spec, episodes: int) -> dict[str, Any]:
+    """The measured fields of one baseline cell: one run with the code a baseline task runs."""
+    from uavlora_rllib.experiment.baseline_tasks import evaluate_baseline
+
+    timed = baseline_episodes_to_time(spec.baseline, spec.scenario, episodes)
+    wall = float(evaluate_baseline(spec, timed)["_wall_s"])
+    return {"seconds": wall * episodes / timed, "timed_episodes": timed, "timed_s": wall, "episodes": episodes}
+
+
+def calibrate(grid, specs, path: str | None = None, iterations: int = DEFAULT_ITERATIONS,
+              num_cpus: int | None = None, out: TextIO | None = None) -> int:
+    """Measure every cell of the grid not yet recorded for this machine and version and record
+    each as soon as it is measured; returns how many were measured."""
+    out = out or sys.stdout
+    store = Store.load(path or default_path())
+    machine, version = this_machine(), package_version()
+    trains = [(c, specs[ix[0]]) for c, ix in grid_train_cells(grid, specs).values()]
+    bases = [(c, members[0]) for c, members in grid_baseline_cells(grid).values()]
+    todo_t = [(c, s) for c, s in trains if not store.has(c.key, machine, version)]
+    todo_b = [(c, s) for c, s in bases if not store.has(c.key, machine, version)]
+    kept = len(trains) + len(bases) - len(todo_t) - len(todo_b)
+    print(f"calibration: {len(todo_t)} trial cells and {len(todo_b)} baseline cells to measure on "
+          f"{describe_machine(machine)} ({kept} already in {store.path})", file=out, flush=True)
+    t_start = time.perf_counter()
+    if todo_t:
+        _calibrate_trials(grid, todo_t, store, machine, version, iterations, num_cpus, out)
+    for i, (cell, spec) in enumerate(todo_b, 1):
+        fields = measure_baseline_cell(spec, grid.evaluation.episodes)
+        store.put(_stamp(cell, machine, version, **fields))
+        scaled = (f" (timed on {fields['timed_episodes']} of {fields['episodes']} episodes, scaled)"
+                  if fields["timed_episodes"] < fields["episodes"] else "")
+        print(f"  [{i}/{len(todo_b)}] {cell.label}: {fields['seconds']:.1f} s{scaled}", file=out, flush=True)
+    print(f"calibration: done in {time.perf_counter() - t_start:.0f} s; written to {store.path}", file=out,
+          flush=True)
+    return len(todo_t) + len(todo_b)
+
+
+def _calibrate_trials(grid, todo, store: Store, machine, version: str, iterations: int, num_cpus: int | None,
+                      out: TextIO) -> None:
+    """Measure the trial cells in one private local Ray."""
+    import ray
+
+    import uavlora_rllib.envs.multi_agent  # noqa: F401  (registers the "uavlora" env)
+    from uavlora_rllib.experiment.quiet import SETUP_HOOK
+
+    need = trial_cpus(grid.resources)
+    cpus = int(max(num_cpus or os.cpu_count() or 1, math.ceil(need)))
+    if need > (os.cpu_count() or 1):
+        print(f"note: a trial reserves {need:g} CPUs and this machine has {os.cpu_count()}: measured with its "
+              "processes sharing the cores", file=out, flush=True)
+    ray.init(address="local", num_cpus=cpus, include_dashboard=False, log_to_driver=False,
+             runtime_env={"worker_process_setup_hook": SETUP_HOOK})
+    try:
+        for i, (cell, spec) in enumerate(todo, 1):
+            t0 = time.perf_counter()
+            fields = measure_train_cell(grid, spec, iterations)
+            store.put(_stamp(cell, machine, version, **fields))
+            late = "" if fields["learning_started"] else "; the learner had not updated yet (rate too high)"
+            print(f"  [{i}/{len(todo)}] {cell.label}: {fields['env_steps_per_s']:,.0f} env steps/s, "
+                  f"{fields['seconds_per_iteration']:.1f} s per iteration; evaluation {fields['periodic_eval_s']:.1f} s "
+                  f"periodic, {fields['final_eval_s']:.1f} s final ({time.perf_counter() - t0:.0f} s){late}",
+                  file=out, flush=True)
+    finally:
+        ray.shutdown()
