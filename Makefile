@@ -19,10 +19,12 @@ demo: install
 	$(PY) -m uavlora_rllib.tune tune_configs/smoke.yaml
 	$(PY) -m analysis.report --experiment smoke --tracking-uri sqlite:///mlflow.db --out reports/smoke
 
-# Lint and types, zero findings (configured in pyproject.toml): ruff on the code and the tests,
-# mypy on the package. CI runs it before the tests.
+# Lint, format and types, zero findings (configured in pyproject.toml): ruff's linter and its
+# formatter (`ruff format` rewrites, here only checked) on the code and the tests, mypy on the
+# package. CI runs it before the tests.
 lint: install
 	$(VENV)/bin/ruff check uavlora_rllib analysis tests
+	$(VENV)/bin/ruff format --check uavlora_rllib analysis tests
 	$(VENV)/bin/mypy
 
 # What a contributor runs before every commit: everything but the tests marked `slow`

@@ -45,6 +45,7 @@ from typing import Any
 from analysis.data import Organised
 
 ENVIRONMENT = "uavlora"
+MARL_EVAL_FILE = "results_marl_eval.json"  # its name in a report's folder
 ABSOLUTE = "absolute_metrics"
 # marl-eval metric name -> our MLflow metric
 METRICS = {

@@ -209,7 +209,7 @@ def _record(run) -> RunRecord:
 def load_runs(client, experiment_id: str, experiment: str = "", source: int = 0) -> tuple[list[RunRecord], list[Any]]:
     """All active runs of the experiment as RunRecords (grid parents and summary runs excluded),
     and those excluded runs themselves (raw MLflow Run objects: grid parents oldest first, then
-    summary runs newest first): where the report logs its files (`analysis.report.log_summary`)."""
+    summary runs newest first): where the report logs its files (`analysis.report_mlflow.log_summary`)."""
     records: list[RunRecord] = []
     summaries: list[Any] = []
     parents: list[Any] = []

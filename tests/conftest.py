@@ -1,11 +1,14 @@
 """Shared helpers for the foundation's tests (physics, association, mobility, envs, config).
 
-Kept deliberately small: builders for scenarios and random actions, and an episode runner
-that records everything a test may want to compare bit for bit.
+Kept deliberately small: builders for scenarios and random actions, an episode runner that
+records everything a test may want to compare bit for bit, tiny grids, and the one local Ray
+that the tests needing Ray share (`ray_session`, `ray_address`).
 """
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import os
 import subprocess
 import tempfile
@@ -131,27 +134,63 @@ def wait_for_mlflow_server(uri: str, proc: subprocess.Popen, timeout_s: float, w
         time.sleep(0.5)
 
 
-@pytest.fixture(scope="module")
-def ray_address():
-    """A local Ray with 2 CPUs for a test module (reused when one is already up), its GCS address:
-    a private RAY_TMPDIR (short, for socket paths; never somebody else's `ray start` cluster), and
-    PYTHONPATH with tests/ and the repo so that workers import the test plugins too."""
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The tests that use the session's Ray (`ray_session`) run last, each group in its usual order:
+    Ray starts once, and the tests before them run in a process without Ray (several assert that
+    nothing started one; the cluster tests start their own)."""
+    items.sort(key=lambda item: "ray_session" in getattr(item, "fixturenames", ()))
+
+
+@dataclasses.dataclass(frozen=True)
+class SharedRay:
+    """The test session's local Ray: its GCS address and the environment its processes started with."""
+
+    address: str
+    env: dict[str, str]
+
+
+@contextlib.contextmanager
+def environ(values: dict[str, str]):
+    """`os.environ` with `values` set, restored on exit."""
+    saved = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+@pytest.fixture(scope="session")
+def ray_session():
+    """The one local Ray of a test session, for every test that needs Ray in-process (RLlib
+    algorithms, Tune, the tune CLI's main): started on first use with 2 CPUs (the CI machine's),
+    a private RAY_TMPDIR (short, for socket paths; never somebody else's `ray start` cluster) and
+    PYTHONPATH with tests/ and the repo (so that workers import the test plugins), shut down when
+    the session ends. A Ray this process is already connected to is reused and left running.
+    Tests of clusters of their own (test_cluster*) start those in subprocesses instead."""
     import ray
 
     tests_dir = os.path.dirname(os.path.abspath(__file__))
-    saved = {k: os.environ.get(k) for k in ("RAY_TMPDIR", "PYTHONPATH")}
-    # also for the drivers a test starts as subprocesses with --address
-    os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (tests_dir, os.path.dirname(tests_dir), saved["PYTHONPATH"]) if p)
-    started = not ray.is_initialized()
-    if started:
-        os.environ["RAY_TMPDIR"] = tempfile.mkdtemp(prefix="rt", dir="/tmp")
+    pythonpath = os.pathsep.join(p for p in (tests_dir, os.path.dirname(tests_dir), os.environ.get("PYTHONPATH")) if p)
+    if ray.is_initialized():
+        yield SharedRay(ray.get_runtime_context().gcs_address, {"PYTHONPATH": pythonpath})
+        return
+    env = {"RAY_TMPDIR": tempfile.mkdtemp(prefix="rt", dir="/tmp"), "PYTHONPATH": pythonpath}
+    with environ(env):  # Ray's processes keep the environment they start with
         ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield ray.get_runtime_context().gcs_address
-    if started:
-        ray.shutdown()
-    for k, v in saved.items():
-        if v is None:
-            os.environ.pop(k, None)
-        else:
-            os.environ[k] = v
+    yield SharedRay(ray.get_runtime_context().gcs_address, env)
+    ray.shutdown()
 
+
+@pytest.fixture(scope="module")
+def ray_address(ray_session: SharedRay):
+    """The session's Ray (`ray_session`) as an address for drivers started against it (the tune CLI
+    with --address, in a subprocess or in-process): its RAY_TMPDIR and PYTHONPATH are set for the
+    module, so that those drivers inherit them."""
+    with environ(ray_session.env):
+        yield ray_session.address

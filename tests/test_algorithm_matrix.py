@@ -35,16 +35,6 @@ CASES = [(name, mode) for name in registry.available() for mode in registry.get(
 IDS = [f"{name}-{mode}" for name, mode in CASES]
 
 
-@pytest.fixture(scope="module")
-def ray_session(tmp_path_factory):
-    import ray
-
-    # A private local cluster: never attach to another one on this machine.
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield
-    ray.shutdown()
-
-
 def _build(name: str, scenario: ScenarioConfig, resources: registry.Resources = RES):
     entry = registry.get(name)
     return entry, entry.build(scenario, entry.hparams({}), resources, 0)

@@ -30,6 +30,7 @@ from mlflow.entities import Metric, Param  # noqa: E402
 from mlflow.tracking import MlflowClient  # noqa: E402
 
 from analysis import report, stats  # noqa: E402
+from analysis.data import organise  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 EXP = "synthetic"
@@ -368,7 +369,7 @@ def test_stats_definitions():
     assert np.allclose(stats.ema([0.0, 10.0], 0.5), [0.0, 10.0 * 0.5 / 0.75])
     assert stats.common_grid([(0, 10), (2, 8)], 4).tolist() == [2.0, 4.0, 6.0, 8.0]
     assert stats.common_grid([(0, 1), (2, 3)]).size == 0
-    assert report.organise([]).warnings == []
+    assert organise([]).warnings == []
 
 
 def test_colours_deterministic_for_new_names():

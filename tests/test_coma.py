@@ -189,22 +189,16 @@ LEARN_HPARAMS = {"lr_actor": 3e-4, "lr_critic": 1e-3, "critic_steps": 4}
 
 
 @pytest.fixture(scope="module")
-def trained():
-    import ray
-
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-    algo = None
+def trained(ray_session):
+    entry = registry.get("coma")
+    scenario = ScenarioConfig.from_dict(SMALL)
+    resources = registry.Resources(num_envs_per_env_runner=16)
+    algo = entry.build(scenario, entry.hparams(LEARN_HPARAMS), resources, LEARN_SEED).build_algo()
     try:
-        entry = registry.get("coma")
-        scenario = ScenarioConfig.from_dict(SMALL)
-        resources = registry.Resources(num_envs_per_env_runner=16)
-        algo = entry.build(scenario, entry.hparams(LEARN_HPARAMS), resources, LEARN_SEED).build_algo()
         results = [algo.train() for _ in range(LEARN_ITERS)]
         yield {"algo": algo, "entry": entry, "scenario": scenario, "results": results}
     finally:
-        if algo is not None:
-            algo.stop()
-        ray.shutdown()
+        algo.stop()
 
 
 @pytest.mark.slow

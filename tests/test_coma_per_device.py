@@ -314,41 +314,35 @@ def test_registry_offers_per_device_and_checks_the_critic():
 
 
 @pytest.mark.slow
-def test_per_device_trains_through_the_registry():
+def test_per_device_trains_through_the_registry(ray_session):
     """Two iterations of the registry's per_device COMA (Ray, one env runner in-process): the
     paper's metrics, finite losses, 2 updates per batch reusing it with per-branch ratios, and
     greedy / sampled actions inside the per_device action space."""
-    import ray
-
     from uavlora_rllib.envs.team import team_action_space
     from uavlora_rllib.sim.core import BatchCore
 
     scenario = ScenarioConfig(n_eds=6, n_uavs=2, episode_len=8, action_mode="per_device")
     entry = registry.get("coma")
     hparams = entry.hparams({"batch_episodes": 4, "updates_per_iteration": 2, "critic_steps": 1})
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
+    algo = entry.build(scenario, hparams, registry.Resources(num_envs_per_env_runner=4), 0).build_algo()
     try:
-        algo = entry.build(scenario, hparams, registry.Resources(num_envs_per_env_runner=4), 0).build_algo()
-        try:
-            for i in (1, 2):
-                result = algo.train()
-                assert int(result["num_gradient_updates_lifetime"]) == 2 * i
-                stats = result["learners"][DEFAULT_MODULE_ID]
-                for key in ("critic_loss", "actor_loss", "entropy", "advantage_abs_mean"):
-                    assert np.isfinite(float(stats[key])), key
-                assert 0.0 <= float(stats["clip_fraction"]) < 0.5
-            assert result["env_runners"]["ee_sys_mean"] > 0
-            space = team_action_space(scenario)
-            for explore in (False, True):
-                policy = entry.policy(algo, scenario, explore=explore, seed=1)
-                core = BatchCore(scenario, 3)
-                core.reset(7)
-                policy.reset(core)
-                for _ in range(3):
-                    a = policy.act(core)
-                    assert a.shape == (3,) + space.shape and (a >= 0).all() and (a < space.nvec).all()
-                    core.step(a)
-        finally:
-            algo.stop()
+        for i in (1, 2):
+            result = algo.train()
+            assert int(result["num_gradient_updates_lifetime"]) == 2 * i
+            stats = result["learners"][DEFAULT_MODULE_ID]
+            for key in ("critic_loss", "actor_loss", "entropy", "advantage_abs_mean"):
+                assert np.isfinite(float(stats[key])), key
+            assert 0.0 <= float(stats["clip_fraction"]) < 0.5
+        assert result["env_runners"]["ee_sys_mean"] > 0
+        space = team_action_space(scenario)
+        for explore in (False, True):
+            policy = entry.policy(algo, scenario, explore=explore, seed=1)
+            core = BatchCore(scenario, 3)
+            core.reset(7)
+            policy.reset(core)
+            for _ in range(3):
+                a = policy.act(core)
+                assert a.shape == (3,) + space.shape and (a >= 0).all() and (a < space.nvec).all()
+                core.step(a)
     finally:
-        ray.shutdown()
+        algo.stop()

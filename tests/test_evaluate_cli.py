@@ -193,36 +193,30 @@ def test_checkpoint_fit_check():
 
 
 @pytest.mark.slow
-def test_checkpoint_on_a_scenario_it_was_not_trained_for(tmp_path, capsys):
+def test_checkpoint_on_a_scenario_it_was_not_trained_for(ray_session, tmp_path, capsys):
     """A real checkpoint: evaluating it on its own scenario works; on one whose spaces differ
     (sf_set [7], another U) it is one line and exit 2, before any episode runs."""
-    import tempfile
-
-    import ray
-
     from uavlora_rllib.algorithms.common import registry
     from uavlora_rllib.sim.scenario import ScenarioConfig
 
-    ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False, _temp_dir=tempfile.mkdtemp(prefix="rev", dir="/tmp"))
-    try:
-        entry = registry.get("mappo")
-        cfg = ScenarioConfig(n_eds=4, n_uavs=2, episode_len=4)
-        hp = entry.hparams({"num_epochs": 1, "num_minibatches": 1, "batch_episodes": 2, "max_seq_len": 4, "gru_hidden": 8})
-        algo = entry.build(cfg, hp, registry.Resources(num_envs_per_env_runner=2), 0).build_algo()
+    entry = registry.get("mappo")
+    cfg = ScenarioConfig(n_eds=4, n_uavs=2, episode_len=4)
+    hp = entry.hparams({"num_epochs": 1, "num_minibatches": 1, "batch_episodes": 2, "max_seq_len": 4, "gru_hidden": 8})
+    algo = entry.build(cfg, hp, registry.Resources(num_envs_per_env_runner=2), 0).build_algo()
+    ckpt = str(tmp_path / "ckpt")
+    try:  # the shared Ray outlives this test: the algorithm's actors must not
         algo.train()
-        ckpt = str(tmp_path / "ckpt")
         algo.save_to_path(ckpt)
-        algo.stop()
-        assert main(["--policy", ckpt, "--episodes", "1", "--json"]) == 0
-        capsys.readouterr()
-        (tmp_path / "s.yaml").write_text("sf_set: [7]\n")
-        for extra, field in [(["--scenario-yaml", str(tmp_path / "s.yaml")], "sf_set"), (["--n-uavs", "3"], "n_uavs")]:
-            assert main(["--policy", ckpt, "--episodes", "1", *extra]) == 2
-            err = capsys.readouterr().err
-            assert err.startswith("evaluate: error: --policy: the checkpoint at") and err.count("\n") == 1, err
-            assert field in err.split("differ: ")[1], err
     finally:
-        ray.shutdown()
+        algo.stop()
+    assert main(["--policy", ckpt, "--episodes", "1", "--json"]) == 0
+    capsys.readouterr()
+    (tmp_path / "s.yaml").write_text("sf_set: [7]\n")
+    for extra, field in [(["--scenario-yaml", str(tmp_path / "s.yaml")], "sf_set"), (["--n-uavs", "3"], "n_uavs")]:
+        assert main(["--policy", ckpt, "--episodes", "1", *extra]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("evaluate: error: --policy: the checkpoint at") and err.count("\n") == 1, err
+        assert field in err.split("differ: ")[1], err
 
 
 def test_directory_that_is_not_a_checkpoint(capsys, tmp_path):

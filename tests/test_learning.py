@@ -97,16 +97,6 @@ def _same_action_shares(policy, cfg: ScenarioConfig, episodes: int, seed: int) -
 
 
 @pytest.fixture(scope="module")
-def ray_session(tmp_path_factory):
-    import ray
-
-    # address="local": a private cluster, never somebody else's `ray start` one.
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield
-    ray.shutdown()
-
-
-@pytest.fixture(scope="module")
 def random_ee() -> float:
     return run_episodes(make_baseline("random", SMALL, seed=0), SMALL, EVAL_EPISODES, EVAL_SEED).mean("ee_sys_mean")
 

@@ -33,15 +33,6 @@ FAST = {"num_epochs": 2, "num_minibatches": 2, "batch_episodes": 4}  # smoke-tes
 RES = registry.Resources(num_envs_per_env_runner=4)
 
 
-@pytest.fixture(scope="module")
-def ray_session():
-    import ray
-
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield
-    ray.shutdown()
-
-
 def _module(cfg: ScenarioConfig, critic: str = "central", inference_only: bool = False, share_actor: bool = True):
     from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 

@@ -5,8 +5,6 @@ that iteration."""
 
 from __future__ import annotations
 
-import shutil
-import tempfile
 from types import SimpleNamespace
 
 import pytest
@@ -81,11 +79,9 @@ def test_attach_keeps_the_algorithms_callbacks():
 
 
 @pytest.mark.slow
-def test_points_equal_an_independent_evaluation(tmp_path, monkeypatch):
+def test_points_equal_an_independent_evaluation(ray_session, tmp_path, monkeypatch):
     """Real MAPPO, every iteration evaluated: each point is the greedy policy of that iteration on
     the fixed evaluation episodes, and eval_sampled/* is the seeded sampled policy on the same episodes."""
-    import ray
-
     from uavlora_rllib.algorithms.common import registry
     from uavlora_rllib.experiment.evaluation import run_episodes
     from uavlora_rllib.experiment.run_schema import eval_metrics
@@ -94,10 +90,6 @@ def test_points_equal_an_independent_evaluation(tmp_path, monkeypatch):
         pytest.skip("mappo is not implemented")
     import uavlora_rllib.envs.multi_agent  # noqa: F401  (registers the env)
 
-    started = not ray.is_initialized()
-    if started:  # a private local cluster; a short temp dir (Ray's socket paths are length-limited)
-        ray_tmp = tempfile.mkdtemp(prefix="rpe", dir="/tmp")
-        ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False, _temp_dir=ray_tmp)
     entry = registry.get("mappo")
     hp = entry.hparams({"batch_episodes": 2, "num_epochs": 1, "num_minibatches": 1, "gru_hidden": 8,
                         "fc_hidden": 8, "critic_hidden": 8, "max_seq_len": 10})
@@ -117,6 +109,3 @@ def test_points_equal_an_independent_evaluation(tmp_path, monkeypatch):
                 pytest.approx({k[len("eval/"):]: v for k, v in want_s.items()}, rel=1e-12)
     finally:
         algo.stop()
-        if started:
-            ray.shutdown()
-            shutil.rmtree(ray_tmp, ignore_errors=True)

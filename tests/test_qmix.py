@@ -317,22 +317,17 @@ def test_target_networks_move_by_tau_per_update():
 
 
 # ---------------------------------------------------------------------- RLlib end to end
-@pytest.fixture(scope="module")
-def ray_session():
-    import ray
-
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield
-    ray.shutdown()
-
-
 def _train(name: str, seed: int, iters: int):
     entry = registry.get(name)
     hp = entry.hparams(CI_HPARAMS)
     algo = entry.build(SMALL, hp, registry.Resources(num_envs_per_env_runner=CI_ENVS), seed).build_algo()
     result = None
-    for _ in range(iters):
-        result = algo.train()
+    try:
+        for _ in range(iters):
+            result = algo.train()
+    except BaseException:  # the shared Ray outlives the test: stop the algorithm's actors
+        algo.stop()
+        raise
     return algo, result
 
 

@@ -280,8 +280,7 @@ def test_module_fits_the_team_spaces():
 # ---------------------------------------------------------------------- through RLlib
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["qmix", "vdn"])
-def test_per_device_build_trains_and_acts(name):
-    import ray
+def test_per_device_build_trains_and_acts(ray_session, name):
     from ray.rllib.core import DEFAULT_MODULE_ID
 
     from uavlora_rllib.sim.core import BatchCore
@@ -290,23 +289,19 @@ def test_per_device_build_trains_and_acts(name):
     entry = registry.get(name)
     hp = entry.hparams({"learning_starts_episodes": 2, "batch_size_episodes": 2, "buffer_size_episodes": 8,
                         "updates_per_iteration": 2, "gru_hidden": 16, "fc_hidden": 16, "head_hidden": 8})
-    ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False)
+    algo = entry.build(cfg, hp, registry.Resources(num_envs_per_env_runner=2), 0).build_algo()
     try:
-        algo = entry.build(cfg, hp, registry.Resources(num_envs_per_env_runner=2), 0).build_algo()
-        try:
-            results = [algo.train() for _ in range(2)]
-            assert results[-1]["num_gradient_updates_lifetime"] == 4
-            assert np.isfinite(results[-1]["learners"][DEFAULT_MODULE_ID]["td_loss"])
-            assert algo.replay.actions.shape[-1] == 2 * cfg.quota + 1 and len(algo.replay) == 4
-            for explore in (False, True):
-                policy = entry.policy(algo, cfg, explore=explore)
-                core = BatchCore(cfg, 3)
-                core.reset(1)
-                policy.reset(core)
-                a = policy.act(core)
-                assert a.shape == (3, 2, 2 * cfg.quota + 1)
-                core.step(a)
-        finally:
-            algo.stop()
+        results = [algo.train() for _ in range(2)]
+        assert results[-1]["num_gradient_updates_lifetime"] == 4
+        assert np.isfinite(results[-1]["learners"][DEFAULT_MODULE_ID]["td_loss"])
+        assert algo.replay.actions.shape[-1] == 2 * cfg.quota + 1 and len(algo.replay) == 4
+        for explore in (False, True):
+            policy = entry.policy(algo, cfg, explore=explore)
+            core = BatchCore(cfg, 3)
+            core.reset(1)
+            policy.reset(core)
+            a = policy.act(core)
+            assert a.shape == (3, 2, 2 * cfg.quota + 1)
+            core.step(a)
     finally:
-        ray.shutdown()
+        algo.stop()

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import tempfile
 
 import numpy as np
 import pytest
@@ -169,20 +168,10 @@ def _finite_leaves(tree, path=""):
         yield path, float(tree)
 
 
-@pytest.fixture(scope="module")
-def ray_local():
-    import ray
-
-    tmp = tempfile.mkdtemp(prefix="rmx", dir="/tmp")
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False, _temp_dir=tmp)
-    yield
-    ray.shutdown()
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("name, action_mode, options", LEARNER_CASES,
                          ids=[f"{n}-{m}-{_combo_id(o)}" for n, m, o in LEARNER_CASES])
-def test_one_training_iteration_per_learner(ray_local, name, action_mode, options):
+def test_one_training_iteration_per_learner(ray_session, name, action_mode, options):
     """Every learner x every action mode it claims x every scenario option: one training
     iteration with finite learner metrics, then its greedy policy plays the scenario."""
     entry = registry.get(name)

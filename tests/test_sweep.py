@@ -24,6 +24,7 @@ from uavlora_rllib.experiment.grid import (
     trial_run_name,
     trials,
 )
+from uavlora_rllib.experiment.tuner import trial_config
 
 TESTS_DIR = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(TESTS_DIR)
@@ -229,7 +230,7 @@ def test_tune_resolves_the_spaces_inside_the_grid(tmp_path):
     grid = parse_grid(sweep_grid(tmp_path, {"lr": {"loguniform": [1e-4, 1e-2]}, "num_epochs": {"randint": [1, 4]},
                                             "share_actor": {"grid_search": [True, False]}}, seeds=[0, 1]))
     specs = trials(grid)
-    configs = [tune_cli.trial_config(s, grid, True) for s in specs]
+    configs = [trial_config(s, grid, True) for s in specs]
     assert configs[0]["sampled"] == ["lr", "num_epochs", "share_actor"] and configs[0]["sweep"] is True
     resolved = [spec["trial"] for _, spec in generate_variants({"trial": tune.grid_search(configs)})]
     assert len(resolved) == 2 * 2
@@ -300,7 +301,7 @@ def test_trainable_trains_with_the_new_config_after_reset_and_restore(ray_addres
     from uavlora_rllib.experiment.trainable import UavLoraTrainable
 
     grid = parse_grid(sweep_grid(tmp_path, {"lr": 1e-3}))
-    cfg = {**tune_cli.trial_config(trials(grid)[0], grid, True), "sampled": ["lr"]}
+    cfg = {**trial_config(trials(grid)[0], grid, True), "sampled": ["lr"]}
     trainable = UavLoraTrainable(config={"trial": cfg})
     try:
         first = trainable.train()

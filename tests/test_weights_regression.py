@@ -69,16 +69,6 @@ def summary(weights: dict[str, np.ndarray]) -> dict[str, list[float]]:
     return out
 
 
-@pytest.fixture(scope="module")
-def ray_session():
-    import ray
-
-    # A private local cluster, shut down after these tests (the next module starts its own).
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield
-    ray.shutdown()
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(HPARAMS))
 def test_weights_after_3_iterations_match_the_golden_file(ray_session, name):

@@ -16,6 +16,7 @@ UAV's observation (the k-th strongest it serves) in each slot, not to a fixed ED
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
@@ -212,7 +213,7 @@ class _PerDeviceSearch:
                     p0, q0, m = self._row(const_set, const_bw, uu, kk, p0, q0)
                     moved |= m
                 for uu in range(n_u):
-                    const_bw, p0, q0, m = _best_entry(const_bw, uu, cfg.n_bw, lambda c: self.bw_keys(const_set, c), p0, q0)  # noqa: B023 (called at once)
+                    const_bw, p0, q0, m = _best_entry(const_bw, uu, cfg.n_bw, functools.partial(self.bw_keys, const_set), p0, q0)
                     moved |= m
                 if not moved:
                     break

@@ -6,7 +6,8 @@ arrives (`Tracker.log_baseline`), so a database such as SQLite keeps a single wr
 driver killed while tasks run leaves no half-written run behind: the next run of the grid
 evaluates what is not FINISHED yet and adopts any run a killed driver left unfinished.
 
-`BaselinePool` collects results on a driver thread while Tune trains in the main thread.
+`BaselinePool` collects results on a driver thread while Tune trains in the main thread;
+`baselines_to_run` picks the runs not FINISHED yet and `baseline_logger` writes each result.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import time
 from collections.abc import Callable
 from typing import Any, TextIO
 
-from uavlora_rllib.experiment.grid import BaselineSpec
+from uavlora_rllib.experiment.grid import BaselineSpec, GridConfig, baseline_runs
 
 BASELINE_CPUS = 1.0  # the simulator and every baseline are single-threaded NumPy
 
@@ -120,3 +121,40 @@ class BaselinePool:
                 ray.cancel(ref, force=True)
             except Exception:  # already finished, or the cluster is gone
                 pass
+
+
+def baselines_to_run(grid: GridConfig, tracker, out=None) -> list[BaselineSpec]:
+    """The grid's baseline runs that are not FINISHED in MLflow yet."""
+    from uavlora_rllib.experiment.run_schema import run_params
+
+    out = out or sys.stdout
+    todo = []
+    for b in baseline_runs(grid):
+        params = run_params(b.scenario, None, grid.evaluation.episodes)
+        if tracker.finished_baseline(b.baseline, b.seed, b.n_eds, b.n_uavs, params):
+            print(f"baseline {b.name}: already in MLflow, skipped", file=out, flush=True)
+        else:
+            todo.append(b)
+    return todo
+
+
+def baseline_logger(grid: GridConfig, tracker):
+    """(spec, summary or the task's exception) -> the baseline's one MLflow run."""
+    from uavlora_rllib.experiment.run_schema import run_params
+
+    def log(spec: BaselineSpec, result: Any) -> None:
+        params = run_params(spec.scenario, None, grid.evaluation.episodes)
+
+        def evaluate() -> dict:
+            if isinstance(result, BaseException):
+                raise result
+            return result
+
+        try:
+            tracker.log_baseline(spec.baseline, spec.name, spec.seed, spec.n_eds, spec.n_uavs, params, evaluate,
+                                 grid.stop.env_steps)
+        except Exception as exc:
+            if exc is not result:  # the evaluation's own error is recorded as a FAILED run
+                raise
+
+    return log
