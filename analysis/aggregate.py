@@ -75,8 +75,13 @@ def aggregate_table(org: Organised, sets: dict[str, dict[Scenario, np.ndarray]])
     for alg in _ordered(org, sets):
         scens = sorted(sets[alg])
         strata = [sets[alg][s] for s in scens]
-        row: dict[str, Any] = {"algorithm": alg, "kind": org.kind_of(alg), "n_scenarios": len(scens),
-                               "n_runs": sum(x.size for x in strata), "scenarios": " ".join(map(_scen_label, scens))}
+        row: dict[str, Any] = {
+            "algorithm": alg,
+            "kind": org.kind_of(alg),
+            "n_scenarios": len(scens),
+            "n_runs": sum(x.size for x in strata),
+            "scenarios": " ".join(map(_scen_label, scens)),
+        }
         for name, fn in (("iqm", stats.aggregate_iqm), ("mean", stats.aggregate_mean)):
             point, lo, hi = stats.stratified_bootstrap(fn, strata)
             row.update({name: float(point), f"{name}_ci95_low": float(lo), f"{name}_ci95_high": float(hi)})
@@ -105,9 +110,18 @@ def improvement_probability_table(
             continue
         strata = [sets[reference][s] for s in scens] + [sets[other][s] for s in scens]
         point, lo, hi = stats.stratified_bootstrap(stats.poi_statistic(len(scens)), strata)
-        rows.append({"reference": reference, "other": other, "other_kind": org.kind_of(other),
-                     "n_scenarios": len(scens), "scenarios": " ".join(map(_scen_label, scens)),
-                     "probability_of_improvement": float(point), "ci95_low": float(lo), "ci95_high": float(hi)})
+        rows.append(
+            {
+                "reference": reference,
+                "other": other,
+                "other_kind": org.kind_of(other),
+                "n_scenarios": len(scens),
+                "scenarios": " ".join(map(_scen_label, scens)),
+                "probability_of_improvement": float(point),
+                "ci95_low": float(lo),
+                "ci95_high": float(hi),
+            }
+        )
     return rows
 
 
@@ -135,8 +149,18 @@ def profile_rows(sets, taus: np.ndarray, profiles: dict) -> list[dict[str, Any]]
     rows = []
     for alg, (frac, lo, hi) in profiles.items():
         n_s, n_r = len(sets[alg]), sum(x.size for x in sets[alg].values())
-        rows += [{"algorithm": alg, "n_scenarios": n_s, "n_runs": n_r, "tau": float(t), "fraction_above": float(f),
-                  "ci95_low": float(a), "ci95_high": float(b)} for t, f, a, b in zip(taus, frac, lo, hi)]
+        rows += [
+            {
+                "algorithm": alg,
+                "n_scenarios": n_s,
+                "n_runs": n_r,
+                "tau": float(t),
+                "fraction_above": float(f),
+                "ci95_low": float(a),
+                "ci95_high": float(b),
+            }
+            for t, f, a, b in zip(taus, frac, lo, hi)
+        ]
     return rows
 
 
@@ -145,10 +169,12 @@ def mixed_scenarios_note(rows: list[dict[str, Any]]) -> str | None:
     learners = {r["algorithm"]: r["scenarios"] for r in rows if r["kind"] == "train"}
     if len(set(learners.values())) <= 1:
         return None
-    return ("Aggregate table: the learners cover different scenarios (" +
-            "; ".join(f"{a}: {s}" for a, s in sorted(learners.items())) +
-            "); their IQM and mean compare only over the same scenarios (the probability of improvement uses "
-            "the scenarios both ran).")
+    return (
+        "Aggregate table: the learners cover different scenarios ("
+        + "; ".join(f"{a}: {s}" for a, s in sorted(learners.items()))
+        + "); their IQM and mean compare only over the same scenarios (the probability of improvement uses "
+        "the scenarios both ran)."
+    )
 
 
 def _ci(lo: float, hi: float, spec: str = ".3f") -> str:
@@ -158,8 +184,16 @@ def _ci(lo: float, hi: float, spec: str = ".3f") -> str:
 def aggregate_md(rows: list[dict[str, Any]]) -> str:
     if not rows:
         return "_No aggregate: it needs FINISHED runs with eval metrics in a scenario with a reference baseline._"
-    header = ["algorithm", "kind", "scenarios", "runs", "IQM", "95% CI (stratified bootstrap)", "mean",
-              "95% CI (stratified bootstrap)"]
+    header = [
+        "algorithm",
+        "kind",
+        "scenarios",
+        "runs",
+        "IQM",
+        "95% CI (stratified bootstrap)",
+        "mean",
+        "95% CI (stratified bootstrap)",
+    ]
     body = [[r["algorithm"], r["kind"], f"{r['n_scenarios']} ({r['scenarios']})", str(r["n_runs"]),
              fmt(r["iqm"], ".3f"), _ci(r["iqm_ci95_low"], r["iqm_ci95_high"]),
              fmt(r["mean"], ".3f"), _ci(r["mean_ci95_low"], r["mean_ci95_high"])] for r in rows]  # fmt: skip
@@ -168,8 +202,10 @@ def aggregate_md(rows: list[dict[str, Any]]) -> str:
 
 def improvement_probability_md(rows: list[dict[str, Any]], reference: str | None) -> str:
     if not rows:
-        return (f"_No probability of improvement: it needs normalised scores of {reference or 'the reference'} and "
-                "of another learner (or best_fixed) in a common scenario._")
+        return (
+            f"_No probability of improvement: it needs normalised scores of {reference or 'the reference'} and "
+            "of another learner (or best_fixed) in a common scenario._"
+        )
     ref = rows[0]["reference"]
     header = ["other", "kind", "common scenarios", f"P({ref} > other)", "95% CI (stratified bootstrap)"]
     body = [[r["other"], r["other_kind"], f"{r['n_scenarios']} ({r['scenarios']})",

@@ -118,8 +118,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as exc:  # e.g. the disk filled up
         print(f"animate: error: --out: cannot write {args.out!r}: {exc.strerror or exc}", file=sys.stderr)
         return 2
-    print(f"animate: {args.out} ({len(frames)} frames, policy {getattr(policy, 'name', args.policy)}, "
-          f"V={cfg.n_eds} U={cfg.n_uavs}, seed {args.seed})")
+    print(
+        f"animate: {args.out} ({len(frames)} frames, policy {getattr(policy, 'name', args.policy)}, "
+        f"V={cfg.n_eds} U={cfg.n_uavs}, seed {args.seed})"
+    )
     return 0
 
 

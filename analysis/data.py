@@ -142,7 +142,7 @@ def cell_name(r: RunRecord) -> str:
     so that the seeds of one sampled configuration are averaged and different ones are not."""
     from uavlora_rllib.experiment.sweep import variant_label
 
-    sampled = {k[len(SAMPLED_PARAM):]: _as_number(v) for k, v in r.params.items() if k.startswith(SAMPLED_PARAM)}
+    sampled = {k[len(SAMPLED_PARAM) :]: _as_number(v) for k, v in r.params.items() if k.startswith(SAMPLED_PARAM)}
     return f"{r.algorithm}[{variant_label(sampled)}]" if sampled and r.kind == "train" else str(r.algorithm)
 
 
@@ -206,10 +206,14 @@ def organise(records: list[RunRecord]) -> Organised:
         for r in cell.no_eval:
             warnings.append(f"{where}: run without eval metrics ({EE_KEY}) left out: {r.label}")
         for r in cell.duplicates:
-            warnings.append(f"{where}: seed {r.seed} has several finished runs; the newest is used, left out: {r.label}")
+            warnings.append(
+                f"{where}: seed {r.seed} has several finished runs; the newest is used, left out: {r.label}"
+            )
         mixed = _mixed_params(cell.runs)
         if mixed:
-            warnings.append(f"{where}: its runs differ in {mixed}; they are averaged together (check the joined experiments)")
+            warnings.append(
+                f"{where}: its runs differ in {mixed}; they are averaged together (check the joined experiments)"
+            )
     return Organised(cells, warnings, records)
 
 

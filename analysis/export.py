@@ -71,13 +71,18 @@ def marl_eval_data(org: Organised, history: Callable) -> tuple[dict[str, Any], l
         for r in cell.runs:
             series = {name: dict(zip(*history(r, key))) for name, key in METRICS.items()}
             steps = sorted(set.intersection(*(set(s) for s in series.values())))
-            absolute = {name: [float(r.metrics[key])] for name, key in METRICS.items()
-                        if math.isfinite(r.metrics.get(key, math.nan))}
+            absolute = {
+                name: [float(r.metrics[key])]
+                for name, key in METRICS.items()
+                if math.isfinite(r.metrics.get(key, math.nan))
+            }
             if len(absolute) < len(METRICS):
                 notes.append(f"marl-eval export: {r.label} lacks some final metrics; left out")
                 continue
-            run = {f"step_{i}": {"step_count": int(s), **{n: [float(series[n][s])] for n in METRICS}}
-                   for i, s in enumerate(steps)}
+            run = {
+                f"step_{i}": {"step_count": int(s), **{n: [float(series[n][s])] for n in METRICS}}
+                for i, s in enumerate(steps)
+            }
             runs[(task_name(cell.n_eds, cell.n_uavs), cell.algorithm, f"seed_{r.seed}")] = run | {ABSOLUTE: absolute}
     if not runs:
         return {ENVIRONMENT: {}}, notes + ["marl-eval export: no learner run with execution metrics; the file is empty"]
@@ -95,8 +100,10 @@ def marl_eval_data(org: Organised, history: Callable) -> tuple[dict[str, Any], l
         data[ENVIRONMENT].setdefault(task, {}).setdefault(alg, {})[seed] = kept
     counts = Counter(len(seeds) for algs in data[ENVIRONMENT].values() for seeds in algs.values())
     if len(counts) > 1:
-        notes.append(f"marl-eval export: the (task, algorithm) pairs have different numbers of runs "
-                     f"({', '.join(map(str, sorted(counts)))}); marl-eval keeps the smallest")
+        notes.append(
+            f"marl-eval export: the (task, algorithm) pairs have different numbers of runs "
+            f"({', '.join(map(str, sorted(counts)))}); marl-eval keeps the smallest"
+        )
     algsets = {tuple(sorted(algs)) for algs in data[ENVIRONMENT].values()}
     if len(algsets) > 1:
         notes.append("marl-eval export: the tasks have different algorithm sets; marl-eval keeps the common ones")

@@ -82,8 +82,10 @@ def overlap_note(label: str, pairs: list[tuple[str, str]]) -> str | None:
     if not pairs:
         return None
     txt = "; ".join(f"{a} and {b}" for a, b in pairs)
-    return (f"{label}: these series overlap at every point (within {OVERLAP_FRACTION:.0%} of the y range), "
-            f"drawn with distinct markers and dashes: {txt}")
+    return (
+        f"{label}: these series overlap at every point (within {OVERLAP_FRACTION:.0%} of the y range), "
+        f"drawn with distinct markers and dashes: {txt}"
+    )
 
 
 def _scen_title(scen: tuple[int, int]) -> str:
@@ -137,25 +139,39 @@ def fig3a(eval_curves, return_curves, org: Organised, lk: dict, out_dir: str, sm
             ax_e.set_ylabel(f"EE per slot / {ref.name}")
         else:
             ax_e.set_ylabel(r"EE$_{sys}$ per slot (bit/J)")
-            notes.append(f"Fig. 3a: V={main[0]} U={main[1]} has neither an optimal nor a greedy baseline run; "
-                         "the execution curves are in bit/J with no reference line.")
-        ax_e.set_title(f"(a) greedy policy, execution EE\n{interval_text([c.n_seeds for c in ev.values()], '95% bootstrap band')}")
+            notes.append(
+                f"Fig. 3a: V={main[0]} U={main[1]} has neither an optimal nor a greedy baseline run; "
+                "the execution curves are in bit/J with no reference line."
+            )
+        ax_e.set_title(
+            f"(a) greedy policy, execution EE\n{interval_text([c.n_seeds for c in ev.values()], '95% bootstrap band')}"
+        )
         ax_e.legend(loc="best", frameon=False)
         note = overlap_note("Fig. 3a (a)", overlaps(drawn))
         if note:
             notes.append(note)
     else:
-        ax_e.text(0.5, 0.5, "no periodic evaluation logged\n(grid: evaluation.interval_env_steps)",
-                  ha="center", va="center", transform=ax_e.transAxes)
+        ax_e.text(
+            0.5,
+            0.5,
+            "no periodic evaluation logged\n(grid: evaluation.interval_env_steps)",
+            ha="center",
+            va="center",
+            transform=ax_e.transAxes,
+        )
         ax_e.set_axis_off()
-        notes.append(f"Fig. 3a: no run of V={main[0]} U={main[1]} has a periodic evaluation history "
-                     f"({EVAL_CURVE} at 2 or more env-step counts); panel (a) is empty.")
+        notes.append(
+            f"Fig. 3a: no run of V={main[0]} U={main[1]} has a periodic evaluation history "
+            f"({EVAL_CURVE} at 2 or more env-step counts); panel (a) is empty."
+        )
     smooth_txt = f"EMA w={smooth}" if smooth > 0 else "no smoothing"
     if ret:
         drawn = _plot_curves(ax_r, ret, lk)
         ax_r.set_ylabel("training episode return")
-        ax_r.set_title(f"(b) sampled policy, training return ({smooth_txt})\n"
-                       f"{interval_text([c.n_seeds for c in ret.values()], '95% bootstrap band')}")
+        ax_r.set_title(
+            f"(b) sampled policy, training return ({smooth_txt})\n"
+            f"{interval_text([c.n_seeds for c in ret.values()], '95% bootstrap band')}"
+        )
         note = overlap_note("Fig. 3a (b)", overlaps(drawn))
         if note:
             notes.append(note)
@@ -167,8 +183,10 @@ def fig3a(eval_curves, return_curves, org: Organised, lk: dict, out_dir: str, sm
     ref_txt = f"share of the {ref.label} ({ref.mean:.6g} bit/J)" if ref else "bit/J (no reference baseline)"
     n_e = interval_text([c.n_seeds for c in ev.values()], "95% bootstrap band") if ev else "not drawn"
     n_r = interval_text([c.n_seeds for c in ret.values()], "95% bootstrap band") if ret else "not drawn"
-    caption = (f"{_scen_title(main)}: (a) execution EE per slot of the greedy policy during training, {ref_txt} "
-               f"({n_e}); (b) training return of the exploring policy, which can rank the learners differently ({n_r})")
+    caption = (
+        f"{_scen_title(main)}: (a) execution EE per slot of the greedy policy during training, {ref_txt} "
+        f"({n_e}); (b) training return of the exploring policy, which can rank the learners differently ({n_r})"
+    )
     scens = sorted(eval_curves)
     if len(scens) > 1:
         ncol = min(3, len(scens))
@@ -182,16 +200,22 @@ def fig3a(eval_curves, return_curves, org: Organised, lk: dict, out_dir: str, sm
                 ax.axhline(1.0, color="black", linewidth=0.8, linestyle=(0, (2, 2)))
                 ax.set_ylim(top=max(ax.get_ylim()[1], 1.08))
             ax.set_ylabel(f"EE / {r.name}" if r else "EE (bit/J)")
-            ax.set_title(f"{_scen_title(scen)}\n{interval_text([c.n_seeds for c in eval_curves[scen].values()], '95% band')}",
-                         fontsize=style.SMALL_PT)
+            ax.set_title(
+                f"{_scen_title(scen)}\n{interval_text([c.n_seeds for c in eval_curves[scen].values()], '95% band')}",
+                fontsize=style.SMALL_PT,
+            )
         for ax in list(axes.flat)[len(scens) :]:
             ax.set_visible(False)
         handles = {}
         for ax in axes.flat:
             for h, lab in zip(*ax.get_legend_handles_labels()):
                 handles.setdefault(lab.split(" (n=")[0], h)
-        fig.legend(handles.values(), handles.keys(), loc="outside lower center", ncol=min(6, len(handles)), frameon=False)
-        fig.suptitle("Greedy policy during training: execution EE per slot (dashed: reference = 1)", fontsize=style.FONT_PT)
+        fig.legend(
+            handles.values(), handles.keys(), loc="outside lower center", ncol=min(6, len(handles)), frameon=False
+        )
+        fig.suptitle(
+            "Greedy policy during training: execution EE per slot (dashed: reference = 1)", fontsize=style.FONT_PT
+        )
         files += style.save(fig, os.path.join(out_dir, "fig3a_all"))
     return files, notes, caption
 
@@ -200,17 +224,42 @@ def write_curves_csv(curve_sets: dict[str, dict], org: Organised, path: str) -> 
     """Every plotted curve point: metric, scenario, algorithm, mean and band, and the reference."""
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["metric", "n_eds", "n_uavs", "algorithm", "n_seeds", "env_steps", "mean", "ci95_low",
-                    "ci95_high", "reference", "reference_ee"])
+        w.writerow(
+            [
+                "metric",
+                "n_eds",
+                "n_uavs",
+                "algorithm",
+                "n_seeds",
+                "env_steps",
+                "mean",
+                "ci95_low",
+                "ci95_high",
+                "reference",
+                "reference_ee",
+            ]
+        )
         for metric, curves in curve_sets.items():
             for scen in sorted(curves):
                 ref = org.reference(scen) if metric == EVAL_CURVE else None
                 for alg in sorted(curves[scen]):
                     c = curves[scen][alg]
                     for i in range(len(c.steps)):
-                        w.writerow([metric, scen[0], scen[1], alg, c.n_seeds, repr(float(c.steps[i])),
-                                    repr(float(c.mean[i])), repr(float(c.lo[i])), repr(float(c.hi[i])),
-                                    ref.name if ref else "", repr(ref.mean) if ref else ""])
+                        w.writerow(
+                            [
+                                metric,
+                                scen[0],
+                                scen[1],
+                                alg,
+                                c.n_seeds,
+                                repr(float(c.steps[i])),
+                                repr(float(c.mean[i])),
+                                repr(float(c.lo[i])),
+                                repr(float(c.hi[i])),
+                                ref.name if ref else "",
+                                repr(ref.mean) if ref else "",
+                            ]
+                        )
 
 
 def fig_sweep(org: Organised, axis: str, lk: dict, out_dir: str, stem: str, label: str):
@@ -229,10 +278,14 @@ def fig_sweep(org: Organised, axis: str, lk: dict, out_dir: str, stem: str, labe
     at = [c for c in valid if getattr(c, other) == fixed]
     xs = sorted({getattr(c, axis) for c in at})
     if len(xs) < 2:
-        return [], [
-            f"{label} skipped: at {sym[other]}={fixed} the runs have a single {sym[axis]} value "
-            f"({', '.join(map(str, xs))}), nothing to plot against (join more experiments with --experiment)."
-        ], ""
+        return (
+            [],
+            [
+                f"{label} skipped: at {sym[other]}={fixed} the runs have a single {sym[axis]} value "
+                f"({', '.join(map(str, xs))}), nothing to plot against (join more experiments with --experiment)."
+            ],
+            "",
+        )
     fig, ax = plt.subplots(figsize=(style.COLUMN_WIDTH_IN, 2.9), layout="constrained")
     algs = sorted({c.algorithm for c in at}, key=lambda a: (KINDS.index(org.kind_of(a)), a))
     drawn, ns = {}, []
@@ -244,8 +297,15 @@ def fig_sweep(org: Organised, axis: str, lk: dict, out_dir: str, stem: str, labe
         y = np.array([v.mean for v in s])
         err = np.array([v.ci_half if math.isfinite(v.ci_half) else 0.0 for v in s])
         baseline = org.kind_of(alg) == "baseline"
-        ax.errorbar(x, y, yerr=err, capsize=2, elinewidth=0.8, **lk[alg],
-                    label=alg + (" (baseline)" if baseline and "(" not in alg else ""))
+        ax.errorbar(
+            x,
+            y,
+            yerr=err,
+            capsize=2,
+            elinewidth=0.8,
+            **lk[alg],
+            label=alg + (" (baseline)" if baseline and "(" not in alg else ""),
+        )
         drawn[alg] = (x, y)
     ax.set_xticks(xs)
     ax.set_xlabel("number of EDs V" if axis == "n_eds" else "number of UAVs U")
@@ -279,7 +339,9 @@ def fig2_record(org: Organised, algorithm: str | None) -> tuple[RunRecord | None
     if algorithm is not None:
         name = org.find_train(algorithm)
         if name is None:
-            raise ReportError(f"--fig2-algorithm: {algorithm!r} has no training runs; learners: {org.algorithms('train') or 'none'}")
+            raise ReportError(
+                f"--fig2-algorithm: {algorithm!r} has no training runs; learners: {org.algorithms('train') or 'none'}"
+            )
         train = [c for c in train if c.algorithm == name]
         if not train:
             raise ReportError(f"--fig2-algorithm: {algorithm!r} has no FINISHED run with eval metrics")
@@ -289,7 +351,11 @@ def fig2_record(org: Organised, algorithm: str | None) -> tuple[RunRecord | None
         return (paper or others or [None])[0], "no learner with execution metrics"
     scen_cells = [c for c in train if c.scenario == PAPER_SCENARIO] or train
     best = max(scen_cells, key=lambda c: c.summary().mean)
-    why = "chosen with --fig2-algorithm" if algorithm is not None else "the learner with the highest seed-mean execution EE"
+    why = (
+        "chosen with --fig2-algorithm"
+        if algorithm is not None
+        else "the learner with the highest seed-mean execution EE"
+    )
     return max(best.runs, key=lambda r: r.ee), f"{best.algorithm} at {_scen_title(best.scenario)}, {why}"
 
 
@@ -313,11 +379,15 @@ def fig2(org: Organised, algorithm: str | None, out_dir: str, seed: int):
             policy, cfg = load_checkpoint_policy(ckpt, None)
             source = f"{why}: checkpoint of run {record.run_id[:8]} (seed {record.seed}): {ckpt}"
         except Exception as exc:  # noqa: BLE001 - any failure falls back to a baseline, noted
-            notes.append(f"Fig. 2: checkpoint {ckpt} could not be loaded ({type(exc).__name__}: "
-                         f"{' '.join(str(exc).split())[:200]}); drawn with a baseline policy instead.")
+            notes.append(
+                f"Fig. 2: checkpoint {ckpt} could not be loaded ({type(exc).__name__}: "
+                f"{' '.join(str(exc).split())[:200]}); drawn with a baseline policy instead."
+            )
     elif record is not None and record.kind == "train":
-        notes.append(f"Fig. 2: run {record.run_id[:8]} ({why}) has no existing checkpoint path "
-                     f"({ckpt or 'no checkpoint tag'}); drawn with a baseline policy instead.")
+        notes.append(
+            f"Fig. 2: run {record.run_id[:8]} ({why}) has no existing checkpoint path "
+            f"({ckpt or 'no checkpoint tag'}); drawn with a baseline policy instead."
+        )
     if policy is None:
         cfg, how = _scenario_for(record)
         for name in ("greedy", "fixed", "random"):
@@ -339,14 +409,21 @@ def fig2(org: Organised, algorithm: str | None, out_dir: str, seed: int):
     fig, ax = plt.subplots(figsize=(style.COLUMN_WIDTH_IN, 3.3), layout="constrained")
     n_assoc = int((serving >= 0).sum())
     draw_association(
-        ax, ed_xy, core.uav_xy, serving, cfg.comm_range_m, cfg.area_m,
+        ax,
+        ed_xy,
+        core.uav_xy,
+        serving,
+        cfg.comm_range_m,
+        cfg.area_m,
         title=f"V={cfg.n_eds}, U={cfg.n_uavs}, slot {cfg.episode_len - 1}: {n_assoc}/{cfg.n_eds} associated",
     )
     ax.title.set_fontsize(style.FONT_PT)
     ax.legend(loc="upper right", fontsize=style.SMALL_PT, framealpha=0.8)
     files = style.save(fig, os.path.join(out_dir, "fig2"))
-    desc = (f"{source}; evaluation episode seed {EVAL_SEED_BASE + seed}, last slot t={cfg.episode_len - 1}, "
-            f"EE_sys of that slot {ee:.6g} bit/J, {n_assoc}/{cfg.n_eds} EDs associated")
+    desc = (
+        f"{source}; evaluation episode seed {EVAL_SEED_BASE + seed}, last slot t={cfg.episode_len - 1}, "
+        f"EE_sys of that slot {ee:.6g} bit/J, {n_assoc}/{cfg.n_eds} EDs associated"
+    )
     return files, desc, notes
 
 
@@ -365,8 +442,14 @@ def fig_profile(taus: np.ndarray, profiles: dict, sets: dict, org: Organised, lk
         n_scen.add(len(sets[alg]))
         n_runs.append(n)
         baseline = org.kind_of(alg) == "baseline"
-        ax.plot(taus, frac, markevery=max(1, len(taus) // 8), drawstyle="steps-post",
-                label=f"{alg}{' (baseline)' if baseline else ''} (n={n})", **lk[alg])
+        ax.plot(
+            taus,
+            frac,
+            markevery=max(1, len(taus) // 8),
+            drawstyle="steps-post",
+            label=f"{alg}{' (baseline)' if baseline else ''} (n={n})",
+            **lk[alg],
+        )
         if np.all(np.isfinite(lo)):
             ax.fill_between(taus, lo, hi, color=lk[alg]["color"], alpha=0.15, linewidth=0, step="post")
         drawn[alg] = (taus, frac)
@@ -375,12 +458,18 @@ def fig_profile(taus: np.ndarray, profiles: dict, sets: dict, org: Organised, lk
     ax.set_ylabel(r"fraction of runs with score > $\tau$")
     ax.set_ylim(-0.02, 1.02)
     scen_txt = "/".join(str(s) for s in sorted(n_scen))
-    what = f"{scen_txt} scenario(s), 95% stratified bootstrap band" if max(n_runs) > 1 else f"{scen_txt} scenario(s), no band"
+    what = (
+        f"{scen_txt} scenario(s), 95% stratified bootstrap band"
+        if max(n_runs) > 1
+        else f"{scen_txt} scenario(s), no band"
+    )
     ax.set_title(f"Performance profile\n{what}", fontsize=style.SMALL_PT)
     ax.legend(loc="lower left", frameon=False)
     files = style.save(fig, os.path.join(out_dir, "fig_profile"))
     note = overlap_note("Performance profile", overlaps(drawn))
-    caption = (f"Fraction of (seed, scenario) runs whose execution EE exceeds tau times the scenario's reference, "
-               f"averaged over {scen_txt} scenario(s); n = runs per algorithm; bands: 95% stratified bootstrap over seeds "
-               "within each scenario")
+    caption = (
+        f"Fraction of (seed, scenario) runs whose execution EE exceeds tau times the scenario's reference, "
+        f"averaged over {scen_txt} scenario(s); n = runs per algorithm; bands: 95% stratified bootstrap over seeds "
+        "within each scenario"
+    )
     return files, [note] if note else [], caption

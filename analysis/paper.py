@@ -75,8 +75,11 @@ def paper_rows(org: Organised) -> list[dict[str, Any]]:
                 if not (math.isfinite(lo) and math.isfinite(hi)):
                     verdict = "undecided (our CI is unbounded)"
                 elif other == VDN:
-                    verdict = "inside our CI" if lo <= paper_pct <= hi else (
-                        f"outside our CI (ours {'lower' if hi < paper_pct else 'higher'})")
+                    verdict = (
+                        "inside our CI"
+                        if lo <= paper_pct <= hi
+                        else (f"outside our CI (ours {'lower' if hi < paper_pct else 'higher'})")
+                    )
                 elif lo > PAPER_QMIX_FACTOR:
                     verdict = "agrees (our CI above 2x)"
                 elif hi < PAPER_QMIX_FACTOR:
@@ -111,22 +114,30 @@ def _ci(lo: float, hi: float, spec: str) -> str:
 def paper_md(rows: list[dict[str, Any]]) -> str:
     """Two tables (VDN improvement, QMIX factor) and a one-line summary of the QMIX claim."""
     parts = []
-    for other, what, spec, unit in ((VDN, "MAPPO over VDN (%)", "+.2f", ""), (QMIX, "MAPPO / QMIX (factor)", ".3g", "x")):
+    for other, what, spec, unit in (
+        (VDN, "MAPPO over VDN (%)", "+.2f", ""),
+        (QMIX, "MAPPO / QMIX (factor)", ".3g", "x"),
+    ):
         header = ["V", "U", f"paper: {what}", "ours", "ours 95% CI (Fieller)", "seeds mappo / " + other, "verdict"]
         body = []
         for r in (r for r in rows if r["other"] == other):
-            body.append([
-                str(r["n_eds"]), str(r["n_uavs"]), r["paper_claim"],
-                fmt(r["ours_point"], spec) + (unit if math.isfinite(r["ours_point"]) else ""),
-                _ci(r["ours_ci95_low"], r["ours_ci95_high"], spec),
-                f"{r['n_seeds_mappo']} / {r['n_seeds_other']}", r["verdict"],
-            ])
+            body.append(
+                [
+                    str(r["n_eds"]),
+                    str(r["n_uavs"]),
+                    r["paper_claim"],
+                    fmt(r["ours_point"], spec) + (unit if math.isfinite(r["ours_point"]) else ""),
+                    _ci(r["ours_ci95_low"], r["ours_ci95_high"], spec),
+                    f"{r['n_seeds_mappo']} / {r['n_seeds_other']}",
+                    r["verdict"],
+                ]
+            )
         parts.append(md_table(header, body))
     q = [r for r in rows if r["other"] == QMIX and math.isfinite(r["ours_point"])]
     above = sum(r["ours_point"] > PAPER_QMIX_FACTOR for r in q)
     ci_above = sum(r["verdict"].startswith("agrees") for r in q)
     parts.append(
-        f"QMIX claim (\"more than a factor of two in most cases\"): ours is above 2x at {above} of {len(q)} "
+        f'QMIX claim ("more than a factor of two in most cases"): ours is above 2x at {above} of {len(q)} '
         f"V value(s) with both algorithms run (point estimate), with the whole 95% CI above 2x at {ci_above}."
     )
     return "\n\n".join(parts)

@@ -60,18 +60,37 @@ from uavlora_rllib.cli_args import Parser, UsageError, fail, float_in, int_in, s
 
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="python -m analysis.report", description=__doc__.split("\n\n")[0])
-    p.add_argument("--experiment", action="append", required=True,
-                   help="MLflow experiment name or shell glob; repeat to join several")
-    p.add_argument("--tracking-uri", action="append", default=None,
-                   help="MLflow tracking URI; repeat to read several stores (default sqlite:///mlflow.db)")
+    p.add_argument(
+        "--experiment",
+        action="append",
+        required=True,
+        help="MLflow experiment name or shell glob; repeat to join several",
+    )
+    p.add_argument(
+        "--tracking-uri",
+        action="append",
+        default=None,
+        help="MLflow tracking URI; repeat to read several stores (default sqlite:///mlflow.db)",
+    )
     p.add_argument("--out", default=None, help="output folder (default reports/<experiment>)")
     p.add_argument("--reference", default="mappo", help="algorithm whose improvement is reported (default mappo)")
-    p.add_argument("--smooth", type=float_in(0.0, 1.0, high_open=True), default=0.6, help="EMA weight of the training-return curves in [0, 1) (default 0.6)")
+    p.add_argument(
+        "--smooth",
+        type=float_in(0.0, 1.0, high_open=True),
+        default=0.6,
+        help="EMA weight of the training-return curves in [0, 1) (default 0.6)",
+    )
     p.add_argument("--points", type=int_in(2), default=200, help="env-step grid points of Fig. 3a (default 200)")
     p.add_argument("--fig2-seed", type=seed, default=0, help="evaluation episode of Fig. 2 (seed offset, default 0)")
-    p.add_argument("--fig2-algorithm", default=None, help="learner that plays Fig. 2 (default: the best by execution EE)")
+    p.add_argument(
+        "--fig2-algorithm", default=None, help="learner that plays Fig. 2 (default: the best by execution EE)"
+    )
     p.add_argument("--no-fig2", action="store_true", help="skip Fig. 2 (no simulation)")
-    p.add_argument("--no-log", action="store_true", help="do not log the outputs to MLflow (the grid's parent run, or a summary run)")
+    p.add_argument(
+        "--no-log",
+        action="store_true",
+        help="do not log the outputs to MLflow (the grid's parent run, or a summary run)",
+    )
     return p
 
 
@@ -91,9 +110,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             try:
                 run_id = log_summary(sources[0].client, sources[0].experiment, result["summaries"][0], out_dir, result)
             except Exception as exc:  # noqa: BLE001 - e.g. a read-only store: the files are written already
-                raise ReportError(f"the report is in {out_dir}, but logging it to MLflow failed "
-                                  f"({type(exc).__name__}: {str(exc).strip().splitlines()[0] if str(exc).strip() else ''}); "
-                                  "rerun with --no-log to skip logging") from None
+                raise ReportError(
+                    f"the report is in {out_dir}, but logging it to MLflow failed "
+                    f"({type(exc).__name__}: {str(exc).strip().splitlines()[0] if str(exc).strip() else ''}); "
+                    "rerun with --no-log to skip logging"
+                ) from None
             logged = f"; logged to MLflow run {run_id}"
     except UsageError as exc:  # ReportError and the parser's errors
         return fail(exc, "report")
@@ -104,8 +125,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("report: interrupted; the output folder may hold a partial report", file=sys.stderr)
         return 130
     figs = ", ".join(sorted(result["figures"])) or "none"
-    print(f"report: {result['report']} ({result['n_runs']} runs from {len(sources)} experiment(s), figures: {figs}, "
-          f"{len(result['warnings'])} warning(s)){logged}")
+    print(
+        f"report: {result['report']} ({result['n_runs']} runs from {len(sources)} experiment(s), figures: {figs}, "
+        f"{len(result['warnings'])} warning(s)){logged}"
+    )
     return 0
 
 

@@ -49,14 +49,32 @@ from analysis.verdicts import TABLE_LEARNING_COLUMNS, learning_md, learning_tabl
 
 # Every file the report may write (nothing else in --out is touched or logged).
 OUTPUT_FILES = tuple(
-    [f"{stem}.{ext}" for stem in ("fig2", "fig3a", "fig3a_all", "fig3b", "fig3c", "fig_profile") for ext in ("png", "svg")]
-    + ["fig3a_curves.csv", "table_ee.csv", "table_ee.md", "table_improvement.csv", "table_improvement.md",
-       "table_paper.csv", "table_paper.md", "table_open_loop.csv", "table_open_loop.md", "table_learning.csv",
-       "table_learning.md", "table_aggregate.csv", "table_aggregate.md", "table_improvement_probability.csv",
-       "table_improvement_probability.md", "fig_profile.csv", "results_marl_eval.json",
-       "report.md"]
+    [
+        f"{stem}.{ext}"
+        for stem in ("fig2", "fig3a", "fig3a_all", "fig3b", "fig3c", "fig_profile")
+        for ext in ("png", "svg")
+    ]
+    + [
+        "fig3a_curves.csv",
+        "table_ee.csv",
+        "table_ee.md",
+        "table_improvement.csv",
+        "table_improvement.md",
+        "table_paper.csv",
+        "table_paper.md",
+        "table_open_loop.csv",
+        "table_open_loop.md",
+        "table_learning.csv",
+        "table_learning.md",
+        "table_aggregate.csv",
+        "table_aggregate.md",
+        "table_improvement_probability.csv",
+        "table_improvement_probability.md",
+        "fig_profile.csv",
+        "results_marl_eval.json",
+        "report.md",
+    ]
 )
-
 
 
 def progress(total: int, desc: str):
@@ -127,17 +145,29 @@ def _build_report(sources: list[Source], out_dir: str, args) -> dict[str, Any]:
     write_marl_eval(os.path.join(out_dir, MARL_EVAL_FILE), marl)
     notes += mnotes
     if len(sources) > 1:
-        notes.append(f"{len(sources)} experiments joined; the outputs are not logged to MLflow (no single experiment owns them).")
+        notes.append(
+            f"{len(sources)} experiments joined; the outputs are not logged to MLflow (no single experiment owns them)."
+        )
     bar.update(1)
     bar.close()
     report_path = os.path.join(out_dir, "report.md")
     with open(report_path, "w") as fh:
         fh.write(report_markdown(sources, records, org, notes, figures, captions, tables, reference, args))
-    return {"report": report_path, "figures": figures, "warnings": org.warnings, "notes": notes,
-            "summaries": summaries, "rows": tables["rows"], "improvements": tables["improvements"],
-            "paper": tables["paper"], "open_loop": tables["open_loop"], "learning": tables["learning"],
-            "aggregate": tables["aggregate"], "improvement_probability": tables["improvement_probability"],
-            "n_runs": len(records)}
+    return {
+        "report": report_path,
+        "figures": figures,
+        "warnings": org.warnings,
+        "notes": notes,
+        "summaries": summaries,
+        "rows": tables["rows"],
+        "improvements": tables["improvements"],
+        "paper": tables["paper"],
+        "open_loop": tables["open_loop"],
+        "learning": tables["learning"],
+        "aggregate": tables["aggregate"],
+        "improvement_probability": tables["improvement_probability"],
+        "n_runs": len(records),
+    }
 
 
 def write_tables(org, reference: str | None, requested: str, out_dir: str) -> dict[str, Any]:
@@ -148,8 +178,12 @@ def write_tables(org, reference: str | None, requested: str, out_dir: str) -> di
     write_csv(os.path.join(out_dir, "table_ee.csv"), TABLE_EE_COLUMNS, rows)
     write_csv(os.path.join(out_dir, "table_improvement.csv"), TABLE_IMP_COLUMNS, imp_rows)
     write_csv(os.path.join(out_dir, "table_paper.csv"), PAPER_COLUMNS, p_rows)
-    md = {"table_ee.md": ee_table_md(rows, reference), "table_improvement.md": improvement_md(imp_rows, reference or requested),
-          "table_paper.md": paper_md(p_rows), "table_open_loop.md": open_loop_md(ol_rows)}
+    md = {
+        "table_ee.md": ee_table_md(rows, reference),
+        "table_improvement.md": improvement_md(imp_rows, reference or requested),
+        "table_paper.md": paper_md(p_rows),
+        "table_open_loop.md": open_loop_md(ol_rows),
+    }
     for name, text in md.items():
         with open(os.path.join(out_dir, name), "w") as fh:
             fh.write(text + "\n")
@@ -174,8 +208,14 @@ def write_aggregates(org, reference: str | None, out_dir: str) -> dict[str, Any]
     poi_rows = improvement_probability_table(org, sets, reference)
     write_csv(os.path.join(out_dir, "table_aggregate.csv"), TABLE_AGGREGATE_COLUMNS, agg_rows)
     write_csv(os.path.join(out_dir, "table_improvement_probability.csv"), TABLE_POI_COLUMNS, poi_rows)
-    md = {"md_aggregate": aggregate_md(agg_rows), "md_improvement_probability": improvement_probability_md(poi_rows, reference)}
-    for name, key in (("table_aggregate.md", "md_aggregate"), ("table_improvement_probability.md", "md_improvement_probability")):
+    md = {
+        "md_aggregate": aggregate_md(agg_rows),
+        "md_improvement_probability": improvement_probability_md(poi_rows, reference),
+    }
+    for name, key in (
+        ("table_aggregate.md", "md_aggregate"),
+        ("table_improvement_probability.md", "md_improvement_probability"),
+    ):
         with open(os.path.join(out_dir, name), "w") as fh:
             fh.write(md[key] + "\n")
     taus, profiles = performance_profiles(org, sets, reference)
@@ -183,8 +223,14 @@ def write_aggregates(org, reference: str | None, out_dir: str) -> dict[str, Any]
     if files:
         write_csv(os.path.join(out_dir, "fig_profile.csv"), PROFILE_COLUMNS, profile_rows(sets, taus, profiles))
     note = mixed_scenarios_note(agg_rows)
-    return {"aggregate": agg_rows, "improvement_probability": poi_rows, **md, "files": files, "caption": caption,
-            "notes": notes + ([note] if note else [])}
+    return {
+        "aggregate": agg_rows,
+        "improvement_probability": poi_rows,
+        **md,
+        "files": files,
+        "caption": caption,
+        "notes": notes + ([note] if note else []),
+    }
 
 
 def draw_figures(org, history, out_dir: str, args) -> tuple[dict[str, list[str]], dict[str, str], list[str]]:

@@ -26,8 +26,10 @@ def source_section(sources: list[Source], records: list[RunRecord]) -> list[str]
     train = [r for r in records if r.kind == "train"]
     base = [r for r in records if r.kind == "baseline"]
     per_exp = Counter(r.source for r in records)
-    lines = [f"- experiment: `{s.name}` (id {s.experiment.experiment_id}) at `{s.tracking_uri}`: "
-             f"{per_exp.get(i, 0)} runs" for i, s in enumerate(sources)]
+    lines = [
+        f"- experiment: `{s.name}` (id {s.experiment.experiment_id}) at `{s.tracking_uri}`: {per_exp.get(i, 0)} runs"
+        for i, s in enumerate(sources)
+    ]
     return lines + [
         f"- runs: {len(records)} ({', '.join(f'{k}: {v}' for k, v in sorted(kinds.items())) or 'none'}); "
         f"status: {', '.join(f'{k}: {v}' for k, v in sorted(statuses.items())) or 'n/a'}",
@@ -100,9 +102,14 @@ CAPTIONS = {
 def report_markdown(sources, records, org, notes, figures, captions, tables, reference, args) -> str:
     """report.md: source, warnings, notes, figures with captions, tables, statistics."""
     title = ", ".join(f"`{s.name}`" for s in sources)
-    lines = [f"# Report: experiment{'s' if len(sources) > 1 else ''} {title}", "",
-             f"Generated {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())} by `python -m analysis.report`.",
-             "", "## Source", ""]
+    lines = [
+        f"# Report: experiment{'s' if len(sources) > 1 else ''} {title}",
+        "",
+        f"Generated {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())} by `python -m analysis.report`.",
+        "",
+        "## Source",
+        "",
+    ]
     lines += source_section(sources, records)
     lines += ["", "## Warnings", ""]
     lines += [f"- WARNING: {w}" for w in org.warnings] or ["- none"]
@@ -123,39 +130,78 @@ def report_markdown(sources, records, org, notes, figures, captions, tables, ref
                 extra += " All scenarios: [fig3a_all.png](fig3a_all.png) ([svg](fig3a_all.svg))."
         lines += [f"### {CAPTIONS[key]}", "", f"![{key}]({png}) ([svg]({key}.svg)).{extra}", ""]
     md = tables["md"]
-    lines += ["", "## Execution-phase EE per scenario and algorithm", "",
-              f"CSV: [table_ee.csv](table_ee.csv). `(!)`: fewer than {MIN_SEEDS} seeds.", "", md["table_ee.md"], "",
-              "## Open-loop check and the reference", "",
-              "Per scenario: the reference (the exact per-slot optimum where `optimal` ran, else `greedy`, a lower "
-              "bound on it), the upper bound on the per-slot optimum of the same slots (docs/model.md), so the "
-              "optimum lies between the two, and `best_fixed`, the best constant action, as a share of the "
-              "reference. CSV: [table_open_loop.csv](table_open_loop.csv).", "", md["table_open_loop.md"], "",
-              "## Learning verdicts", "",
-              "Per learner: its share of the reference, its multiple of the open-loop `best_fixed` (a result "
-              "means something only above 1), and whether each seed's greedy policy had settled (its last "
-              f"{LAST_EVALS} periodic evaluations within {SWING_LIMIT:.0%} of each other). "
-              "CSV: [table_learning.csv](table_learning.csv).", "", tables["md_learning"], "",
-              "## Aggregate over seeds and scenarios", "",
-              "rliable's statistics (Agarwal et al., NeurIPS 2021) on normalised scores: each seed's execution EE "
-              "as a share of its scenario's reference (the denominator of every share above), so that scenarios "
-              "compare. Intervals: 95% stratified bootstrap, the seeds resampled within each scenario "
-              "(see Statistics). CSV: [table_aggregate.csv](table_aggregate.csv).", "", tables["md_aggregate"], "",
-              f"Probability of improvement: the chance that a seed of {reference or args.reference} scores higher than "
-              "a seed of the other algorithm in the same scenario, averaged over the scenarios both ran (0.5: no "
-              "difference; an interval containing 0.5 is no evidence either way). "
-              "CSV: [table_improvement_probability.csv](table_improvement_probability.csv).", "",
-              tables["md_improvement_probability"], "",
-              "The performance profile is under Figures.", "",
-              f"## Improvement of {reference or args.reference}", "",
-              "CSV: [table_improvement.csv](table_improvement.csv).", "", md["table_improvement.md"], "",
-              "## The paper side by side (Fig. 3b, U = 2)", "",
-              "The paper's reported improvements (three seeds) beside ours. CSV: [table_paper.csv](table_paper.csv).", "",
-              md["table_paper.md"], "",
-              "## Machine-readable results", "",
-              f"[{MARL_EVAL_FILE}]({MARL_EVAL_FILE}): marl-eval's raw-data JSON (environment `uavlora`, task `v<V>_u<U>`, "
-              "one run per seed; steps = the periodic greedy-policy evaluations, absolute_metrics = the final one).", "",
-              "## Statistics", "",
-              STATS_TEXT.format(ref=reference or args.reference, smooth=args.smooth, points=args.points,
-                                open_loop=OPEN_LOOP_SHARE, boot=stats.BOOTSTRAP_RESAMPLES,
-                                agg_boot=stats.AGGREGATE_RESAMPLES, prof_boot=stats.PROFILE_RESAMPLES), ""]
+    lines += [
+        "",
+        "## Execution-phase EE per scenario and algorithm",
+        "",
+        f"CSV: [table_ee.csv](table_ee.csv). `(!)`: fewer than {MIN_SEEDS} seeds.",
+        "",
+        md["table_ee.md"],
+        "",
+        "## Open-loop check and the reference",
+        "",
+        "Per scenario: the reference (the exact per-slot optimum where `optimal` ran, else `greedy`, a lower "
+        "bound on it), the upper bound on the per-slot optimum of the same slots (docs/model.md), so the "
+        "optimum lies between the two, and `best_fixed`, the best constant action, as a share of the "
+        "reference. CSV: [table_open_loop.csv](table_open_loop.csv).",
+        "",
+        md["table_open_loop.md"],
+        "",
+        "## Learning verdicts",
+        "",
+        "Per learner: its share of the reference, its multiple of the open-loop `best_fixed` (a result "
+        "means something only above 1), and whether each seed's greedy policy had settled (its last "
+        f"{LAST_EVALS} periodic evaluations within {SWING_LIMIT:.0%} of each other). "
+        "CSV: [table_learning.csv](table_learning.csv).",
+        "",
+        tables["md_learning"],
+        "",
+        "## Aggregate over seeds and scenarios",
+        "",
+        "rliable's statistics (Agarwal et al., NeurIPS 2021) on normalised scores: each seed's execution EE "
+        "as a share of its scenario's reference (the denominator of every share above), so that scenarios "
+        "compare. Intervals: 95% stratified bootstrap, the seeds resampled within each scenario "
+        "(see Statistics). CSV: [table_aggregate.csv](table_aggregate.csv).",
+        "",
+        tables["md_aggregate"],
+        "",
+        f"Probability of improvement: the chance that a seed of {reference or args.reference} scores higher than "
+        "a seed of the other algorithm in the same scenario, averaged over the scenarios both ran (0.5: no "
+        "difference; an interval containing 0.5 is no evidence either way). "
+        "CSV: [table_improvement_probability.csv](table_improvement_probability.csv).",
+        "",
+        tables["md_improvement_probability"],
+        "",
+        "The performance profile is under Figures.",
+        "",
+        f"## Improvement of {reference or args.reference}",
+        "",
+        "CSV: [table_improvement.csv](table_improvement.csv).",
+        "",
+        md["table_improvement.md"],
+        "",
+        "## The paper side by side (Fig. 3b, U = 2)",
+        "",
+        "The paper's reported improvements (three seeds) beside ours. CSV: [table_paper.csv](table_paper.csv).",
+        "",
+        md["table_paper.md"],
+        "",
+        "## Machine-readable results",
+        "",
+        f"[{MARL_EVAL_FILE}]({MARL_EVAL_FILE}): marl-eval's raw-data JSON (environment `uavlora`, task `v<V>_u<U>`, "
+        "one run per seed; steps = the periodic greedy-policy evaluations, absolute_metrics = the final one).",
+        "",
+        "## Statistics",
+        "",
+        STATS_TEXT.format(
+            ref=reference or args.reference,
+            smooth=args.smooth,
+            points=args.points,
+            open_loop=OPEN_LOOP_SHARE,
+            boot=stats.BOOTSTRAP_RESAMPLES,
+            agg_boot=stats.AGGREGATE_RESAMPLES,
+            prof_boot=stats.PROFILE_RESAMPLES,
+        ),
+        "",
+    ]
     return "\n".join(lines)

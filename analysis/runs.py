@@ -130,8 +130,10 @@ def connect(tracking_uri: str):
     except Exception as exc:  # noqa: BLE001 - any failure here means "cannot reach it"
         status = getattr(exc, "get_http_status_code", lambda: None)()
         if status in (401, 403):  # MLflow's basic-auth app (docs/cluster.md#mlflow)
-            raise ReportError(f"tracking URI {tracking_uri!r} refused the request (HTTP {status}): set "
-                              "MLFLOW_TRACKING_USERNAME and MLFLOW_TRACKING_PASSWORD to a user of the server") from None
+            raise ReportError(
+                f"tracking URI {tracking_uri!r} refused the request (HTTP {status}): set "
+                "MLFLOW_TRACKING_USERNAME and MLFLOW_TRACKING_PASSWORD to a user of the server"
+            ) from None
         raise ReportError(f"tracking URI {tracking_uri!r} is unreachable: {_first_line(exc)}") from None
     return client
 
@@ -163,8 +165,10 @@ def resolve_sources(tracking_uris: list[str], patterns: list[str]) -> list[Sourc
     matches it as a shell glob (fnmatch: *, ?, [...]); each (URI, experiment) once, in the
     order given. ReportError when a URI is unreachable or a pattern matches nothing anywhere."""
     clients = {uri: connect(uri) for uri in dict.fromkeys(tracking_uris)}
-    listing = {uri: [e for e in c.search_experiments() if getattr(e, "lifecycle_stage", "active") == "active"]
-               for uri, c in clients.items()}
+    listing = {
+        uri: [e for e in c.search_experiments() if getattr(e, "lifecycle_stage", "active") == "active"]
+        for uri, c in clients.items()
+    }
     out: list[Source] = []
     seen: set[tuple[str, str]] = set()
     for pattern in patterns:

@@ -177,8 +177,9 @@ def bootstrap_ci95(
     if y.shape[0] < 2:
         return mean, mean.copy(), mean.copy()
     # whole seeds (rows) are resampled, so every grid point of a resample uses the same seeds
-    res = _st.bootstrap((y,), np.mean, axis=0, n_resamples=n_boot, vectorized=True, method="percentile",
-                        confidence_level=0.95, rng=seed)
+    res = _st.bootstrap(
+        (y,), np.mean, axis=0, n_resamples=n_boot, vectorized=True, method="percentile", confidence_level=0.95, rng=seed
+    )
     return mean, np.asarray(res.confidence_interval.low, float), np.asarray(res.confidence_interval.high, float)
 
 
@@ -233,8 +234,10 @@ def performance_profile(taus: np.ndarray) -> Callable[..., np.ndarray]:
     taus = np.asarray(taus, dtype=float)
 
     def statistic(*strata, axis=-1):
-        fr = [np.mean(np.moveaxis(np.asarray(s, dtype=float), axis, -1)[..., None, :] > taus[:, None], axis=-1)
-              for s in strata]
+        fr = [
+            np.mean(np.moveaxis(np.asarray(s, dtype=float), axis, -1)[..., None, :] > taus[:, None], axis=-1)
+            for s in strata
+        ]
         return np.moveaxis(np.mean(fr, axis=0), -1, 0)  # [..., T] -> [T, ...]
 
     return statistic
@@ -265,6 +268,14 @@ def stratified_bootstrap(
             full[i] = d
         return statistic(*full, axis=axis)
 
-    res = _st.bootstrap(tuple(data[i] for i in free), resampled, n_resamples=n_boot, paired=False,
-                        vectorized=True, method="percentile", confidence_level=confidence, rng=seed)
+    res = _st.bootstrap(
+        tuple(data[i] for i in free),
+        resampled,
+        n_resamples=n_boot,
+        paired=False,
+        vectorized=True,
+        method="percentile",
+        confidence_level=confidence,
+        rng=seed,
+    )
     return point, np.asarray(res.confidence_interval.low, float), np.asarray(res.confidence_interval.high, float)

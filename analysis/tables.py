@@ -106,9 +106,7 @@ def ee_table(org: Organised, reference: str | None) -> list[dict[str, Any]]:
                     "success_rate_mean": c.mean_of("eval/success_rate"),
                     # the same episodes played with actions drawn from the trained policy (learners only)
                     "sampled_ee_mean": c.mean_of(SAMPLED_EE_KEY),
-                    "sampled_share_of_reference": (
-                        c.mean_of(SAMPLED_EE_KEY) / ref_base.mean if ref_base else math.nan
-                    ),
+                    "sampled_share_of_reference": (c.mean_of(SAMPLED_EE_KEY) / ref_base.mean if ref_base else math.nan),
                     "reference_baseline": ref_base.name if ref_base else "",
                     "share_of_reference": s.mean / ref_base.mean if ref_base else math.nan,
                     "reference_improvement_pct": (
@@ -188,7 +186,9 @@ def ee_table_md(rows: list[dict[str, Any]], reference: str | None) -> str:
     ]
     body = []
     for r in rows:
-        ci = f"[{fmt(r['ee_ci95_low'])}, {fmt(r['ee_ci95_high'])}]" if math.isfinite(r["ee_ci95_low"]) else "n/a (n < 2)"
+        ci = (
+            f"[{fmt(r['ee_ci95_low'])}, {fmt(r['ee_ci95_high'])}]" if math.isfinite(r["ee_ci95_low"]) else "n/a (n < 2)"
+        )
         left = []
         if r["n_unfinished"]:
             left.append(f"{r['n_unfinished']} unfinished")
@@ -272,18 +272,32 @@ def open_loop_verdict(r: dict[str, Any]) -> str:
     if not math.isfinite(share):
         return f"{where}: no best_fixed run, so no open-loop check."
     if share >= OPEN_LOOP_SHARE:
-        return (f"{where}: a constant action is optimal here (best_fixed reaches {share:.3f} of the "
-                f"{r['reference_baseline']} reference): the observations are not needed, and learners cannot be "
-                "told apart on this scenario.")
-    return (f"{where}: best_fixed reaches {share:.3f} of the {r['reference_baseline']} reference: acting on the "
-            "observations pays, so this scenario can rank learners.")
+        return (
+            f"{where}: a constant action is optimal here (best_fixed reaches {share:.3f} of the "
+            f"{r['reference_baseline']} reference): the observations are not needed, and learners cannot be "
+            "told apart on this scenario."
+        )
+    return (
+        f"{where}: best_fixed reaches {share:.3f} of the {r['reference_baseline']} reference: acting on the "
+        "observations pays, so this scenario can rank learners."
+    )
 
 
 def open_loop_md(rows: list[dict[str, Any]]) -> str:
     if not rows:
         return "_No open-loop check: it needs a reference baseline run (optimal or greedy) of a scenario._"
-    header = ["V", "U", "mode", "reference", "reference EE (bit/J)", "upper bound (bit/J)", "reference / bound",
-              "best_fixed EE (bit/J)", "best_fixed share", f"constant optimal (>= {OPEN_LOOP_SHARE})"]
+    header = [
+        "V",
+        "U",
+        "mode",
+        "reference",
+        "reference EE (bit/J)",
+        "upper bound (bit/J)",
+        "reference / bound",
+        "best_fixed EE (bit/J)",
+        "best_fixed share",
+        f"constant optimal (>= {OPEN_LOOP_SHARE})",
+    ]
     body = []
     for r in rows:
         exact = r["reference_baseline"] == OPTIMAL

@@ -31,6 +31,7 @@ def share_target(action_mode: str, n_uavs: int) -> float:
         return PER_DEVICE_SHARE_TARGET
     return 0.95 if n_uavs <= 2 else 0.85 if n_uavs <= 4 else 0.75
 
+
 TABLE_LEARNING_COLUMNS = (
     "n_eds",
     "n_uavs",
@@ -76,9 +77,7 @@ def learning_table(org: Organised, history: History) -> list[dict[str, Any]]:
             spread = max(spreads) if spreads and all(math.isfinite(s) for s in spreads) else math.nan
             budgets = sorted({r.params.get("stop.env_steps", "") for r in cell.runs})
             share, target = ee / ref.mean, share_target(ref.mode, scen[1])
-            judged = len(cell.runs) >= JUDGED_SEEDS and all(
-                b.isdigit() and int(b) >= JUDGED_ENV_STEPS for b in budgets
-            )
+            judged = len(cell.runs) >= JUDGED_SEEDS and all(b.isdigit() and int(b) >= JUDGED_ENV_STEPS for b in budgets)
             rows.append({
                 "n_eds": scen[0], "n_uavs": scen[1], "action_mode": ref.mode, "algorithm": cell.algorithm,
                 "n_seeds": len(cell.runs), "env_steps": "/".join(b for b in budgets if b) or "",
@@ -96,9 +95,22 @@ def learning_table(org: Organised, history: History) -> list[dict[str, Any]]:
 def learning_md(rows: list[dict[str, Any]]) -> str:
     if not rows:
         return "_No learning verdicts: they need training runs and a reference baseline run of the same scenario._"
-    header = ["V", "U", "mode", "learner", "seeds", "env steps", "share of reference", "best_fixed share",
-              "x best_fixed", "above best_fixed", f"last {LAST_EVALS} evals spread (max over seeds)",
-              f"settled (<= {SWING_LIMIT})", "share target", "met"]
+    header = [
+        "V",
+        "U",
+        "mode",
+        "learner",
+        "seeds",
+        "env steps",
+        "share of reference",
+        "best_fixed share",
+        "x best_fixed",
+        "above best_fixed",
+        f"last {LAST_EVALS} evals spread (max over seeds)",
+        f"settled (<= {SWING_LIMIT})",
+        "share target",
+        "met",
+    ]
     body = [[str(r["n_eds"]), str(r["n_uavs"]), r["action_mode"], r["algorithm"], str(r["n_seeds"]), r["env_steps"] or "n/a",
              fmt(r["share_of_reference"], ".3f"), fmt(r["best_fixed_share_of_reference"], ".3f"),
              fmt(r["share_of_best_fixed"], ".3f"), r["above_best_fixed"] or "n/a",

@@ -89,8 +89,17 @@ def paper_cfg() -> ScenarioConfig:
 
 
 def write_tiny_grid(
-    tmp_path, name: str, *, mappo: dict, episode_len: int, budget: int, seeds=(0,), baselines=("random",),
-    episodes: int = 1, uri: str | None = None, **extra: Any,
+    tmp_path,
+    name: str,
+    *,
+    mappo: dict,
+    episode_len: int,
+    budget: int,
+    seeds=(0,),
+    baselines=("random",),
+    episodes: int = 1,
+    uri: str | None = None,
+    **extra: Any,
 ) -> str:
     """A grid YAML of tiny MAPPO trials on V=6, U=2 (seconds per trial), with its storage and
     sqlite MLflow store under tmp_path; `extra` adds or replaces top-level grid keys. The Tune,
@@ -118,7 +127,9 @@ def write_tiny_grid(
     return str(path)
 
 
-def wait_for_mlflow_server(uri: str, proc: subprocess.Popen, timeout_s: float, why: Callable[[], str] = lambda: "") -> None:
+def wait_for_mlflow_server(
+    uri: str, proc: subprocess.Popen, timeout_s: float, why: Callable[[], str] = lambda: ""
+) -> None:
     """Poll `uri`/health until the `mlflow server` answers 200; fail if `proc` exits first (with
     `why()`, e.g. the tail of its log) or after `timeout_s` seconds."""
     deadline = time.monotonic() + timeout_s

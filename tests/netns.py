@@ -48,8 +48,7 @@ class Host:
         else:
             holder = ["nsenter", "--preserve-credentials", f"--user={user_ns}", "unshare", "--net", "cat"]
         # the holder lives until its stdin closes: when close() runs, or when the test process dies
-        self.holder = subprocess.Popen(holder, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
-                                       stderr=subprocess.PIPE)
+        self.holder = subprocess.Popen(holder, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         own = _ns_key("self")
         deadline = time.monotonic() + 10
         while True:

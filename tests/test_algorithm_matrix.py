@@ -95,8 +95,9 @@ def test_train_checkpoint_restore_evaluate(ray_session, tmp_path, capsys, name, 
         assert registry.entry_for_algorithm(restored) is entry and restored.iteration == 1
         np.testing.assert_array_equal(_actions(entry.greedy_policy(restored, scenario), scenario), greedy)
         want = {
-            execution: run_episodes(entry.policy(restored, scenario, explore=execution == "sampled", seed=3),
-                                    scenario, episodes=2, seed=3).summary()["ee_sys_mean"]
+            execution: run_episodes(
+                entry.policy(restored, scenario, explore=execution == "sampled", seed=3), scenario, episodes=2, seed=3
+            ).summary()["ee_sys_mean"]
             for execution in ("greedy", "sampled")
         }
         steps = runners["num_env_steps_sampled_lifetime"]  # it keeps training, its counters carry on

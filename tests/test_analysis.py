@@ -237,8 +237,11 @@ def test_figures_and_curves(store):
     assert "greedy" in text.split("### Fig. 2")[1].split("###")[0]  # no checkpoint: baseline fallback
     # curves: no smoothing; mappo S1 has 4 FINISHED runs with curves (seed offsets 0/1/2 and 3 for
     # the seed-99 run without eval: training happened) -> mean = 1.5 + slope * step
-    curves = [r for r in _rows(out / "fig3a_curves.csv")
-              if r["algorithm"] == "mappo" and r["n_eds"] == "10" and r["metric"] == "episode_return_mean"]
+    curves = [
+        r
+        for r in _rows(out / "fig3a_curves.csv")
+        if r["algorithm"] == "mappo" and r["n_eds"] == "10" and r["metric"] == "episode_return_mean"
+    ]
     assert len(curves) == 21 and float(curves[-1]["env_steps"]) == 10_000 and curves[0]["n_seeds"] == "4"
     for r in curves:
         x, m = float(r["env_steps"]), float(r["mean"])
@@ -247,16 +250,22 @@ def test_figures_and_curves(store):
         assert float(r["ci95_low"]) >= 0.0 + SLOPE["mappo"] * x - 1e-9  # within the seeds' range
         assert float(r["ci95_high"]) <= 3.0 + SLOPE["mappo"] * x + 1e-9
     # the execution curve: raw EE per slot in the CSV, the reference named beside it
-    ev = [r for r in _rows(out / "fig3a_curves.csv")
-          if r["algorithm"] == "mappo" and r["n_eds"] == "10" and r["metric"] == "eval/ee_sys_mean"]
+    ev = [
+        r
+        for r in _rows(out / "fig3a_curves.csv")
+        if r["algorithm"] == "mappo" and r["n_eds"] == "10" and r["metric"] == "eval/ee_sys_mean"
+    ]
     assert len(ev) == 21 and ev[0]["n_seeds"] == "3"  # the seed-99 run has no eval history
     for r in ev:
         assert float(r["mean"]) == pytest.approx(110.0 * ramp(float(r["env_steps"])), rel=1e-9)
         assert r["reference"] == "optimal" and float(r["reference_ee"]) == 200.0
     assert "greedy policy" in text and "share of the per-slot optimum" in text
     # the FAILED vdn run's short curve is left out: the S2 grid spans the full budget
-    vdn2 = [r for r in _rows(out / "fig3a_curves.csv")
-            if r["algorithm"] == "vdn" and r["n_eds"] == "20" and r["metric"] == "episode_return_mean"]
+    vdn2 = [
+        r
+        for r in _rows(out / "fig3a_curves.csv")
+        if r["algorithm"] == "vdn" and r["n_eds"] == "20" and r["metric"] == "episode_return_mean"
+    ]
     assert float(vdn2[-1]["env_steps"]) == 10_000 and vdn2[0]["n_seeds"] == "2"
 
 
@@ -264,8 +273,14 @@ def test_aggregates_probability_of_improvement_and_profile(store):
     """table_aggregate, table_improvement_probability and fig_profile on the shares of each
     scenario's optimum (200 in S1, 190 in S2)."""
     out = store["out"]
-    shares = {alg: {scen: np.array(list(by_seed.values())) / (200.0 if scen == S1 else 190.0)
-                    for (a, scen), by_seed in EE.items() if a == alg} for alg in ("mappo", "vdn", "hyper_mix")}
+    shares = {
+        alg: {
+            scen: np.array(list(by_seed.values())) / (200.0 if scen == S1 else 190.0)
+            for (a, scen), by_seed in EE.items()
+            if a == alg
+        }
+        for alg in ("mappo", "vdn", "hyper_mix")
+    }
     agg = {r["algorithm"]: r for r in _rows(out / "table_aggregate.csv")}
     m = agg["mappo"]
     assert m["kind"] == "train" and m["n_scenarios"] == "2" and m["n_runs"] == "7" and m["scenarios"] == "V10U2 V20U2"
@@ -350,7 +365,10 @@ def test_bad_experiment_and_uri(store, tmp_path, capsys):
     # through the module entry point: one line, exit code 2, no traceback
     proc = subprocess.run(
         [sys.executable, "-m", "analysis.report", "--experiment", "nope", "--tracking-uri", missing],
-        cwd=ROOT, capture_output=True, text=True, timeout=60,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert proc.returncode == 2, proc.stderr
     assert "Traceback" not in proc.stderr and proc.stderr.strip().count("\n") == 0

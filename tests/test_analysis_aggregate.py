@@ -76,8 +76,13 @@ def test_rliable_library_test_behaviour():
 # rliable 1.2.0 (arch 7.2.0, pandas 2.3.3) on this matrix: metrics.aggregate_iqm / aggregate_mean /
 # probability_of_improvement, and library.get_interval_estimates (50,000 reps) and
 # create_performance_profile (2,000 reps), percentile method, no task bootstrap
-RX = [[1.069, 1.164, 1.066, 0.739], [1.181, 1.089, 0.893, 1.116], [1.073, 1.059, 1.006, 1.109],
-      [0.853, 0.967, 0.904, 1.12], [1.008, 0.942, 0.844, 0.949]]
+RX = [
+    [1.069, 1.164, 1.066, 0.739],
+    [1.181, 1.089, 0.893, 1.116],
+    [1.073, 1.059, 1.006, 1.109],
+    [0.853, 0.967, 0.904, 1.12],
+    [1.008, 0.942, 0.844, 0.949],
+]
 RY = [[0.902, 0.817, 1.288, 1.202], [0.087, 0.333, 0.848, 0.773], [0.964, 0.965, 1.535, 0.566]]
 RLIABLE = {
     "iqm": (1.0228, 0.9599, 1.0734),
@@ -99,15 +104,18 @@ def test_matches_rliable_on_a_fixed_matrix():
     p, low, high = RLIABLE["poi"]
     assert point == pytest.approx(p, abs=1e-4)
     assert lo == pytest.approx(low, abs=0.02) and hi == pytest.approx(high, abs=0.02)
-    prof, lo, hi = stats.stratified_bootstrap(stats.performance_profile(np.array(RLIABLE["taus"])), strata(RX),
-                                              n_boot=2000)
+    prof, lo, hi = stats.stratified_bootstrap(
+        stats.performance_profile(np.array(RLIABLE["taus"])), strata(RX), n_boot=2000
+    )
     want, want_lo, want_hi = RLIABLE["profile"]
     assert prof.tolist() == pytest.approx(want) and lo.tolist() == pytest.approx(want_lo, abs=0.051)
     assert hi.tolist() == pytest.approx(want_hi, abs=0.051)
 
 
 def test_one_seed_strata_stay_fixed_and_no_interval_without_two_seeds():
-    point, lo, hi = stats.stratified_bootstrap(stats.aggregate_mean, [np.array([1.0, 3.0]), np.array([10.0])], n_boot=500)
+    point, lo, hi = stats.stratified_bootstrap(
+        stats.aggregate_mean, [np.array([1.0, 3.0]), np.array([10.0])], n_boot=500
+    )
     assert point == pytest.approx(6.0) and lo == pytest.approx(5.5) and hi == pytest.approx(6.5)
     point, lo, hi = stats.stratified_bootstrap(stats.aggregate_iqm, [np.array([1.0]), np.array([2.0])])
     assert point == 1.5 and math.isnan(lo) and math.isnan(hi)
@@ -120,8 +128,19 @@ def test_one_seed_strata_stay_fixed_and_no_interval_without_two_seeds():
 
 
 def _run(i, alg, ee, kind="train", seed="0", scen=(10, 2)):
-    return RunRecord(run_id=f"r{i}", run_name="", status="FINISHED", start_time=i, kind=kind, algorithm=alg, seed=seed,
-                     n_eds=scen[0], n_uavs=scen[1], params={"scenario.action_mode": "per_device"}, metrics={EE_KEY: ee})
+    return RunRecord(
+        run_id=f"r{i}",
+        run_name="",
+        status="FINISHED",
+        start_time=i,
+        kind=kind,
+        algorithm=alg,
+        seed=seed,
+        n_eds=scen[0],
+        n_uavs=scen[1],
+        params={"scenario.action_mode": "per_device"},
+        metrics={EE_KEY: ee},
+    )
 
 
 def test_rows_use_the_scenarios_reference_shares():
@@ -130,8 +149,12 @@ def test_rows_use_the_scenarios_reference_shares():
     runs, i = [], 0
     for scen, scale in ((a, 1.0), (b, 1000.0)):
         for k, (g, m, p, f) in enumerate(((100, 90, 80, 70), (100, 96, 84, 70), (100, 99, 86, 70))):
-            runs += [_run(i, "greedy", g * scale, "baseline", str(k), scen), _run(i + 1, "mappo", m * scale, seed=str(k), scen=scen),
-                     _run(i + 2, "ippo", p * scale, seed=str(k), scen=scen), _run(i + 3, "best_fixed", f * scale, "baseline", str(k), scen)]
+            runs += [
+                _run(i, "greedy", g * scale, "baseline", str(k), scen),
+                _run(i + 1, "mappo", m * scale, seed=str(k), scen=scen),
+                _run(i + 2, "ippo", p * scale, seed=str(k), scen=scen),
+                _run(i + 3, "best_fixed", f * scale, "baseline", str(k), scen),
+            ]
             i += 4
     runs.append(_run(i, "vdn", 50.0, seed="0", scen=a))  # one seed, one scenario
     runs.append(_run(i + 1, "coma", 5.0, seed="0", scen=(99, 9)))  # no reference there: left out
@@ -144,7 +167,13 @@ def test_rows_use_the_scenarios_reference_shares():
     assert m["n_scenarios"] == 2 and m["n_runs"] == 6 and m["scenarios"] == "V10U2 V60U4"
     assert m["iqm"] == pytest.approx(st.trim_mean([0.9, 0.96, 0.99] * 2, 0.25)) and m["mean"] == pytest.approx(0.95)
     assert m["iqm_ci95_low"] <= m["iqm"] <= m["iqm_ci95_high"]
-    assert [r["algorithm"] for r in aggregate.aggregate_table(org, sets)] == ["mappo", "ippo", "vdn", "greedy", "best_fixed"]
+    assert [r["algorithm"] for r in aggregate.aggregate_table(org, sets)] == [
+        "mappo",
+        "ippo",
+        "vdn",
+        "greedy",
+        "best_fixed",
+    ]
     assert math.isnan(rows["vdn"]["iqm_ci95_low"]) and "1 seed per scenario" in aggregate.aggregate_md([rows["vdn"]])
     poi = {r["other"]: r for r in aggregate.improvement_probability_table(org, sets, "mappo")}
     assert set(poi) == {"ippo", "vdn", "best_fixed"}  # learners and the open-loop floor, not greedy

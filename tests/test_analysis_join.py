@@ -42,15 +42,33 @@ FINAL = 10_000
 
 
 def _run(client, exp_id, kind, alg, v, seed, ee, skip_steps=()):
-    tags = {"kind": kind, "algorithm": alg, "seed": str(seed), "n_eds": str(v), "n_uavs": "2",
-            "git_commit": "abc", "grid_file": "g.yaml", "budget_env_steps": str(FINAL)}
+    tags = {
+        "kind": kind,
+        "algorithm": alg,
+        "seed": str(seed),
+        "n_eds": str(v),
+        "n_uavs": "2",
+        "git_commit": "abc",
+        "grid_file": "g.yaml",
+        "budget_env_steps": str(FINAL),
+    }
     run = client.create_run(exp_id, run_name=f"{alg}-V{v}-s{seed}", tags=tags)
     now = int(time.time() * 1000)
     final = FINAL if kind == "train" else 0
-    keys = {"eval/ee_sys_mean": 1.0, "eval/ee_sys_episode_sum": 150.0, "eval/success_rate": 0.01, "eval/episode_return": 0.1}
+    keys = {
+        "eval/ee_sys_mean": 1.0,
+        "eval/ee_sys_episode_sum": 150.0,
+        "eval/success_rate": 0.01,
+        "eval/episode_return": 0.1,
+    }
     metrics = [Metric(k, ee * f, now, final) for k, f in keys.items()]
     if kind == "train":
-        metrics += [Metric(k, ee * f * frac, now, s) for s, frac in STEPS.items() if s not in skip_steps for k, f in keys.items()]
+        metrics += [
+            Metric(k, ee * f * frac, now, s)
+            for s, frac in STEPS.items()
+            if s not in skip_steps
+            for k, f in keys.items()
+        ]
         metrics += [Metric("episode_return_mean", 1.0 + s / 1000, now, s) for s in range(0, FINAL + 1, 2500)]
     params = [Param("scenario.n_eds", str(v)), Param("scenario.n_uavs", "2"), Param("eval.episodes", "10")]
     if kind == "train":
@@ -77,8 +95,20 @@ def stores(tmp_path_factory):
     _run(cb, eb, "baseline", "greedy", 20, 0, 140.0)
     _run(cb, eu, "train", "mappo", 40, 0, 1.0)  # must not be joined
     out = tmp / "report"
-    rc = report.main(["--experiment", "sweep_*", "--tracking-uri", uri_a, "--tracking-uri", uri_b,
-                      "--out", str(out), "--points", "11"])
+    rc = report.main(
+        [
+            "--experiment",
+            "sweep_*",
+            "--tracking-uri",
+            uri_a,
+            "--tracking-uri",
+            uri_b,
+            "--out",
+            str(out),
+            "--points",
+            "11",
+        ]
+    )
     assert rc == 0
     return {"a": uri_a, "b": uri_b, "out": out, "tmp": tmp, "clients": (ca, cb)}
 
@@ -90,8 +120,9 @@ def _rows(path):
 
 def test_join_across_experiments_and_uris(stores):
     rows = _rows(stores["out"] / "table_ee.csv")
-    assert {(r["n_eds"], r["algorithm"]) for r in rows} == {
-        ("10", a) for a in (*EE_A, "greedy")} | {("20", a) for a in (*EE_B, "greedy")}  # V=40 (unrelated) absent
+    assert {(r["n_eds"], r["algorithm"]) for r in rows} == {("10", a) for a in (*EE_A, "greedy")} | {
+        ("20", a) for a in (*EE_B, "greedy")
+    }  # V=40 (unrelated) absent
     text = (stores["out"] / "report.md").read_text()
     assert "`sweep_V10`" in text and "`sweep_V20`" in text and "unrelated" not in text
     assert (stores["out"] / "fig3b.png").is_file()  # V=10 and V=20 come from different stores
@@ -212,8 +243,24 @@ def test_fig2_best_learner_or_flag(stores):
     fig2 = text.split("### Fig. 2")[1].split("###")[0]
     assert "mappo at V=10, U=2, the learner with the highest seed-mean execution EE" in fig2
     out = stores["tmp"] / "flag"
-    assert report.main(["--experiment", "sweep_V10", "--tracking-uri", stores["a"], "--out", str(out),
-                        "--fig2-algorithm", "VDN", "--no-log", "--points", "5"]) == 0
+    assert (
+        report.main(
+            [
+                "--experiment",
+                "sweep_V10",
+                "--tracking-uri",
+                stores["a"],
+                "--out",
+                str(out),
+                "--fig2-algorithm",
+                "VDN",
+                "--no-log",
+                "--points",
+                "5",
+            ]
+        )
+        == 0
+    )
     fig2 = (out / "report.md").read_text().split("### Fig. 2")[1].split("###")[0]
     assert "vdn at V=10, U=2, chosen with --fig2-algorithm" in fig2
 
@@ -226,8 +273,22 @@ def test_logging_failure_is_one_line(stores, tmp_path, capsys, monkeypatch):
 
     monkeypatch.setattr(report, "log_summary", fail)
     out = tmp_path / "r"
-    assert report.main(["--experiment", "sweep_V10", "--tracking-uri", stores["a"], "--out", str(out), "--no-fig2",
-                        "--points", "5"]) == 2
+    assert (
+        report.main(
+            [
+                "--experiment",
+                "sweep_V10",
+                "--tracking-uri",
+                stores["a"],
+                "--out",
+                str(out),
+                "--no-fig2",
+                "--points",
+                "5",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "readonly database" in err and "--no-log" in err
     assert (out / "report.md").is_file()  # the files were written before logging failed
@@ -240,10 +301,24 @@ def test_error_paths_one_line_exit_2(stores, tmp_path, capsys):
     cases = [
         (["--experiment", "sweep_V10", "--tracking-uri", a, "--out", str(a_file)], "is a file"),
         (["--experiment", "sweep_V10", "--tracking-uri", a, "--out", str(a_file / "sub")], "--out"),
-        (["--experiment", "sweep_V10", "--tracking-uri", a, "--out", str(tmp_path / "o"), "--fig2-algorithm", "nope"],
-         "--fig2-algorithm: 'nope' has no training runs"),
+        (
+            [
+                "--experiment",
+                "sweep_V10",
+                "--tracking-uri",
+                a,
+                "--out",
+                str(tmp_path / "o"),
+                "--fig2-algorithm",
+                "nope",
+            ],
+            "--fig2-algorithm: 'nope' has no training runs",
+        ),
         (["--experiment", "nothing_*", "--tracking-uri", a], "'nothing_*' not found"),
-        (["--experiment", "sweep_V10", "--tracking-uri", a, "--fig2-seed", "-1"], "--fig2-seed: must be an integer in [0, 4294967295], got -1"),
+        (
+            ["--experiment", "sweep_V10", "--tracking-uri", a, "--fig2-seed", "-1"],
+            "--fig2-seed: must be an integer in [0, 4294967295], got -1",
+        ),
         (["--experiment", "sweep_V10", "--tracking-uri", a, "--smooth", "2"], "[0, 1)"),
         (["--tracking-uri", a], "--experiment"),
     ]
@@ -252,8 +327,23 @@ def test_error_paths_one_line_exit_2(stores, tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert err.count("\n") == 0 and err.startswith("report: error:") and needle in err, (argv, err)
     assert not (tmp_path / "o").exists()  # a bad flag writes nothing
-    proc = subprocess.run([sys.executable, "-m", "analysis.report", "--experiment", "sweep_V10", "--tracking-uri", a,
-                           "--out", str(a_file)], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "analysis.report",
+            "--experiment",
+            "sweep_V10",
+            "--tracking-uri",
+            a,
+            "--out",
+            str(a_file),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert proc.stderr.strip().count("\n") == 0 and "is a file" in proc.stderr
 
@@ -263,9 +353,20 @@ def test_cells_joining_different_budgets_warn():
     from analysis.runs import RunRecord
 
     def rec(i, budget, exp):
-        return RunRecord(run_id=f"r{i}", run_name="", status="FINISHED", start_time=i, kind="train", algorithm="mappo",
-                         seed=str(i), n_eds=10, n_uavs=2, params={"stop.env_steps": budget, "scenario.episode_len": "150"},
-                         metrics={"eval/ee_sys_mean": 1.0}, experiment=exp)
+        return RunRecord(
+            run_id=f"r{i}",
+            run_name="",
+            status="FINISHED",
+            start_time=i,
+            kind="train",
+            algorithm="mappo",
+            seed=str(i),
+            n_eds=10,
+            n_uavs=2,
+            params={"stop.env_steps": budget, "scenario.episode_len": "150"},
+            metrics={"eval/ee_sys_mean": 1.0},
+            experiment=exp,
+        )
 
     org = organise([rec(0, "1000", "a"), rec(1, "1000", "a"), rec(2, "2000", "b")])
     assert any("differ in stop.env_steps (1000 / 2000)" in w for w in org.warnings), org.warnings

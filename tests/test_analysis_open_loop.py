@@ -13,8 +13,19 @@ from analysis.tables import OPEN_LOOP_SHARE, open_loop_md, open_loop_table
 
 def _run(i, alg, scen, ee, mode, bound=None, seed="0"):
     metrics = {EE_KEY: ee} | ({BOUND_KEY: bound} if bound is not None else {})
-    return RunRecord(run_id=f"r{i}", run_name="", status="FINISHED", start_time=i, kind="baseline", algorithm=alg,
-                     seed=seed, n_eds=scen[0], n_uavs=scen[1], params={"scenario.action_mode": mode}, metrics=metrics)
+    return RunRecord(
+        run_id=f"r{i}",
+        run_name="",
+        status="FINISHED",
+        start_time=i,
+        kind="baseline",
+        algorithm=alg,
+        seed=seed,
+        n_eds=scen[0],
+        n_uavs=scen[1],
+        params={"scenario.action_mode": mode},
+        metrics=metrics,
+    )
 
 
 def test_open_loop_rows_shares_modes_and_bracket():

@@ -12,9 +12,19 @@ from analysis.verdicts import SWING_LIMIT, last_evals_spread, learning_md, learn
 
 
 def _run(i, alg, ee, kind="train", seed="0", scen=(10, 2)):
-    return RunRecord(run_id=f"r{i}", run_name="", status="FINISHED", start_time=i, kind=kind, algorithm=alg, seed=seed,
-                     n_eds=scen[0], n_uavs=scen[1], params={"scenario.action_mode": "per_device", "stop.env_steps": "200000"},
-                     metrics={EE_KEY: ee})
+    return RunRecord(
+        run_id=f"r{i}",
+        run_name="",
+        status="FINISHED",
+        start_time=i,
+        kind=kind,
+        algorithm=alg,
+        seed=seed,
+        n_eds=scen[0],
+        n_uavs=scen[1],
+        params={"scenario.action_mode": "per_device", "stop.env_steps": "200000"},
+        metrics={EE_KEY: ee},
+    )
 
 
 CURVES = {
@@ -58,11 +68,16 @@ def test_learning_rows_shares_best_fixed_and_swings():
     assert i["above_best_fixed"] == "false"
     assert i["max_last_evals_spread"] == pytest.approx(12 / 72) and i["settled"] == str(12 / 72 <= SWING_LIMIT).lower()
     md = learning_md(list(rows.values()))
-    assert "| 10 | 2 | per_device | mappo | 2 | 200000 | 0.960 | 0.800 | 1.200 | true | 0.184 | false | 0.90 | n/a (needs 3 seeds" in md
+    assert (
+        "| 10 | 2 | per_device | mappo | 2 | 200000 | 0.960 | 0.800 | 1.200 | true | 0.184 | false | 0.90 | n/a (needs 3 seeds"
+        in md
+    )
 
 
 def test_share_target_is_judged_on_three_seeds_at_the_budget():
-    runs = [_run(0, "greedy", 100.0, kind="baseline")] + [_run(2 + k, "mappo", v, seed=str(k)) for k, v in enumerate((95.0, 97.0, 72.0))]
+    runs = [_run(0, "greedy", 100.0, kind="baseline")] + [
+        _run(2 + k, "mappo", v, seed=str(k)) for k, v in enumerate((95.0, 97.0, 72.0))
+    ]
     (row,) = learning_table(organise(runs), _history)
     assert row["n_seeds"] == 3 and row["share_of_reference"] == pytest.approx(88 / 100)
     assert row["meets_share_target"] == "false"  # 0.88 < 0.9

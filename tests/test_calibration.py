@@ -33,8 +33,12 @@ def grid_data(tmp_path, **changes) -> dict:
         "n_uavs": [2],
         "scenario": {"episode_len": 5},
         "stop": {"env_steps": 12000},
-        "resources": {"num_env_runners": 2, "num_envs_per_env_runner": 4, "num_cpus_per_env_runner": 1,
-                      "num_cpus_per_learner": 1},
+        "resources": {
+            "num_env_runners": 2,
+            "num_envs_per_env_runner": 4,
+            "num_cpus_per_env_runner": 1,
+            "num_cpus_per_learner": 1,
+        },
         "evaluation": {"episodes": 4},
         "storage": str(tmp_path / "ray_results"),
         "mlflow": {"tracking_uri": f"sqlite:///{tmp_path / 'mlflow.db'}"},
@@ -57,14 +61,33 @@ def calib_file(tmp_path, monkeypatch):
 
 
 def train_record(cell, machine, **fields) -> dict:
-    return {"cell_key": cell.key, "kind": "train", "label": cell.label, "cell": dict(cell.content), "machine": machine,
-            "version": VERSION, "measured_at": "2026-01-01T00:00:00+00:00", "learning_started": True, **fields}
+    return {
+        "cell_key": cell.key,
+        "kind": "train",
+        "label": cell.label,
+        "cell": dict(cell.content),
+        "machine": machine,
+        "version": VERSION,
+        "measured_at": "2026-01-01T00:00:00+00:00",
+        "learning_started": True,
+        **fields,
+    }
 
 
 def baseline_record(cell, machine, seconds: float, episodes: int) -> dict:
-    return {"cell_key": cell.key, "kind": "baseline", "label": cell.label, "cell": dict(cell.content),
-            "machine": machine, "version": VERSION, "measured_at": "2026-01-01T00:00:00+00:00",
-            "seconds": seconds, "timed_episodes": episodes, "timed_s": seconds, "episodes": episodes}
+    return {
+        "cell_key": cell.key,
+        "kind": "baseline",
+        "label": cell.label,
+        "cell": dict(cell.content),
+        "machine": machine,
+        "version": VERSION,
+        "measured_at": "2026-01-01T00:00:00+00:00",
+        "seconds": seconds,
+        "timed_episodes": episodes,
+        "timed_s": seconds,
+        "episodes": episodes,
+    }
 
 
 # the hand-computed case: 12000 env steps at 100 env steps/s (300 per iteration, so 40
@@ -72,8 +95,17 @@ def baseline_record(cell, machine, seconds: float, episodes: int) -> dict:
 # 600 steps, 1 + 20 = 21 evaluations of 6 s; build 42 s, final evaluation 2 s:
 # wall = 42 + 120 + 21 x 6 + 2 = 290 s per trial; 3 CPUs (learner + 2 env runners) x 2 seeds
 # -> 1740 CPU-s; 2 random baselines of 30 s on 1 CPU -> 60 CPU-s; 1800 CPU-s = 0.50 CPU-hours.
-HAND = {"env_steps_per_s": 100.0, "env_steps_per_iteration": 300.0, "seconds_per_iteration": 3.0, "build_s": 42.0,
-        "periodic_eval_s": 6.0, "final_eval_s": 2.0, "eval_episodes": 4, "iterations": 2, "warmup_iterations": 1}
+HAND = {
+    "env_steps_per_s": 100.0,
+    "env_steps_per_iteration": 300.0,
+    "seconds_per_iteration": 3.0,
+    "build_s": 42.0,
+    "periodic_eval_s": 6.0,
+    "final_eval_s": 2.0,
+    "eval_episodes": 4,
+    "iterations": 2,
+    "warmup_iterations": 1,
+}
 
 
 def write_hand_calibration(tmp_path, calib_file, machine) -> tuple:
@@ -110,8 +142,9 @@ def test_cell_key_ignores_the_seed_and_follows_what_sets_the_speed(tmp_path):
 
 
 def test_cell_key_does_not_depend_on_dict_order():
-    assert calibration.cell_key("train", {"a": 1, "b": {"x": 1, "y": 2}}) == \
-        calibration.cell_key("train", {"b": {"y": 2, "x": 1}, "a": 1})
+    assert calibration.cell_key("train", {"a": 1, "b": {"x": 1, "y": 2}}) == calibration.cell_key(
+        "train", {"b": {"y": 2, "x": 1}, "a": 1}
+    )
 
 
 # --------------------------------------------------------------------------- arithmetic
@@ -146,8 +179,10 @@ def test_dry_run_prints_the_estimate(tmp_path, calib_file, capsys):
     out = capsys.readouterr().out
     assert rc == 0
     rows = [ln.split() for ln in out.splitlines() if ln.split()[1:2] in (["mappo-V4-U2-s0"], ["mappo-V4-U2-s1"])]
-    assert rows == [["1", "mappo-V4-U2-s0", "100", "0.08", "3", "0.24"],
-                    ["2", "mappo-V4-U2-s1", "100", "0.08", "3", "0.24"]]
+    assert rows == [
+        ["1", "mappo-V4-U2-s0", "100", "0.08", "3", "0.24"],
+        ["2", "mappo-V4-U2-s1", "100", "0.08", "3", "0.24"],
+    ]
     assert "grid: 0.50 CPU-hours = 2 trials 0.48 (wall x 3 CPUs each) + baselines 0.02" in out
     assert "wall-clock: about 0.17 h on 3 CPUs (--num-cpus) (1 trial(s) at once" in out
     assert "another machine" not in out and "not calibrated" not in out
@@ -160,8 +195,10 @@ def test_another_machines_calibration_is_used_and_said_once(tmp_path, calib_file
     assert tune_cli.main([str(tmp_path / "grid.yaml"), "--dry-run", "--num-cpus", "6"]) == 0
     out = capsys.readouterr().out
     notes = [ln for ln in out.splitlines() if "another machine" in ln]
-    assert notes == [f"note: measured on another machine (Some Other CPU 9000, 64 CPUs); this one is "
-                     f"{calibration.describe_machine(calibration.this_machine())}"]
+    assert notes == [
+        f"note: measured on another machine (Some Other CPU 9000, 64 CPUs); this one is "
+        f"{calibration.describe_machine(calibration.this_machine())}"
+    ]
     assert "grid: 0.50 CPU-hours" in out and "wall-clock: about 0.08 h on 6 CPUs" in out
 
 
@@ -240,7 +277,10 @@ def test_unreadable_calibration(tmp_path, calib_file, capsys):
 @pytest.mark.parametrize(
     "extra, message",
     [
-        (["--calibrate", "--calibrate-iterations", "0"], "--calibrate-iterations: must be an integer in [1, 100], got 0"),
+        (
+            ["--calibrate", "--calibrate-iterations", "0"],
+            "--calibrate-iterations: must be an integer in [1, 100], got 0",
+        ),
         (["--calibrate", "--calibrate-iterations", "x"], "--calibrate-iterations: expected an integer, got 'x'"),
         (["--calibrate-iterations", "3"], "--calibrate-iterations: only with --calibrate"),
         (["--calibrate", "--resume"], "--calibrate: measures this machine in a private local Ray"),
@@ -324,8 +364,9 @@ class _Resources:
 @pytest.mark.parametrize("until_learning, learns_from, warmup", [(False, 3, 1), (True, 3, 3), (True, 1, 1)])
 def test_measure_training_warms_up_then_times(until_learning, learns_from, warmup):
     algo = _FakeAlgo(learns_from)
-    m = measure_training(_FakeEntry(algo), None, None, _Resources(), 0, 2, warmup_until_learning=until_learning,
-                         after=lambda a: a.calls)
+    m = measure_training(
+        _FakeEntry(algo), None, None, _Resources(), 0, 2, warmup_until_learning=until_learning, after=lambda a: a.calls
+    )
     assert m.warmup_iterations == warmup and len(m.rows) == 2 and m.env_steps == 20
     assert m.after == warmup + 2 and algo.stopped
     assert m.learning_started == (warmup + 2 >= learns_from)
@@ -333,8 +374,10 @@ def test_measure_training_warms_up_then_times(until_learning, learns_from, warmu
 
 
 def test_cost_modules_import_neither_ray_nor_torch():
-    code = ("import sys, uavlora_rllib.experiment.cost, uavlora_rllib.experiment.calibration; "
-            "print(sorted({m.split('.')[0] for m in sys.modules} & {'ray', 'torch'}))")
+    code = (
+        "import sys, uavlora_rllib.experiment.cost, uavlora_rllib.experiment.calibration; "
+        "print(sorted({m.split('.')[0] for m in sys.modules} & {'ray', 'torch'}))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True).stdout
     assert out.strip() == "[]"
 
@@ -342,9 +385,13 @@ def test_cost_modules_import_neither_ray_nor_torch():
 # --------------------------------------------------------------------------- for real
 @pytest.mark.slow
 def test_calibrate_a_tiny_grid_then_dry_run(tmp_path, calib_file, capsys):
-    data = grid_data(tmp_path, algorithms={"mappo": {"batch_episodes": 4, "num_minibatches": 1, "num_epochs": 1}},
-                     resources={"num_env_runners": 0, "num_envs_per_env_runner": 2}, stop={"env_steps": 1000},
-                     evaluation={"episodes": 2})
+    data = grid_data(
+        tmp_path,
+        algorithms={"mappo": {"batch_episodes": 4, "num_minibatches": 1, "num_epochs": 1}},
+        resources={"num_env_runners": 0, "num_envs_per_env_runner": 2},
+        stop={"env_steps": 1000},
+        evaluation={"episodes": 2},
+    )
     path = write_grid(tmp_path, data)
     assert tune_cli.main([path, "--calibrate", "--calibrate-iterations", "1"]) == 0
     out = capsys.readouterr().out

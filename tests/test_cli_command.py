@@ -24,8 +24,9 @@ HEAVY = ("ray", "torch")
 
 def _imported(argv: list[str]) -> tuple[subprocess.CompletedProcess, set[str]]:
     """Run `python -X importtime ARGV`; the top-level packages it imported."""
-    proc = subprocess.run([sys.executable, "-X", "importtime", *argv], capture_output=True, text=True, env=ENV,
-                          cwd=ROOT, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-X", "importtime", *argv], capture_output=True, text=True, env=ENV, cwd=ROOT, timeout=300
+    )
     names = set(re.findall(r"^import time:\s+\d+ \|\s+\d+ \|\s*([\w.]+)", proc.stderr, re.M))
     return proc, {n.split(".")[0] for n in names}
 
@@ -106,7 +107,10 @@ def test_usage_and_unknown_commands(argv, code, capsys):
     if argv == ["tun"]:
         err = captured.err.strip()
         assert "\n" not in err
-        assert err == "uavlora: error: command: unknown 'tun'; allowed: tune, evaluate, report, animate, bench (or --version)"
+        assert (
+            err
+            == "uavlora: error: command: unknown 'tun'; allowed: tune, evaluate, report, animate, bench (or --version)"
+        )
     else:
         text = captured.out or captured.err
         assert text.startswith("usage: uavlora") and all(n in text for n in cli.COMMANDS)
@@ -120,6 +124,12 @@ def test_readme_uavlora_lines_run():
     for line in lines:
         argv = line.split()
         assert argv[0] in cli.COMMANDS or argv[0] in ("--help", "--version"), line
-        proc = subprocess.run([sys.executable, "-m", "uavlora_rllib", *argv], capture_output=True, text=True,
-                              env=ENV, cwd=ROOT, timeout=300)
+        proc = subprocess.run(
+            [sys.executable, "-m", "uavlora_rllib", *argv],
+            capture_output=True,
+            text=True,
+            env=ENV,
+            cwd=ROOT,
+            timeout=300,
+        )
         assert proc.returncode == 0, f"uavlora {line}: {proc.stderr[-2000:]}"

@@ -22,7 +22,10 @@ def _one_line(err: str) -> bool:
         (["mappo", "--seed", "-1"], "--seed: must be an integer in [0, 4294967295], got -1"),
         (["mappo", "--action-mode", "joint"], "--action-mode: invalid choice: 'joint'"),
         # a plugin registered for per_uav only (tests/tune_stock_ppo.py): every learner here acts in both modes
-        (["stock_ppo", "--action-mode", "per_device"], "--action-mode: algorithm 'stock_ppo' supports action modes ['per_uav']"),
+        (
+            ["stock_ppo", "--action-mode", "per_device"],
+            "--action-mode: algorithm 'stock_ppo' supports action modes ['per_uav']",
+        ),
         (["mappo", "--set", "lr"], "--set: expected key=value, got 'lr'"),
         (["mappo", "--set", "lr=1", "lr=2"], "--set: 'lr' given twice"),
         (["mappo", "--set", "lr=true"], "--set.lr: expected a number in (0, 1], got True (bool)"),
@@ -30,7 +33,10 @@ def _one_line(err: str) -> bool:
         (["mappo", "--set", "lr=[1"], "--set: lr: cannot read the value '[1'"),
         (["mappo", "--set", "no_such_knob=1"], "--set.no_such_knob: unknown field"),
         (["mappo", "--n-eds", "20000"], "scenario.n_eds: Input should be less than or equal to 10000"),
-        (["mappo", "--env-runners", "50", "--num-cpus", "2"], "--env-runners: 50 runners and a learner need 51 CPUs; Ray has 2"),
+        (
+            ["mappo", "--env-runners", "50", "--num-cpus", "2"],
+            "--env-runners: 50 runners and a learner need 51 CPUs; Ray has 2",
+        ),
         (["mappo", "--set", "num_minibatches=1000"], "algorithms.mappo.num_minibatches: 1000 minibatches"),
     ],
 )
@@ -50,7 +56,10 @@ def test_bench_train_bad_input(capsys, argv, message):
         (["nope"], "invalid choice: 'nope'"),
         (["env", "--repeats", "0"], "--repeats: must be an integer in [1, 1000], got 0"),
         (["env", "--repeats", "two"], "--repeats: expected an integer, got 'two'"),
-        (["env", "--write", "/no/such/dir/BENCH.md"], "--write: cannot write '/no/such/dir/BENCH.md': /no/such/dir is not a writable directory"),
+        (
+            ["env", "--write", "/no/such/dir/BENCH.md"],
+            "--write: cannot write '/no/such/dir/BENCH.md': /no/such/dir is not a writable directory",
+        ),
         (["env", "--bogus"], "unrecognized arguments: --bogus"),
     ],
 )

@@ -28,8 +28,15 @@ pytestmark = pytest.mark.slow
 
 TESTS_DIR = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(TESTS_DIR)
-TINY_MAPPO = {"batch_episodes": 2, "num_epochs": 1, "num_minibatches": 1, "gru_hidden": 8, "fc_hidden": 8,
-              "critic_hidden": 8, "max_seq_len": 10}
+TINY_MAPPO = {
+    "batch_episodes": 2,
+    "num_epochs": 1,
+    "num_minibatches": 1,
+    "gru_hidden": 8,
+    "fc_hidden": 8,
+    "critic_hidden": 8,
+    "max_seq_len": 10,
+}
 EPISODE_LEN = 10  # 20 env steps per training iteration
 
 
@@ -42,8 +49,10 @@ def free_port() -> int:
 @pytest.fixture(scope="module")
 def two_nodes():
     tmp = tempfile.mkdtemp(prefix="rc", dir="/tmp")  # Ray's socket paths must stay short
-    saved = {k: os.environ.get(k) for k in ("RAY_TMPDIR", "PYTHONPATH", "RAY_ADDRESS", "RAY_AUTH_MODE",
-                                            "RAY_AUTH_TOKEN", "RAY_AUTH_TOKEN_PATH")}
+    saved = {
+        k: os.environ.get(k)
+        for k in ("RAY_TMPDIR", "PYTHONPATH", "RAY_ADDRESS", "RAY_AUTH_MODE", "RAY_AUTH_TOKEN", "RAY_AUTH_TOKEN_PATH")
+    }
     os.environ["RAY_TMPDIR"] = tmp
     os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (REPO, saved["PYTHONPATH"]) if p)
     os.environ.pop("RAY_ADDRESS", None)
@@ -55,8 +64,12 @@ def two_nodes():
     os.environ.pop("RAY_AUTH_TOKEN_PATH", None)
     client_port, dashboard_port = free_port(), free_port()
     ports = [client_port, dashboard_port, free_port(), free_port()]
-    proc = subprocess.Popen([sys.executable, os.path.join(TESTS_DIR, "two_node_cluster.py"), *map(str, ports)],
-                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, os.path.join(TESTS_DIR, "two_node_cluster.py"), *map(str, ports)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     info = json.loads(proc.stdout.readline())
     info.update(proc=proc, tmp=tmp, client_port=client_port, dashboard=f"http://127.0.0.1:{dashboard_port}")
     try:
@@ -82,14 +95,29 @@ def remove_worker(two_nodes) -> None:
 
 
 def make_grid(tmp_path, name: str, *, seeds=(0,), budget=20, baselines=("random",), uri=None, **extra) -> str:
-    return write_tiny_grid(tmp_path, name, mappo=TINY_MAPPO, episode_len=EPISODE_LEN, budget=budget, seeds=seeds,
-                           baselines=baselines, uri=uri, **extra)
+    return write_tiny_grid(
+        tmp_path,
+        name,
+        mappo=TINY_MAPPO,
+        episode_len=EPISODE_LEN,
+        budget=budget,
+        seeds=seeds,
+        baselines=baselines,
+        uri=uri,
+        **extra,
+    )
 
 
 def driver(grid_file: str, *args: str, cwd=None, env_extra=None) -> subprocess.Popen:
     env = dict(os.environ, **(env_extra or {}))
-    return subprocess.Popen([sys.executable, "-m", "uavlora_rllib.tune", grid_file, *args], cwd=cwd or REPO,
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "uavlora_rllib.tune", grid_file, *args],
+        cwd=cwd or REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
 
 
 def finish(proc: subprocess.Popen, timeout: float = 600) -> str:
@@ -109,7 +137,9 @@ def runs_of(uri: str, experiment: str) -> list:
     assert exp is not None, f"no MLflow experiment {experiment!r}"
     runs = client.search_runs([exp.experiment_id], max_results=1000)
     parents = [r for r in runs if r.data.tags.get("kind") == "grid"]  # the grid's one parent run
-    assert len(parents) == 1 and parents[0].info.status == "FINISHED", [(r.info.run_name, r.info.status) for r in parents]
+    assert len(parents) == 1 and parents[0].info.status == "FINISHED", [
+        (r.info.run_name, r.info.status) for r in parents
+    ]
     runs = [r for r in runs if r.data.tags.get("kind") != "grid"]
     assert all(r.data.tags.get("mlflow.parentRunId") == parents[0].info.run_id for r in runs)
     return runs
@@ -136,20 +166,26 @@ def trial_rows(tmp_path, experiment: str) -> dict[str, list[dict]]:
 
 @pytest.mark.parametrize("way", ["auto", "host_port", "ray_client"])
 def test_reach_the_cluster(two_nodes, tmp_path, way):
-    address = {"auto": "auto", "host_port": two_nodes["address"],
-               "ray_client": f"ray://127.0.0.1:{two_nodes['client_port']}"}[way]
+    address = {
+        "auto": "auto",
+        "host_port": two_nodes["address"],
+        "ray_client": f"ray://127.0.0.1:{two_nodes['client_port']}",
+    }[way]
     grid = make_grid(tmp_path, f"reach_{way}")
     out = finish(driver(grid, "--address", address))
     assert "1/1 trials finished, 0 failed" in out, out[-4000:]
     assert "Ray: 2 node(s), 2 CPU" in out
-    assert_one_finished_run_each(f"sqlite:///{tmp_path / 'mlflow.db'}", f"reach_{way}",
-                                 {"mappo-V6-U2-s0"}, {"random-V6-U2-s0"})
+    assert_one_finished_run_each(
+        f"sqlite:///{tmp_path / 'mlflow.db'}", f"reach_{way}", {"mappo-V6-U2-s0"}, {"random-V6-U2-s0"}
+    )
 
 
 def test_wrong_token_is_one_clear_line(two_nodes, tmp_path):
     grid = make_grid(tmp_path, "token")
-    out = finish(driver(grid, "--address", two_nodes["address"],
-                        env_extra={"RAY_AUTH_TOKEN": secrets.token_hex(16)}), timeout=300)
+    out = finish(
+        driver(grid, "--address", two_nodes["address"], env_extra={"RAY_AUTH_TOKEN": secrets.token_hex(16)}),
+        timeout=300,
+    )
     last = out.strip().splitlines()[-1]
     assert last.startswith(f"error: --address {two_nodes['address']}: cannot connect"), out[-3000:]
     assert "RAY_AUTH_TOKEN" in last
@@ -166,10 +202,24 @@ def test_ray_job_submit(two_nodes, tmp_path):
         deadline = time.monotonic() + 120
         while True:
             proc = subprocess.run(
-                [ray_bin, "job", "submit", "--address", two_nodes["dashboard"],
-                 "--runtime-env-json", json.dumps({"env_vars": env_vars}), "--",
-                 sys.executable, "-m", "uavlora_rllib.tune", grid],
-                capture_output=True, text=True, timeout=600, env=dict(os.environ),
+                [
+                    ray_bin,
+                    "job",
+                    "submit",
+                    "--address",
+                    two_nodes["dashboard"],
+                    "--runtime-env-json",
+                    json.dumps({"env_vars": env_vars}),
+                    "--",
+                    sys.executable,
+                    "-m",
+                    "uavlora_rllib.tune",
+                    grid,
+                ],
+                capture_output=True,
+                text=True,
+                timeout=600,
+                env=dict(os.environ),
             )
             # the dashboard accepts jobs once its agent on the head is up
             if "No available agent to submit job" not in proc.stderr or time.monotonic() > deadline:
@@ -184,8 +234,7 @@ def test_ray_job_submit(two_nodes, tmp_path):
     assert good.returncode == 0, (good.stdout + good.stderr)[-4000:]
     assert "1/1 trials finished" in good.stdout
     assert "Ray: 2 node(s), 2 CPU" in good.stdout  # the job's cluster, not a private Ray on the head
-    assert_one_finished_run_each(f"sqlite:///{tmp_path / 'mlflow.db'}", "job", {"mappo-V6-U2-s0"},
-                                 {"random-V6-U2-s0"})
+    assert_one_finished_run_each(f"sqlite:///{tmp_path / 'mlflow.db'}", "job", {"mappo-V6-U2-s0"}, {"random-V6-U2-s0"})
 
 
 @pytest.fixture
@@ -198,9 +247,24 @@ def mlflow_server(tmp_path):
     def start():
         proc = subprocess.Popen(
             # `python -m mlflow`, not bin/mlflow: a copied venv's script shebangs may be stale
-            [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", f"sqlite:///{db}", "--host",
-             "127.0.0.1", "--port", str(port), "--workers", "1"],
-            cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+            [
+                sys.executable,
+                "-m",
+                "mlflow",
+                "server",
+                "--backend-store-uri",
+                f"sqlite:///{db}",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                str(port),
+                "--workers",
+                "1",
+            ],
+            cwd=tmp_path,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            start_new_session=True,
         )
         state["proc"] = proc
         wait_for_mlflow_server(state["uri"], proc, 120)
@@ -273,7 +337,8 @@ def test_worker_node_lost_mid_trial_is_retried(two_nodes, tmp_path):
     assert victim_rows[-1]["done"] and victim_rows[-1]["node_id"] == head_id  # finished on the head
     # continued from its checkpoint: the retry did not start from iteration 1 again
     assert victim_rows[-1]["iterations_since_restore"] < victim_rows[-1]["training_iteration"]
-    runs = assert_one_finished_run_each(f"sqlite:///{tmp_path / 'mlflow.db'}", "lost",
-                                        {"mappo-V6-U2-s0", "mappo-V6-U2-s1"}, set())
+    runs = assert_one_finished_run_each(
+        f"sqlite:///{tmp_path / 'mlflow.db'}", "lost", {"mappo-V6-U2-s0", "mappo-V6-U2-s1"}, set()
+    )
     retried = [r for r in runs if int(r.data.tags.get("retries", "0")) >= 1]
     assert len(retried) == 1 and victim.startswith(retried[0].info.run_name)

@@ -29,8 +29,15 @@ pytestmark = pytest.mark.slow
 
 # the ports exist only inside the namespaces, so the defaults are private to this test
 GCS_PORT, DASHBOARD_PORT, MLFLOW_PORT = 6379, 8265, 5000
-TINY_MAPPO = {"batch_episodes": 2, "num_epochs": 1, "num_minibatches": 1, "gru_hidden": 8, "fc_hidden": 8,
-              "critic_hidden": 8, "max_seq_len": 10}
+TINY_MAPPO = {
+    "batch_episodes": 2,
+    "num_epochs": 1,
+    "num_minibatches": 1,
+    "gru_hidden": 8,
+    "fc_hidden": 8,
+    "critic_hidden": 8,
+    "max_seq_len": 10,
+}
 PLUGIN = '''"""MAPPO registered as "mappo_wd": importable only from the job's working dir."""
 from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.algorithms.mappo.mappo import MAPPOConfig
@@ -69,8 +76,12 @@ def cluster(tmp_path):
     """A head (0 CPUs, dashboard, mlflow server) and a worker (2 CPUs) in two network namespaces."""
     tmp = tempfile.mkdtemp(prefix="rn", dir="/tmp")  # short: Ray's Unix socket paths have a length limit
     env = {k: v for k, v in os.environ.items() if k not in ("RAY_ADDRESS", "RAY_AUTH_TOKEN_PATH")}
-    env.update(RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=secrets.token_hex(16), RAY_TMPDIR=tmp,
-               RAY_GRACEFUL_SHUTDOWN_DRAIN_TIMEOUT_S="0")
+    env.update(
+        RAY_AUTH_MODE="token",
+        RAY_AUTH_TOKEN=secrets.token_hex(16),
+        RAY_TMPDIR=tmp,
+        RAY_GRACEFUL_SHUTDOWN_DRAIN_TIMEOUT_S="0",
+    )
     nodes: list[subprocess.Popen] = []
 
     def stop_nodes() -> None:
@@ -98,21 +109,70 @@ def cluster(tmp_path):
             return proc, log
 
         mlflow_uri = f"http://{head.address}:{MLFLOW_PORT}"
-        mlflow, _ = start(head, "mlflow", [sys.executable, "-m", "mlflow", "server", "--backend-store-uri",
-                                          f"sqlite:///{tmp_path / 'mlflow.db'}", "--host", head.address,
-                                          "--port", str(MLFLOW_PORT), "--workers", "1"])
+        mlflow, _ = start(
+            head,
+            "mlflow",
+            [
+                sys.executable,
+                "-m",
+                "mlflow",
+                "server",
+                "--backend-store-uri",
+                f"sqlite:///{tmp_path / 'mlflow.db'}",
+                "--host",
+                head.address,
+                "--port",
+                str(MLFLOW_PORT),
+                "--workers",
+                "1",
+            ],
+        )
         for host, name, args in (
-            (head, "head", ["--head", "--port", str(GCS_PORT), "--num-cpus", "0", "--include-dashboard", "true",
-                            "--dashboard-host", head.address, "--dashboard-port", str(DASHBOARD_PORT)]),
+            (
+                head,
+                "head",
+                [
+                    "--head",
+                    "--port",
+                    str(GCS_PORT),
+                    "--num-cpus",
+                    "0",
+                    "--include-dashboard",
+                    "true",
+                    "--dashboard-host",
+                    head.address,
+                    "--dashboard-port",
+                    str(DASHBOARD_PORT),
+                ],
+            ),
             (worker, "worker", ["--address", f"{head.address}:{GCS_PORT}", "--num-cpus", "2"]),
         ):
-            proc, log = start(host, name, [*RAY, "start", "--block", "--disable-usage-stats", "--node-ip-address",
-                                           host.address, "--temp-dir", os.path.join(tmp, name), *args])
+            proc, log = start(
+                host,
+                name,
+                [
+                    *RAY,
+                    "start",
+                    "--block",
+                    "--disable-usage-stats",
+                    "--node-ip-address",
+                    host.address,
+                    "--temp-dir",
+                    os.path.join(tmp, name),
+                    *args,
+                ],
+            )
             nodes.append(proc)
             wait_for_log(proc, log, "block forever", 180)  # printed once the node is registered
         wait_for_http(head, f"{mlflow_uri}/health", mlflow, 120)
-        yield {"head": head, "worker": worker, "env": env, "tmp": tmp, "mlflow_uri": mlflow_uri,
-               "dashboard": f"http://{head.address}:{DASHBOARD_PORT}"}
+        yield {
+            "head": head,
+            "worker": worker,
+            "env": env,
+            "tmp": tmp,
+            "mlflow_uri": mlflow_uri,
+            "dashboard": f"http://{head.address}:{DASHBOARD_PORT}",
+        }
 
 
 def test_job_with_working_dir_across_hosts(cluster, tmp_path):
@@ -120,14 +180,42 @@ def test_job_with_working_dir_across_hosts(cluster, tmp_path):
     workdir = tmp_path / "job"
     workdir.mkdir()
     (workdir / "wd_plugin.py").write_text(PLUGIN)
-    write_tiny_grid(workdir, "netns", mappo={}, episode_len=10, budget=20, seeds=(0, 1), uri=cluster["mlflow_uri"],
-                    algorithms={"mappo_wd": TINY_MAPPO}, plugins=["wd_plugin"], storage=str(tmp_path / "ray_results"))
+    write_tiny_grid(
+        workdir,
+        "netns",
+        mappo={},
+        episode_len=10,
+        budget=20,
+        seeds=(0, 1),
+        uri=cluster["mlflow_uri"],
+        algorithms={"mappo_wd": TINY_MAPPO},
+        plugins=["wd_plugin"],
+        storage=str(tmp_path / "ray_results"),
+    )
 
     deadline = time.monotonic() + 120
     while True:  # from the worker host, with a relative grid path inside the working dir
-        job = worker.run([*RAY, "job", "submit", "--address", cluster["dashboard"], "--working-dir", ".", "--",
-                          sys.executable, "-m", "uavlora_rllib.tune", "netns.yaml"],
-                         cwd=workdir, env=cluster["env"], capture_output=True, text=True, timeout=600)
+        job = worker.run(
+            [
+                *RAY,
+                "job",
+                "submit",
+                "--address",
+                cluster["dashboard"],
+                "--working-dir",
+                ".",
+                "--",
+                sys.executable,
+                "-m",
+                "uavlora_rllib.tune",
+                "netns.yaml",
+            ],
+            cwd=workdir,
+            env=cluster["env"],
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
         # the dashboard accepts jobs once its agent on the head is up
         if "No available agent to submit job" not in job.stderr or time.monotonic() > deadline:
             break
@@ -138,11 +226,18 @@ def test_job_with_working_dir_across_hosts(cluster, tmp_path):
     assert "Ray: 2 node(s), 2 CPU" in out
 
     # every trial ran on the worker host, from the package its runtime-env agent unpacked
-    rows = [json.loads(line) for path in glob.glob(str(tmp_path / "ray_results" / "netns" / "*" / "result.json"))
-            for line in pathlib.Path(path).read_text().splitlines() if line.strip()]
+    rows = [
+        json.loads(line)
+        for path in glob.glob(str(tmp_path / "ray_results" / "netns" / "*" / "result.json"))
+        for line in pathlib.Path(path).read_text().splitlines()
+        if line.strip()
+    ]
     assert rows and {r["node_ip"] for r in rows} == {worker.address}, {r.get("node_ip") for r in rows}
-    unpacked = glob.glob(os.path.join(cluster["tmp"], "worker", "session_*", "runtime_resources",
-                                      "working_dir_files", "*", "wd_plugin.py"))
+    unpacked = glob.glob(
+        os.path.join(
+            cluster["tmp"], "worker", "session_*", "runtime_resources", "working_dir_files", "*", "wd_plugin.py"
+        )
+    )
     assert unpacked, "no working_dir package on the worker node"
 
     from mlflow.tracking import MlflowClient

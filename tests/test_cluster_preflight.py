@@ -77,11 +77,20 @@ def test_infeasible_bundles_are_named():
 
 def test_address_flags_are_checked_first(tmp_path, capsys, monkeypatch):
     path = tmp_path / "g.yaml"
-    path.write_text(yaml.safe_dump({
-        "experiment": "x", "algorithms": ["mappo"], "seeds": [0], "n_eds": [6], "n_uavs": [2],
-        "stop": {"env_steps": 20}, "storage": str(tmp_path / "r"),
-        "mlflow": {"tracking_uri": f"sqlite:///{tmp_path / 'm.db'}"},
-    }))
+    path.write_text(
+        yaml.safe_dump(
+            {
+                "experiment": "x",
+                "algorithms": ["mappo"],
+                "seeds": [0],
+                "n_eds": [6],
+                "n_uavs": [2],
+                "stop": {"env_steps": 20},
+                "storage": str(tmp_path / "r"),
+                "mlflow": {"tracking_uri": f"sqlite:///{tmp_path / 'm.db'}"},
+            }
+        )
+    )
     assert tune_cli.main([str(path), "--address", "auto", "--num-cpus", "2"]) == 2
     assert "--num-cpus: only for a local Ray" in capsys.readouterr().err
     # ray:// without the client extra: named before any connection attempt
@@ -117,8 +126,14 @@ def test_infeasible_trial_fails_before_any_baseline(tmp_path):
     # a RAY_ADDRESS in the environment must not make a local run attach anywhere
     env["RAY_ADDRESS"] = "127.0.0.1:1"
     env.pop(cluster.RAY_JOB_ENV, None)
-    proc = subprocess.run([sys.executable, "-m", "uavlora_rllib.tune", str(path), "--num-cpus", "1"],
-                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-m", "uavlora_rllib.tune", str(path), "--num-cpus", "1"],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 2, proc.stderr[-3000:]
     last = proc.stderr.strip().splitlines()[-1]
     assert last.startswith("error: resources: a trial can never start") and "fits no node" in last

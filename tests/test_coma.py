@@ -68,7 +68,13 @@ def test_td_lambda_targets_by_hand():
 
 # ------------------------------------------------------------------ module structure
 def _module(inference_only: bool, n_agents=3, obs_dim=7, n_actions=4, state_dim=11, **overrides) -> COMATorchRLModule:
-    config = {"state_dim": state_dim, "actor_hidden": 16, "gru_hidden": 8, "critic_hidden": [32, 32], "action_factors": [2, 2]}
+    config = {
+        "state_dim": state_dim,
+        "actor_hidden": 16,
+        "gru_hidden": 8,
+        "critic_hidden": [32, 32],
+        "action_factors": [2, 2],
+    }
     return COMATorchRLModule(
         observation_space=gym.spaces.Box(-1.0, 1.0, (n_agents, obs_dim), np.float32),
         action_space=gym.spaces.MultiDiscrete([n_actions] * n_agents),

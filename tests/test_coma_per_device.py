@@ -43,7 +43,13 @@ L, W = len(ROW), max(ROW)
 
 def _module(inference_only: bool = False, **overrides) -> COMATorchRLModule:
     torch.manual_seed(0)
-    config = {"state_dim": STATE_DIM, "actor_hidden": 16, "gru_hidden": 8, "critic_hidden": [32, 32], "action_factors": []}
+    config = {
+        "state_dim": STATE_DIM,
+        "actor_hidden": 16,
+        "gru_hidden": 8,
+        "critic_hidden": [32, 32],
+        "action_factors": [],
+    }
     module = COMATorchRLModule(
         observation_space=gym.spaces.Box(-1.0, 1.0, (U, OBS_DIM), np.float32),
         action_space=gym.spaces.MultiDiscrete(np.tile(ROW, (U, 1))),
@@ -126,9 +132,7 @@ def test_branch_critic_is_an_mlp_on_its_concatenated_rows():
     q = c(state, obs, actions)
     assert q.shape == (4, U, L, W)
     torch.testing.assert_close(q, want, atol=1e-5, rtol=1e-5)
-    torch.testing.assert_close(
-        q.masked_fill(~m.layout.valid, 0).mean(-1).mean(), q.mean(-1).mean()
-    )  # padding is 0
+    torch.testing.assert_close(q.masked_fill(~m.layout.valid, 0).mean(-1).mean(), q.mean(-1).mean())  # padding is 0
     for u in range(U):
         for branch in range(L):
             changed = actions.clone()
@@ -153,7 +157,9 @@ def test_branch_critic_gradients_are_the_concatenated_mlps(hidden):
     h = c.body(c.first(c.inputs(state, obs, actions)))
     y = torch.einsum("...lh,lhn->...ln", h, c.out_weight) + c.out_bias
     value, diff = y[..., :1], y[..., 1:].masked_fill(~m.layout.valid, 0.0)
-    concatenated = (value + diff - diff.sum(-1, keepdim=True) / m.layout.sizes[:, None]).masked_fill(~m.layout.valid, 0.0)
+    concatenated = (value + diff - diff.sum(-1, keepdim=True) / m.layout.sizes[:, None]).masked_fill(
+        ~m.layout.valid, 0.0
+    )
     grads = []
     for q in (c(state, obs, actions), concatenated):
         c.zero_grad()
@@ -190,7 +196,10 @@ def test_counterfactual_baseline_equals_a_loop_over_branch_values():
                 torch.testing.assert_close(baseline[..., u, branch], loop_baseline, atol=1e-5, rtol=1e-5)
                 q_joint = m.critic_q(m.critic, state, obs, batch[ACTIONS])[..., u, branch, :]
                 torch.testing.assert_close(
-                    adv[..., u, branch], taken(q_joint, batch[ACTIONS][..., u, branch]) - loop_baseline, atol=1e-5, rtol=1e-5
+                    adv[..., u, branch],
+                    taken(q_joint, batch[ACTIONS][..., u, branch]) - loop_baseline,
+                    atol=1e-5,
+                    rtol=1e-5,
                 )
                 torch.testing.assert_close(adv_under_pi, torch.zeros_like(adv_under_pi), atol=1e-5, rtol=0)
     assert adv.shape == baseline.shape == q_taken.shape == logp.shape == (1, steps, U, L)
@@ -220,7 +229,9 @@ def test_greedy_is_the_per_branch_argmax_and_runners_hold_the_actor_only():
     runner_side.set_state(learner_side.get_state(inference_only=True))
     obs, h = torch.rand(5, 1, U, OBS_DIM), {"h": torch.zeros(5, U, 8)}
     greedy = runner_side.forward_inference({Columns.OBS: obs, Columns.STATE_IN: h})[Columns.ACTIONS]
-    torch.testing.assert_close(greedy, learner_side.forward_inference({Columns.OBS: obs, Columns.STATE_IN: h})[Columns.ACTIONS])
+    torch.testing.assert_close(
+        greedy, learner_side.forward_inference({Columns.OBS: obs, Columns.STATE_IN: h})[Columns.ACTIONS]
+    )
     logits, _ = runner_side.actor(obs, h["h"])
     want = torch.stack([part.argmax(-1) for part in torch.split(logits, ROW, dim=-1)], dim=-1)
     torch.testing.assert_close(greedy, want)
@@ -307,7 +318,9 @@ def test_registry_offers_per_device_and_checks_the_critic():
     entry = registry.get("coma")
     assert entry.action_modes == ("per_uav", "per_device")
     per_device = ScenarioConfig(n_eds=4, n_uavs=2, action_mode="per_device")
-    with pytest.raises(ConfigError, match=r"algorithms\.coma\.critic_hidden: per_device needs at least one critic layer"):
+    with pytest.raises(
+        ConfigError, match=r"algorithms\.coma\.critic_hidden: per_device needs at least one critic layer"
+    ):
         entry.build(per_device, entry.hparams({"critic_hidden": []}), registry.Resources(), 0)
     config = entry.build(per_device, entry.hparams({}), registry.Resources(), 0)
     assert config.model_config["action_factors"] == []  # the per_uav factoring has no role here

@@ -116,7 +116,10 @@ def test_several_errors_are_reported_together():
         ({"area_m": False}, r"^scenario\.area_m: expected a number"),
         ({"altitude_m": math.inf}, r"^scenario\.altitude_m: expected a finite number in \[1, 10000\], got inf$"),
         ({"noise_dbm": -math.inf}, r"^scenario\.noise_dbm: expected a finite number"),
-        ({"reward": {"w2": math.nan}}, r"^scenario\.reward\.w2: expected a finite number in \[-1e\+06, 1e\+06\], got nan$"),
+        (
+            {"reward": {"w2": math.nan}},
+            r"^scenario\.reward\.w2: expected a finite number in \[-1e\+06, 1e\+06\], got nan$",
+        ),
         ({"hover": {"n_rotors": True}}, r"^scenario\.hover\.n_rotors: expected an integer"),
         ({"tp_dbm": [2, math.nan]}, r"^scenario\.tp_dbm\.1: expected a finite number, got nan$"),
         ({"sf_set": [7, True]}, r"^scenario\.sf_set\.1: expected an integer, got True"),

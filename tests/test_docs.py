@@ -53,9 +53,7 @@ def test_slug_matches_githubs_rule():
 @pytest.mark.parametrize("path", SOURCES, ids=lambda p: str(p.relative_to(ROOT)))
 def test_every_anchor_names_a_heading(path):
     text = path.read_text()
-    broken = [
-        f"{name}#{anchor}" for name, anchor in LINK.findall(text) if anchor not in anchors(DOCS[name])
-    ]
+    broken = [f"{name}#{anchor}" for name, anchor in LINK.findall(text) if anchor not in anchors(DOCS[name])]
     if path.suffix == ".md":  # links within the page
         broken += [f"#{a}" for a in IN_PAGE.findall(text) if a not in anchors(path)]
     assert not broken, f"{path.relative_to(ROOT)}: no such heading: {broken}"

@@ -12,7 +12,15 @@ import pytest
 
 from uavlora_rllib.evaluate import main
 
-KEYS = ("ee_sys_mean", "ee_sys_episode_sum", "success_rate", "mean_sinr_db", "unassociated_frac", "p_total_w", "reward_mean")
+KEYS = (
+    "ee_sys_mean",
+    "ee_sys_episode_sum",
+    "success_rate",
+    "mean_sinr_db",
+    "unassociated_frac",
+    "p_total_w",
+    "reward_mean",
+)
 
 
 def _check_json(text: str, episodes: int) -> dict:
@@ -27,7 +35,9 @@ def _check_json(text: str, episodes: int) -> dict:
 def test_json_in_process(capsys, tmp_path):
     yaml_file = tmp_path / "s.yaml"
     yaml_file.write_text("scenario:\n  episode_len: 5\n  n_eds: 6\n")
-    assert main(["--policy", "greedy", "--episodes", "2", "--seed", "1", "--json", "--scenario-yaml", str(yaml_file)]) == 0
+    assert (
+        main(["--policy", "greedy", "--episodes", "2", "--seed", "1", "--json", "--scenario-yaml", str(yaml_file)]) == 0
+    )
     out = _check_json(capsys.readouterr().out, 2)
     assert out["ee_sys_mean"] > 0 and 0.0 <= out["success_rate"] <= 1.0
     assert out["ee_sys_episode_sum"] == pytest.approx(5 * out["ee_sys_mean"])
@@ -49,10 +59,22 @@ def test_references_print_the_upper_bound_and_best_fixed_runs(capsys, tmp_path):
 def test_table_in_process(capsys, tmp_path):
     yaml_file = tmp_path / "s.yaml"
     yaml_file.write_text("episode_len: 3\n")
-    assert main(["--policy", "fixed", "--n-eds", "4", "--n-uavs", "1", "--episodes", "2", "--scenario-yaml", str(yaml_file)]) == 0
+    assert (
+        main(
+            ["--policy", "fixed", "--n-eds", "4", "--n-uavs", "1", "--episodes", "2", "--scenario-yaml", str(yaml_file)]
+        )
+        == 0
+    )
     text = capsys.readouterr().out
     assert "V=4 U=1 T=3" in text
-    for label in ("EE_sys per slot", "success rate Xi", "mean SINR", "unassociated fraction", "P_total", "reward per slot"):
+    for label in (
+        "EE_sys per slot",
+        "success rate Xi",
+        "mean SINR",
+        "unassociated fraction",
+        "P_total",
+        "reward per slot",
+    ):
         assert label in text
 
 
@@ -95,13 +117,19 @@ def test_subprocess_json_and_error():
     env = {**os.environ, "PYTHONWARNINGS": "ignore"}
     ok = subprocess.run(
         [sys.executable, "-m", "uavlora_rllib.evaluate", "--policy", "adr", "--episodes", "2", "--json"],
-        capture_output=True, text=True, env=env, timeout=120,
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
     )
     assert ok.returncode == 0, ok.stderr
     _check_json(ok.stdout, 2)
     bad = subprocess.run(
         [sys.executable, "-m", "uavlora_rllib.evaluate", "--policy", "random", "--n-eds", "0"],
-        capture_output=True, text=True, env=env, timeout=120,
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
     )
     assert bad.returncode == 2
     assert "--n-eds" in bad.stderr and "Traceback" not in bad.stderr
@@ -110,7 +138,10 @@ def test_subprocess_json_and_error():
 @pytest.mark.parametrize(
     "content, message",
     [
-        (b"episode_len: 3\nepisode_len: 4\n", "line 2, column 1: YAML error: duplicate key 'episode_len' (first given on line 1)"),
+        (
+            b"episode_len: 3\nepisode_len: 4\n",
+            "line 2, column 1: YAML error: duplicate key 'episode_len' (first given on line 1)",
+        ),
         (b"episode_len: 3\n# \xff\n", "the scenario file is not UTF-8 text (byte 0xff at offset 17)"),
         (b"episode_len: true\n", "scenario.episode_len: expected an integer in [1, 1e+06], got True (bool)"),
         (b"noise_dbm: .nan\n", "scenario.noise_dbm: expected a finite number in [-200, 30], got nan"),
@@ -142,7 +173,9 @@ def test_actions_outside_the_space_are_one_line(capsys, monkeypatch):
     monkeypatch.setattr(evaluate_cli, "_resolve", lambda args: (Oversized(), cfg))
     assert main(["--policy", "fixed"]) == 2
     err = capsys.readouterr().err
-    assert err.startswith("evaluate: error: --policy: its actions do not fit this scenario: ") and err.count("\n") == 1, err
+    assert (
+        err.startswith("evaluate: error: --policy: its actions do not fit this scenario: ") and err.count("\n") == 1
+    ), err
 
 
 def test_cost_estimate_grows_with_the_search():
@@ -187,7 +220,11 @@ def test_checkpoint_fit_check():
     assert checkpoint_fit_problem(trained, trained) is None
     # V may change at a fixed quota (Fig. 3b evaluates across V); so may the channel and rewards
     assert checkpoint_fit_problem(trained, trained.replace(n_eds=40, noise_dbm=-110.0, reward={"w1": 1.0})) is None
-    for change, field in [({"sf_set": [7]}, "sf_set"), ({"n_uavs": 3}, "n_uavs"), ({"max_eds_per_uav": 9}, "max_eds_per_uav")]:
+    for change, field in [
+        ({"sf_set": [7]}, "sf_set"),
+        ({"n_uavs": 3}, "n_uavs"),
+        ({"max_eds_per_uav": 9}, "max_eds_per_uav"),
+    ]:
         problem = checkpoint_fit_problem(trained, trained.replace(**change))
         assert problem and "was trained for 2 UAVs" in problem and field in problem.split("differ: ")[1], problem
 
@@ -222,7 +259,9 @@ def test_checkpoint_on_a_scenario_it_was_not_trained_for(ray_session, tmp_path, 
 def test_directory_that_is_not_a_checkpoint(capsys, tmp_path):
     assert main(["--policy", str(tmp_path)]) == 2
     err = capsys.readouterr().err
-    assert err == f"evaluate: error: --policy: {str(tmp_path)!r} is not an RLlib checkpoint (no rllib_checkpoint.json)\n"
+    assert (
+        err == f"evaluate: error: --policy: {str(tmp_path)!r} is not an RLlib checkpoint (no rllib_checkpoint.json)\n"
+    )
     for name in ("checkpoint_000002", "checkpoint_000010"):  # a Tune trial directory
         (tmp_path / name).mkdir()
     assert main(["--policy", str(tmp_path)]) == 2

@@ -102,13 +102,25 @@ BAD = [
     # (id, mutation or raw text, regex the message must match after "<file>: ")
     ("unknown_top_level_key", {"epochs": 3}, r"epochs: unknown field; allowed: .*algorithms"),
     ("unknown_algorithm", {"algorithms": {"nosuch": None}}, r"algorithms\.nosuch: unknown algorithm 'nosuch'"),
-    ("bad_override_value", {"algorithms": {"stock_ppo": {"lr": -1}}}, r"algorithms\.stock_ppo\.lr: Input should be greater than 0 \(got -1\)"),
-    ("unknown_override", {"algorithms": {"stock_ppo": {"learning_rate": 1}}}, r"algorithms\.stock_ppo\.learning_rate: unknown field"),
+    (
+        "bad_override_value",
+        {"algorithms": {"stock_ppo": {"lr": -1}}},
+        r"algorithms\.stock_ppo\.lr: Input should be greater than 0 \(got -1\)",
+    ),
+    (
+        "unknown_override",
+        {"algorithms": {"stock_ppo": {"learning_rate": 1}}},
+        r"algorithms\.stock_ppo\.learning_rate: unknown field",
+    ),
     ("override_not_mapping", {"algorithms": {"stock_ppo": 5}}, r"algorithms\.stock_ppo: "),
     ("bad_scenario_value", {"scenario": {"sf_set": [5]}}, r"scenario\.sf_set: must be distinct values"),
     ("unknown_scenario_field", {"scenario": {"n_gateways": 3}}, r"scenario\.n_gateways: unknown field"),
     ("scenario_sets_n_eds", {"scenario": {"n_eds": 3}}, r"scenario\.n_eds: set by the top-level 'n_eds' list"),
-    ("action_mode_mismatch", {"scenario": {"action_mode": "per_device"}}, r"scenario\.action_mode: algorithm 'stock_ppo' supports action modes \['per_uav'\]"),
+    (
+        "action_mode_mismatch",
+        {"scenario": {"action_mode": "per_device"}},
+        r"scenario\.action_mode: algorithm 'stock_ppo' supports action modes \['per_uav'\]",
+    ),
     ("empty_seeds", {"seeds": []}, r"seeds: List should have at least 1 item"),
     ("empty_n_eds", {"n_eds": []}, r"n_eds: List should have at least 1 item"),
     ("empty_algorithms", {"algorithms": {}}, r"algorithms: Dictionary should have at least 1 item"),
@@ -116,29 +128,93 @@ BAD = [
     ("repeated_seed", {"seeds": [1, 1]}, r"seeds: values must be distinct"),
     ("missing_stop", {"stop": None}, r"stop: required field is missing"),
     ("bad_stop", {"stop": {"env_steps": 0}}, r"stop\.env_steps: Input should be greater than 0"),
-    ("bad_resources", {"resources": {"num_env_runners": -1}}, r"resources\.num_env_runners: Input should be greater than or equal to 0"),
+    (
+        "bad_resources",
+        {"resources": {"num_env_runners": -1}},
+        r"resources\.num_env_runners: Input should be greater than or equal to 0",
+    ),
     ("unknown_baseline", {"baselines": ["random", "oracle"]}, r"baselines\.1: unknown baseline 'oracle'"),
-    ("baseline_scenario_mismatch", {"baselines": ["optimal"], "n_uavs": [4]}, r"baselines\.0: 'optimal' \(with n_eds=5, n_uavs=4\)"),
-    ("entry_build_check", {"algorithms": {"stock_ppo": {"train_batch_size": 10, "minibatch_size": 50}}}, r"algorithms\.stock_ppo\.minibatch_size: 50 is larger than the train batch \(10\) \(with n_eds=5, n_uavs=1\)"),
-    ("file_store_uri", {"mlflow": {"tracking_uri": "file:./mlruns"}}, r"mlflow\.tracking_uri: must be a database or server URI"),
-    ("bad_evaluation", {"evaluation": {"episodes": 0}}, r"evaluation\.episodes: Input should be greater than or equal to 1"),
+    (
+        "baseline_scenario_mismatch",
+        {"baselines": ["optimal"], "n_uavs": [4]},
+        r"baselines\.0: 'optimal' \(with n_eds=5, n_uavs=4\)",
+    ),
+    (
+        "entry_build_check",
+        {"algorithms": {"stock_ppo": {"train_batch_size": 10, "minibatch_size": 50}}},
+        r"algorithms\.stock_ppo\.minibatch_size: 50 is larger than the train batch \(10\) \(with n_eds=5, n_uavs=1\)",
+    ),
+    (
+        "file_store_uri",
+        {"mlflow": {"tracking_uri": "file:./mlruns"}},
+        r"mlflow\.tracking_uri: must be a database or server URI",
+    ),
+    (
+        "bad_evaluation",
+        {"evaluation": {"episodes": 0}},
+        r"evaluation\.episodes: Input should be greater than or equal to 1",
+    ),
     ("bad_plugin", {"plugins": ["no_such_module_xyz"]}, r"plugins\.0: cannot import module 'no_such_module_xyz'"),
-    ("yaml_syntax", "experiment: g\nalgorithms: {stock_ppo: null\nseeds: [0]\n", r"line 3, column \d+: YAML syntax error"),
+    (
+        "yaml_syntax",
+        "experiment: g\nalgorithms: {stock_ppo: null\nseeds: [0]\n",
+        r"line 3, column \d+: YAML syntax error",
+    ),
     # strict numbers: no bool or string for a number, no NaN or inf (issue 15)
-    ("bool_for_float", {"algorithms": {"stock_ppo": {"lr": True}}}, r"algorithms\.stock_ppo\.lr: expected a number in \(0, 1\], got True \(bool\)"),
-    ("inf_for_float", {"algorithms": {"stock_ppo": {"lr": float("inf")}}}, r"algorithms\.stock_ppo\.lr: expected a finite number"),
-    ("string_for_int", {"checkpoint_every": "5"}, r"checkpoint_every: expected an integer in \[1, 1e\+09\], got '5' \(str\)"),
+    (
+        "bool_for_float",
+        {"algorithms": {"stock_ppo": {"lr": True}}},
+        r"algorithms\.stock_ppo\.lr: expected a number in \(0, 1\], got True \(bool\)",
+    ),
+    (
+        "inf_for_float",
+        {"algorithms": {"stock_ppo": {"lr": float("inf")}}},
+        r"algorithms\.stock_ppo\.lr: expected a finite number",
+    ),
+    (
+        "string_for_int",
+        {"checkpoint_every": "5"},
+        r"checkpoint_every: expected an integer in \[1, 1e\+09\], got '5' \(str\)",
+    ),
     ("bool_seed", {"seeds": [True]}, r"seeds\.0: expected an integer in \[0, 4\.29497e\+09\], got True"),
     ("negative_seed", {"seeds": [-1]}, r"seeds\.0: Input should be greater than or equal to 0"),
     ("huge_seed", {"seeds": [2**64]}, r"seeds\.0: expected an integer in \[0, 4\.29497e\+09\] within the 64-bit range"),
     ("seed_above_32_bits", {"seeds": [2**32]}, r"seeds\.0: Input should be less than or equal to 4294967295"),
-    ("nan_reward_weight", {"scenario": {"reward": {"w1": float("nan")}}}, r"scenario\.reward\.w1: expected a finite number in \[-1e\+06, 1e\+06\], got nan"),
-    ("nan_mobility", {"scenario": {"mobility": {"mean_velocity_init_mps": float("nan")}}}, r"scenario\.mobility\.mean_velocity_init_mps: expected a finite number"),
-    ("inf_area", {"scenario": {"area_m": float("inf")}}, r"scenario\.area_m: expected a finite number in \[1, 1e\+07\]"),
-    ("huge_altitude", {"scenario": {"altitude_m": 1e300}}, r"scenario\.altitude_m: Input should be less than or equal to 10000"),
-    ("huge_range", {"scenario": {"comm_range_m": 1e300}}, r"scenario\.comm_range_m: Input should be less than or equal to"),
-    ("tiny_noise", {"scenario": {"noise_dbm": -1e6}}, r"scenario\.noise_dbm: Input should be greater than or equal to -200"),
-    ("huge_weight", {"scenario": {"reward": {"w4": -1e308}}}, r"scenario\.reward\.w4: Input should be greater than or equal to -1000000"),
+    (
+        "nan_reward_weight",
+        {"scenario": {"reward": {"w1": float("nan")}}},
+        r"scenario\.reward\.w1: expected a finite number in \[-1e\+06, 1e\+06\], got nan",
+    ),
+    (
+        "nan_mobility",
+        {"scenario": {"mobility": {"mean_velocity_init_mps": float("nan")}}},
+        r"scenario\.mobility\.mean_velocity_init_mps: expected a finite number",
+    ),
+    (
+        "inf_area",
+        {"scenario": {"area_m": float("inf")}},
+        r"scenario\.area_m: expected a finite number in \[1, 1e\+07\]",
+    ),
+    (
+        "huge_altitude",
+        {"scenario": {"altitude_m": 1e300}},
+        r"scenario\.altitude_m: Input should be less than or equal to 10000",
+    ),
+    (
+        "huge_range",
+        {"scenario": {"comm_range_m": 1e300}},
+        r"scenario\.comm_range_m: Input should be less than or equal to",
+    ),
+    (
+        "tiny_noise",
+        {"scenario": {"noise_dbm": -1e6}},
+        r"scenario\.noise_dbm: Input should be greater than or equal to -200",
+    ),
+    (
+        "huge_weight",
+        {"scenario": {"reward": {"w4": -1e308}}},
+        r"scenario\.reward\.w4: Input should be greater than or equal to -1000000",
+    ),
     ("bool_in_tuple", {"scenario": {"tp_dbm": [2.0, True]}}, r"scenario\.tp_dbm\.1: expected a number, got True"),
     ("bool_resources", {"resources": {"num_env_runners": True}}, r"resources\.num_env_runners: expected an integer"),
     # names, URIs, storage
@@ -147,17 +223,59 @@ BAD = [
     ("slash_experiment", {"experiment": "a/b"}, r"experiment: must be 1-64 characters"),
     ("newline_experiment", {"experiment": "a\nb"}, r"experiment: must be 1-64 characters"),
     ("blank_experiment", {"experiment": " "}, r"experiment: must be 1-64 characters"),
-    ("bogus_uri", {"mlflow": {"tracking_uri": "bogus://x"}}, r"mlflow\.tracking_uri: must be a database or server URI with scheme one of \['sqlite'"),
+    (
+        "bogus_uri",
+        {"mlflow": {"tracking_uri": "bogus://x"}},
+        r"mlflow\.tracking_uri: must be a database or server URI with scheme one of \['sqlite'",
+    ),
     ("http_without_host", {"mlflow": {"tracking_uri": "http://"}}, r"mlflow\.tracking_uri: .*no host"),
-    ("sqlite_under_a_file", {"mlflow": {"tracking_uri": "sqlite:////dev/null/x.db"}}, r"mlflow\.tracking_uri: the sqlite file's directory is not usable"),
-    ("storage_under_a_file", {"storage": "/dev/null/x"}, r"storage: must be a directory that exists or can be created: cannot create /dev/null/x: /dev/null is not a directory"),
+    (
+        "sqlite_under_a_file",
+        {"mlflow": {"tracking_uri": "sqlite:////dev/null/x.db"}},
+        r"mlflow\.tracking_uri: the sqlite file's directory is not usable",
+    ),
+    (
+        "storage_under_a_file",
+        {"storage": "/dev/null/x"},
+        r"storage: must be a directory that exists or can be created: cannot create /dev/null/x: /dev/null is not a directory",
+    ),
     ("storage_unknown_scheme", {"storage": "ftp://host/x"}, r"storage: must be a local directory or a URI .*'s3'"),
-    ("plugin_not_a_module_name", {"plugins": ["tune_stock_ppo", "a-b"]}, r"plugins: entry 1: must be a dotted Python module name"),
+    (
+        "plugin_not_a_module_name",
+        {"plugins": ["tune_stock_ppo", "a-b"]},
+        r"plugins: entry 1: must be a dotted Python module name",
+    ),
     # cross-field checks of an algorithm's hyperparameters
-    ("qmix_learning_starts_above_buffer", {"plugins": [], "algorithms": {"qmix": {"buffer_size_episodes": 4, "batch_size_episodes": 2, "learning_starts_episodes": 8}}}, r"algorithms\.qmix: learning_starts_episodes \(8\) must be <= buffer_size_episodes \(4\)"),
-    ("qmix_batch_above_buffer", {"plugins": [], "algorithms": {"qmix": {"buffer_size_episodes": 4, "batch_size_episodes": 8, "learning_starts_episodes": 2}}}, r"algorithms\.qmix: batch_size_episodes \(8\) must be <= buffer_size_episodes \(4\)"),
-    ("duplicate_key", "experiment: g\nexperiment: h\n", r"line 2, column 1: YAML error: duplicate key 'experiment' \(first given on line 1\)"),
-    ("duplicate_nested_key", "experiment: g\nalgorithms:\n  stock_ppo: {lr: 0.1, lr: 0.2}\n", r"line 3, column \d+: YAML error: duplicate key 'lr'"),
+    (
+        "qmix_learning_starts_above_buffer",
+        {
+            "plugins": [],
+            "algorithms": {
+                "qmix": {"buffer_size_episodes": 4, "batch_size_episodes": 2, "learning_starts_episodes": 8}
+            },
+        },
+        r"algorithms\.qmix: learning_starts_episodes \(8\) must be <= buffer_size_episodes \(4\)",
+    ),
+    (
+        "qmix_batch_above_buffer",
+        {
+            "plugins": [],
+            "algorithms": {
+                "qmix": {"buffer_size_episodes": 4, "batch_size_episodes": 8, "learning_starts_episodes": 2}
+            },
+        },
+        r"algorithms\.qmix: batch_size_episodes \(8\) must be <= buffer_size_episodes \(4\)",
+    ),
+    (
+        "duplicate_key",
+        "experiment: g\nexperiment: h\n",
+        r"line 2, column 1: YAML error: duplicate key 'experiment' \(first given on line 1\)",
+    ),
+    (
+        "duplicate_nested_key",
+        "experiment: g\nalgorithms:\n  stock_ppo: {lr: 0.1, lr: 0.2}\n",
+        r"line 3, column \d+: YAML error: duplicate key 'lr'",
+    ),
     ("not_a_mapping", "- just\n- a list\n", r"<top level>: expected a mapping"),
 ]
 
@@ -193,10 +311,22 @@ def test_not_utf8(tmp_path, capsys):
 
 
 PLUGIN_FAILURES = [
-    ("syntax", "def broken(:\n", r"importing plugin module 'bad_plugin_syntax' failed: SyntaxError \(.*bad_plugin_syntax\.py, line 1\)"),
-    ("raises", "raise RuntimeError('no GPU here')\n", r"importing plugin module 'bad_plugin_raises' failed: RuntimeError: no GPU here"),
+    (
+        "syntax",
+        "def broken(:\n",
+        r"importing plugin module 'bad_plugin_syntax' failed: SyntaxError \(.*bad_plugin_syntax\.py, line 1\)",
+    ),
+    (
+        "raises",
+        "raise RuntimeError('no GPU here')\n",
+        r"importing plugin module 'bad_plugin_raises' failed: RuntimeError: no GPU here",
+    ),
     ("exits", "import sys\nsys.exit(0)\n", r"importing plugin module 'bad_plugin_exits' failed: SystemExit: 0"),
-    ("missing_dep", "import no_such_dependency_xyz\n", r"cannot import module 'bad_plugin_missing_dep': No module named 'no_such_dependency_xyz'"),
+    (
+        "missing_dep",
+        "import no_such_dependency_xyz\n",
+        r"cannot import module 'bad_plugin_missing_dep': No module named 'no_such_dependency_xyz'",
+    ),
 ]
 
 
@@ -216,7 +346,9 @@ def test_resources_beyond_the_local_machine(tmp_path, capsys):
     path = write(tmp_path, data)
     load_grid(path)  # a valid grid in itself: a cluster may have 1000 CPUs ...
     rc, _, err = run_cli([path], capsys)  # ... the local Ray has not: refused before Ray starts
-    assert rc == 2 and re.search(r"resources\.num_cpus_per_learner: one trial needs 1000 CPUs .* local Ray has \d+", err), err
+    assert rc == 2 and re.search(
+        r"resources\.num_cpus_per_learner: one trial needs 1000 CPUs .* local Ray has \d+", err
+    ), err
     rc, out, err = run_cli([path, "--dry-run"], capsys)  # a preview (of a cluster grid) only notes it
     assert rc == 0 and re.search(r"note: a local run would be refused: .*one trial needs 1000 CPUs", out), out
     rc, out, err = run_cli([path, "--dry-run", "--num-cpus", "2000"], capsys)
@@ -245,7 +377,12 @@ def test_bad_grid_subprocess_no_traceback(tmp_path):
     path = write(tmp_path, _mutate(tmp_path, algorithms={"stock_ppo": {"lr": -1}}))
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([TESTS_DIR, REPO, os.environ.get("PYTHONPATH", "")]))
     proc = subprocess.run(
-        [sys.executable, "-m", "uavlora_rllib.tune", path], capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120
+        [sys.executable, "-m", "uavlora_rllib.tune", path],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp_path,
+        timeout=120,
     )
     assert proc.returncode == 2
     assert proc.stderr.strip() == f"error: {path}: algorithms.stock_ppo.lr: Input should be greater than 0 (got -1)"
@@ -276,8 +413,14 @@ def test_shipped_grids_are_valid():
     """Every YAML in tune_configs/ loads (algorithms still to come are commented out there)."""
     folder = os.path.join(REPO, "tune_configs")
     names = sorted(n for n in os.listdir(folder) if n.endswith(".yaml"))
-    assert {"smoke.yaml", "paper_fig3a.yaml", "paper_fig3b.yaml", "paper_fig3c.yaml",
-            "sweep_mappo_asha.yaml", "sweep_qmix_optuna.yaml"} <= set(names)  # sweeps: test_sweep.py
+    assert {
+        "smoke.yaml",
+        "paper_fig3a.yaml",
+        "paper_fig3b.yaml",
+        "paper_fig3c.yaml",
+        "sweep_mappo_asha.yaml",
+        "sweep_qmix_optuna.yaml",
+    } <= set(names)  # sweeps: test_sweep.py
     for name in names:
         grid = load_grid(os.path.join(folder, name))
         assert trials(grid)

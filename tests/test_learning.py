@@ -41,8 +41,16 @@ ENVS = 4  # scenarios sampled at once
 # rest only make a CI-sized budget enough (larger step sizes, fewer epochs, a short epsilon
 # schedule and a short horizon: the problem is myopic, actions never change the next slot).
 _PPO_CI = {"share_actor": False, "lr": 2e-3, "num_epochs": 8, "num_minibatches": 2, "batch_episodes": 8}
-_Q_CI = {"updates_per_iteration": 16, "lr": 1e-3, "gamma": 0.5, "t_max_env_steps": 8_000, "epsilon_anneal_fraction": 0.25,
-         "batch_size_episodes": 8, "buffer_size_episodes": 32, "learning_starts_episodes": 8}
+_Q_CI = {
+    "updates_per_iteration": 16,
+    "lr": 1e-3,
+    "gamma": 0.5,
+    "t_max_env_steps": 8_000,
+    "epsilon_anneal_fraction": 0.25,
+    "batch_size_episodes": 8,
+    "buffer_size_episodes": 32,
+    "learning_starts_episodes": 8,
+}
 # the project's learners: every algorithm registered from this package (a plugin that another
 # test module registers, such as tests/tune_stock_ppo.py, is not a learner of this project)
 LEARNERS = [n for n in registry.available() if registry.MODULES[n].startswith("uavlora_rllib.algorithms.")]
@@ -52,7 +60,10 @@ CI: dict[str, tuple[dict, int]] = {
     "ippo": (_PPO_CI, 40),  # 6,400 env steps
     "qmix": (_Q_CI, 100),  # 100 x 4 episodes x 20 slots = 8,000 env steps
     "vdn": (_Q_CI, 100),
-    "coma": ({"lr_actor": 3e-4, "lr_critic": 1e-3}, 40),  # 40 x 16 episodes x 20 slots = 12,800 env steps, 8 updates each
+    "coma": (
+        {"lr_actor": 3e-4, "lr_critic": 1e-3},
+        40,
+    ),  # 40 x 16 episodes x 20 slots = 12,800 env steps, 8 updates each
 }
 # per_device: one SF/TP per served ED, one BW per UAV. V = 12, U = 3 rather than SMALL: at V = 4, U = 2
 # the best constant is already the per-slot optimum in per_device mode too (the open-loop check
@@ -108,7 +119,9 @@ def _train_each(scenario: ScenarioConfig, budgets: dict[str, tuple[dict, int]], 
         overrides, iters = budgets[name]
         entry = registry.get(name)
         t0 = time.perf_counter()
-        algo = entry.build(scenario, entry.hparams(overrides), registry.Resources(num_envs_per_env_runner=ENVS), 0).build_algo()
+        algo = entry.build(
+            scenario, entry.hparams(overrides), registry.Resources(num_envs_per_env_runner=ENVS), 0
+        ).build_algo()
         try:
             for _ in range(iters):
                 algo.train()
@@ -183,7 +196,9 @@ def test_every_per_device_learner_has_a_ci_budget():
 
 def test_premise_per_device_open_loop_is_below_the_reference(best_fixed_per_device_ee):
     """The per_device check means something only where a constant is well below the reference."""
-    reference = run_episodes(make_baseline("greedy", PER_DEVICE), PER_DEVICE, EVAL_EPISODES, EVAL_SEED).mean("ee_sys_mean")
+    reference = run_episodes(make_baseline("greedy", PER_DEVICE), PER_DEVICE, EVAL_EPISODES, EVAL_SEED).mean(
+        "ee_sys_mean"
+    )
     assert best_fixed_per_device_ee <= OPEN_LOOP_MAX * reference, (best_fixed_per_device_ee, reference)
 
 

@@ -214,8 +214,11 @@ def test_separate_actors_per_uav():
     assert m.actor.stacked_inp_weight.shape[0] == SMALL.n_uavs and m.actor.in_dim == obs_dim(SMALL)
     assert {f"actor.nets.{i}.inp.weight" for i in range(SMALL.n_uavs)} <= set(m.state_dict())
     out = m.forward_train(
-        {"obs": torch.zeros(2, 3, 2, obs_dim(SMALL)), "state": torch.zeros(2, 3, state_dim(SMALL)),
-         "state_in": {"h": torch.zeros(2, 2, 128)}}
+        {
+            "obs": torch.zeros(2, 3, 2, obs_dim(SMALL)),
+            "state": torch.zeros(2, 3, state_dim(SMALL)),
+            "state_in": {"h": torch.zeros(2, 2, 128)},
+        }
     )
     assert out["action_dist_inputs"].shape == (2, 3, 2, SMALL.n_joint_actions)
 
@@ -231,7 +234,11 @@ def test_shared_actor_with_per_uav_heads():
         observation_space=team_observation_space(SMALL),
         action_space=team_action_space(SMALL),
         model_config=hparams_model_config(
-            MAPPOHParams, critic="central", state_dim=state_dim(SMALL), share_actor=True, actor_agent_heads=True,
+            MAPPOHParams,
+            critic="central",
+            state_dim=state_dim(SMALL),
+            share_actor=True,
+            actor_agent_heads=True,
             max_seq_len=8,
         ),
     )
@@ -239,7 +246,7 @@ def test_shared_actor_with_per_uav_heads():
     assert m.actor.agent_out is not None and float(m.actor.agent_out.detach().abs().sum()) == 0.0
     same = torch.rand(1, 1, 1, obs_dim(SMALL)).expand(1, 1, SMALL.n_uavs, -1)
     h0 = {"h": torch.zeros(1, SMALL.n_uavs, 128)}
-    m.actor.nets[0].inp.weight.data[:, obs_dim(SMALL):] = 0.0  # no agent-id input: only the heads differ
+    m.actor.nets[0].inp.weight.data[:, obs_dim(SMALL) :] = 0.0  # no agent-id input: only the heads differ
     logits = m.forward_train({"obs": same, "state_in": h0})["action_dist_inputs"]
     assert torch.allclose(logits[0, 0, 0], logits[0, 0, 1])
     with torch.no_grad():

@@ -49,8 +49,13 @@ def test_curves_csv_one_row_per_step_last_value_wins():
 def test_trial_config_yaml_is_plain_yaml():
     cfg = {"algorithm": "mappo", "seed": 3, "hparams": {"lr": 3e-4, "sizes": (8, 8)}, "plugins": []}
     doc = yaml.safe_load(run_schema.trial_config_yaml(cfg, "abc_00000"))
-    assert doc == {"trial_id": "abc_00000", "algorithm": "mappo", "seed": 3,
-                   "hparams": {"lr": 3e-4, "sizes": [8, 8]}, "plugins": []}
+    assert doc == {
+        "trial_id": "abc_00000",
+        "algorithm": "mappo",
+        "seed": 3,
+        "hparams": {"lr": 3e-4, "sizes": [8, 8]},
+        "plugins": [],
+    }
 
 
 # --------------------------------------------------------------------------- fast: a sqlite store
@@ -74,7 +79,11 @@ def test_parent_run_nests_baselines_drawn_as_flat_lines(sqlite_tracker):
     run = t.client.get_run(run_id)
     assert run.data.tags[run_schema.PARENT_TAG] == parent
     assert {k: run.data.params[k] for k in run_schema.IDENTITY_PARAMS} == {
-        "algorithm": "random", "seed": "0", "n_eds": "6", "n_uavs": "2"}
+        "algorithm": "random",
+        "seed": "0",
+        "n_eds": "6",
+        "n_uavs": "2",
+    }
     assert run.data.tags["mlflow.source.git.commit"] == "c0ffee" and run.data.tags["mlflow.source.type"] == "LOCAL"
     assert run.data.tags["mlflow.user"] == getpass.getuser()
     assert "uavlora_rllib.tune" in run.data.tags["mlflow.source.name"]
@@ -93,8 +102,11 @@ def test_creating_an_existing_experiment_finds_it(sqlite_tracker):
 
 def test_old_flat_baseline_is_recognised_and_nested(sqlite_tracker):
     t = sqlite_tracker
-    old = t.client.create_run(t.experiment_id, run_name="random-V6-U2-s0", tags={
-        "kind": "baseline", "algorithm": "random", "seed": "0", "n_eds": "6", "n_uavs": "2"})
+    old = t.client.create_run(
+        t.experiment_id,
+        run_name="random-V6-U2-s0",
+        tags={"kind": "baseline", "algorithm": "random", "seed": "0", "n_eds": "6", "n_uavs": "2"},
+    )
     for k, v in BASE_PARAMS.items():
         t.client.log_param(old.info.run_id, k, v)  # no identity params: written before they existed
     t.client.set_terminated(old.info.run_id, "FINISHED")
@@ -111,8 +123,16 @@ def test_report_files_go_to_the_parent(tmp_path, sqlite_tracker):
     parent = t.open_grid_run()
     for seed in (0, 1):
         for name, ee in (("random", 1.0 + seed), ("greedy", 3.0 + seed)):
-            t.log_baseline(name, f"{name}-V6-U2-s{seed}", seed, 6, 2, BASE_PARAMS,
-                           lambda ee=ee: {**SUMMARY, "ee_sys_mean": ee}, budget=100)
+            t.log_baseline(
+                name,
+                f"{name}-V6-U2-s{seed}",
+                seed,
+                6,
+                2,
+                BASE_PARAMS,
+                lambda ee=ee: {**SUMMARY, "ee_sys_mean": ee},
+                budget=100,
+            )
     t.end(parent, "FINISHED")
     out = tmp_path / "rep"
     args = ["--experiment", "nest", "--tracking-uri", t.tracking_uri, "--out", str(out), "--no-fig2"]
@@ -153,8 +173,16 @@ def test_refused_credentials_are_one_line(monkeypatch):
 
 
 # --------------------------------------------------------------------------- slow: a real server
-TINY_MAPPO = {"lr": 3e-4, "batch_episodes": 2, "num_epochs": 1, "num_minibatches": 1, "gru_hidden": 8,
-              "fc_hidden": 8, "critic_hidden": 8, "max_seq_len": 10}
+TINY_MAPPO = {
+    "lr": 3e-4,
+    "batch_episodes": 2,
+    "num_epochs": 1,
+    "num_minibatches": 1,
+    "gru_hidden": 8,
+    "fc_hidden": 8,
+    "critic_hidden": 8,
+    "max_seq_len": 10,
+}
 EPISODE_LEN = 10
 BUDGET = 40  # 2 iterations of 2 episodes
 ADMIN, ADMIN_PW = "admin", "uavlora-admin-pw-0"  # the basic-auth app wants 12+ characters
@@ -174,16 +202,41 @@ def auth_server(tmp_path_factory):
         "[mlflow]\ndefault_permission = READ\n"
         f"database_uri = sqlite:///{tmp / 'auth.db'}\nadmin_username = {ADMIN}\n"
         "authorization_function = mlflow.server.auth:authenticate_request_basic_auth\n"
-        "auth_cache_ttl_seconds = 60\n")  # one password hash a minute, not one per request: CI's CPUs
+        "auth_cache_ttl_seconds = 60\n"
+    )  # one password hash a minute, not one per request: CI's CPUs
     port = free_port()
-    env = dict(os.environ, MLFLOW_AUTH_CONFIG_PATH=str(tmp / "auth.ini"), MLFLOW_AUTH_ADMIN_PASSWORD=ADMIN_PW,
-               MLFLOW_FLASK_SERVER_SECRET_KEY="test-only-secret",
-               MLFLOW_SERVER_ENABLE_JOB_EXECUTION="false")  # no background job workers (7 processes)
+    env = dict(
+        os.environ,
+        MLFLOW_AUTH_CONFIG_PATH=str(tmp / "auth.ini"),
+        MLFLOW_AUTH_ADMIN_PASSWORD=ADMIN_PW,
+        MLFLOW_FLASK_SERVER_SECRET_KEY="test-only-secret",
+        MLFLOW_SERVER_ENABLE_JOB_EXECUTION="false",
+    )  # no background job workers (7 processes)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "mlflow", "server", "--app-name", "basic-auth", "--host", "127.0.0.1",
-         "--port", str(port), "--workers", "1", "--backend-store-uri", f"sqlite:///{tmp / 'backend.db'}",
-         "--artifacts-destination", str(tmp / "artifacts")],
-        cwd=tmp, env=env, stdout=open(tmp / "server.log", "w"), stderr=subprocess.STDOUT, start_new_session=True)
+        [
+            sys.executable,
+            "-m",
+            "mlflow",
+            "server",
+            "--app-name",
+            "basic-auth",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(port),
+            "--workers",
+            "1",
+            "--backend-store-uri",
+            f"sqlite:///{tmp / 'backend.db'}",
+            "--artifacts-destination",
+            str(tmp / "artifacts"),
+        ],
+        cwd=tmp,
+        env=env,
+        stdout=open(tmp / "server.log", "w"),
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
     uri = f"http://127.0.0.1:{port}"
     try:
         wait_for_mlflow_server(uri, proc, 240, lambda: (tmp / "server.log").read_text()[-3000:])
@@ -212,8 +265,9 @@ def test_grid_against_an_authenticated_server(auth_server, ray_address, tmp_path
     from uavlora_rllib import tune as tune_cli
 
     uri = auth_server["uri"]
-    grid_file = write_tiny_grid(tmp_path, "ui", mappo=TINY_MAPPO, episode_len=EPISODE_LEN, budget=BUDGET,
-                                baselines=("random",), uri=uri)
+    grid_file = write_tiny_grid(
+        tmp_path, "ui", mappo=TINY_MAPPO, episode_len=EPISODE_LEN, budget=BUDGET, baselines=("random",), uri=uri
+    )
 
     # no credentials: refused before anything runs, one line, exit code 2
     monkeypatch.delenv("MLFLOW_TRACKING_USERNAME", raising=False)
@@ -244,7 +298,11 @@ def test_grid_against_an_authenticated_server(auth_server, ray_address, tmp_path
         assert r.data.tags["mlflow.parentRunId"] == parent.info.run_id
     # params to filter and group by; MLflow's standard source tags
     assert {k: train.data.params[k] for k in run_schema.IDENTITY_PARAMS} == {
-        "algorithm": "mappo", "seed": "0", "n_eds": "6", "n_uavs": "2"}
+        "algorithm": "mappo",
+        "seed": "0",
+        "n_eds": "6",
+        "n_uavs": "2",
+    }
     assert base.data.params["algorithm"] == "random" and base.data.params["seed"] == "0"
     for r in (parent, train, base):
         tags = r.data.tags
@@ -295,8 +353,9 @@ def test_grid_against_an_authenticated_server(auth_server, ray_address, tmp_path
     capsys.readouterr()
     files = _artifacts(client, parent.info.run_id)
     assert {"grid.yaml", "report/report.md", "report/table_ee.csv"} <= set(files), files
-    assert not [r for r in client.search_runs([exp.experiment_id]) if r.data.tags["kind"] not in ("grid", "train",
-                                                                                                  "baseline")]
+    assert not [
+        r for r in client.search_runs([exp.experiment_id]) if r.data.tags["kind"] not in ("grid", "train", "baseline")
+    ]
     monkeypatch.delenv("MLFLOW_TRACKING_PASSWORD")
     assert report.main(args) == 2
     err = capsys.readouterr().err.strip()

@@ -36,10 +36,14 @@ def test_schedule_first_iteration_then_every_interval(monkeypatch):
     assert calls == [20, 120, 200, 460] and logged == {s: float(s) for s in calls}
     assert cb.evaluations == 4
     assert pe.metrics_from_result({"eval/x": 1.0, "eval_sampled/x": 2.0, "learner/y": 3.0}) == {
-        "eval/x": 1.0, "eval_sampled/x": 2.0}
+        "eval/x": 1.0,
+        "eval_sampled/x": 2.0,
+    }
     # the MLflow callback logs both prefixes as execution metrics
     assert metrics_to_log({"eval_sampled/ee_sys_mean": 2.0, "eval/ee_sys_mean": 1.0})[1] == {
-        "eval_sampled/ee_sys_mean": 2.0, "eval/ee_sys_mean": 1.0}
+        "eval_sampled/ee_sys_mean": 2.0,
+        "eval/ee_sys_mean": 1.0,
+    }
 
 
 def test_resolve_interval_and_grid_field(tmp_path):
@@ -49,8 +53,14 @@ def test_resolve_interval_and_grid_field(tmp_path):
     assert pe.resolve_interval(None, 2_000_000) == 100_000
     assert pe.resolve_interval(None, 7) == 1
     assert pe.resolve_interval(0, 1000) == 0 and pe.resolve_interval(300, 1000) == 300
-    base = {"experiment": "x", "algorithms": ["mappo"], "seeds": [0], "n_eds": [6], "n_uavs": [2],
-            "stop": {"env_steps": 400}}
+    base = {
+        "experiment": "x",
+        "algorithms": ["mappo"],
+        "seeds": [0],
+        "n_eds": [6],
+        "n_uavs": [2],
+        "stop": {"env_steps": 400},
+    }
     assert parse_grid(base).evaluation.interval_env_steps is None
     assert parse_grid({**base, "evaluation": {"interval_env_steps": 50}}).evaluation.interval_env_steps == 50
     with pytest.raises(ConfigError, match="evaluation.interval_env_steps"):
@@ -91,8 +101,17 @@ def test_points_equal_an_independent_evaluation(ray_session, tmp_path, monkeypat
     import uavlora_rllib.envs.multi_agent  # noqa: F401  (registers the env)
 
     entry = registry.get("mappo")
-    hp = entry.hparams({"batch_episodes": 2, "num_epochs": 1, "num_minibatches": 1, "gru_hidden": 8,
-                        "fc_hidden": 8, "critic_hidden": 8, "max_seq_len": 10})
+    hp = entry.hparams(
+        {
+            "batch_episodes": 2,
+            "num_epochs": 1,
+            "num_minibatches": 1,
+            "gru_hidden": 8,
+            "fc_hidden": 8,
+            "critic_hidden": 8,
+            "max_seq_len": 10,
+        }
+    )
     cfg = entry.build(SCEN, hp, registry.Resources(num_env_runners=0, num_envs_per_env_runner=2), 0)
     pe.attach(cfg, pe.PeriodicEvalSettings(SCEN, 20, 3, 5))  # 20 env steps = every iteration
     algo = cfg.build_algo()
@@ -105,7 +124,8 @@ def test_points_equal_an_independent_evaluation(ray_session, tmp_path, monkeypat
             assert got["eval/episodes"] == 3.0
             sampled = entry.policy(algo, SCEN, explore=True, seed=5)
             want_s = eval_metrics(run_episodes(sampled, SCEN, 3, 5).summary())
-            assert {k[len("eval_sampled/"):]: v for k, v in got.items() if k.startswith("eval_sampled/")} == \
-                pytest.approx({k[len("eval/"):]: v for k, v in want_s.items()}, rel=1e-12)
+            assert {
+                k[len("eval_sampled/") :]: v for k, v in got.items() if k.startswith("eval_sampled/")
+            } == pytest.approx({k[len("eval/") :]: v for k, v in want_s.items()}, rel=1e-12)
     finally:
         algo.stop()

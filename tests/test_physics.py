@@ -423,7 +423,9 @@ CHANNEL_CFGS = [
 
 @pytest.mark.parametrize("cfg", CHANNEL_CFGS)
 def test_channel_gain_sq_equals_the_plain_formula(cfg):
-    d_h = np.concatenate([[0.0, 1e-6, 1.0, 90.0, 600.0, 1414.2, 5000.0], np.random.default_rng(0).uniform(0, 2000, 1000)])
+    d_h = np.concatenate(
+        [[0.0, 1e-6, 1.0, 90.0, 600.0, 1414.2, 5000.0], np.random.default_rng(0).uniform(0, 2000, 1000)]
+    )
     g, g_db = physics.channel_gain_sq(d_h * d_h, cfg, with_db=True)
     np.testing.assert_allclose(g, physics.channel_gain(d_h, cfg), rtol=1e-12, atol=0)
     np.testing.assert_allclose(g_db, -physics.path_loss_db(d_h, cfg), rtol=1e-12, atol=0)

@@ -46,10 +46,20 @@ CI_ENVS = 4
 def test_hparams_defaults_follow_spec():
     h = QMIXHParams()
     assert (h.lr, h.gamma, h.gru_hidden, h.batch_size_episodes, h.buffer_size_episodes) == (1e-4, 0.99, 128, 16, 32)
-    assert (h.tau, h.grad_clip, h.epsilon_start, h.epsilon_end, h.n_step, h.mixing_embed_dim) == (0.01, 10.0, 1.0, 0.05, 1, 32)
+    assert (h.tau, h.grad_clip, h.epsilon_start, h.epsilon_end, h.n_step, h.mixing_embed_dim) == (
+        0.01,
+        10.0,
+        1.0,
+        0.05,
+        1,
+        32,
+    )
     assert h.epsilon_anneal_env_steps == 100_000  # 5% of T_max = 2M
     # the one default that differs, each measured (docs/model.md#training-defaults)
-    assert (registry.get("qmix").hparams({}).updates_per_episode, registry.get("vdn").hparams({}).updates_per_episode) == (0.25, 1.0)
+    assert (
+        registry.get("qmix").hparams({}).updates_per_episode,
+        registry.get("vdn").hparams({}).updates_per_episode,
+    ) == (0.25, 1.0)
     assert VDNConfig().hparams == registry.get("vdn").hparams({}) and QMIXConfig().hparams == QMIXHParams()
     for name in ("qmix", "vdn"):
         entry = registry.get(name)
@@ -84,7 +94,9 @@ def test_updates_per_episode_keeps_the_update_to_data_ratio(per_episode, added, 
 
     from uavlora_rllib.algorithms.qmix.qmix import QMIX
 
-    algo = SimpleNamespace(config=SimpleNamespace(hparams=QMIXHParams(updates_per_episode=per_episode)), _update_credit=0.0)
+    algo = SimpleNamespace(
+        config=SimpleNamespace(hparams=QMIXHParams(updates_per_episode=per_episode)), _update_credit=0.0
+    )
     assert [QMIX._updates_due(algo, n) for n in added] == expected
     assert sum(expected) == int(per_episode * sum(added))
 
@@ -175,13 +187,24 @@ def test_epsilon_schedule_and_exploration():
 
 # ---------------------------------------------------------------------- GRU unroll boundaries
 def _module(n_agents=2, obs_dim=3, n_actions=5, state_dim=4, mixer="qmix", **extra) -> QMixModule:
-    mc = hparams_model_config(QMIXHParams, **{
-        "n_agents": n_agents, "obs_dim": obs_dim, "n_actions": n_actions, "state_dim": state_dim,
-        "gru_hidden": 8, "fc_hidden": 8, "mixer": mixer,
-        "epsilon_anneal_env_steps": QMIXHParams().epsilon_anneal_env_steps, **extra,
-    })
+    mc = hparams_model_config(
+        QMIXHParams,
+        **{
+            "n_agents": n_agents,
+            "obs_dim": obs_dim,
+            "n_actions": n_actions,
+            "state_dim": state_dim,
+            "gru_hidden": 8,
+            "fc_hidden": 8,
+            "mixer": mixer,
+            "epsilon_anneal_env_steps": QMIXHParams().epsilon_anneal_env_steps,
+            **extra,
+        },
+    )
     obs_space = gym.spaces.Box(-1, 1, (n_agents, obs_dim), np.float32)
-    return QMixModule(observation_space=obs_space, action_space=gym.spaces.MultiDiscrete([n_actions] * n_agents), model_config=mc)
+    return QMixModule(
+        observation_space=obs_space, action_space=gym.spaces.MultiDiscrete([n_actions] * n_agents), model_config=mc
+    )
 
 
 @pytest.mark.parametrize("share", [True, False])
@@ -224,7 +247,11 @@ MATRIX_DIMS = {"n_agents": 2, "obs_dim": 1, "state_dim": 1, "n_actions": 3}  # a
 def _matrix_config(cls, **hparams):
     """The algorithm's config through its one entry point (`uavlora`), with the game's sizes."""
     obs_space, act_space = gym.spaces.Box(-1, 1, (2, 1), np.float32), gym.spaces.MultiDiscrete([3, 3])
-    cfg = cls().environment(observation_space=obs_space, action_space=act_space).uavlora(cls.hparams_cls(**hparams), SMALL)
+    cfg = (
+        cls()
+        .environment(observation_space=obs_space, action_space=act_space)
+        .uavlora(cls.hparams_cls(**hparams), SMALL)
+    )
     cfg.rl_module(model_config={**cfg.model_config, **MATRIX_DIMS})
     return cfg, {DEFAULT_MODULE_ID: (obs_space, act_space)}
 
@@ -425,7 +452,10 @@ def test_checkpoint_round_trip(trained, tmp_path):
         before = trained["qmix"][1]["num_gradient_updates_lifetime"]
         after = restored.train()
         assert after["num_gradient_updates_lifetime"] == before  # replay < learning_starts: no update yet
-        assert after["num_env_steps_sampled_lifetime"] == trained["qmix"][1]["num_env_steps_sampled_lifetime"] + CI_ENVS * 20
+        assert (
+            after["num_env_steps_sampled_lifetime"]
+            == trained["qmix"][1]["num_env_steps_sampled_lifetime"] + CI_ENVS * 20
+        )
     finally:
         restored.stop()
 

@@ -31,11 +31,22 @@ STATE_DIM = 4
 
 
 def _module(mixer="vdn", **extra) -> BranchingQMixModule:
-    mc = hparams_model_config(QMIXHParams, **{
-        "n_agents": U, "obs_dim": OBS_DIM, "n_actions": N_SF * N_TP * N_BW, "state_dim": STATE_DIM,
-        "gru_hidden": 8, "fc_hidden": 8, "head_hidden": 6, "mixer": mixer, "action_mode": "per_device",
-        "epsilon_anneal_env_steps": QMIXHParams().epsilon_anneal_env_steps, **extra,
-    })
+    mc = hparams_model_config(
+        QMIXHParams,
+        **{
+            "n_agents": U,
+            "obs_dim": OBS_DIM,
+            "n_actions": N_SF * N_TP * N_BW,
+            "state_dim": STATE_DIM,
+            "gru_hidden": 8,
+            "fc_hidden": 8,
+            "head_hidden": 6,
+            "mixer": mixer,
+            "action_mode": "per_device",
+            "epsilon_anneal_env_steps": QMIXHParams().epsilon_anneal_env_steps,
+            **extra,
+        },
+    )
     nvec = np.tile(np.array([N_SF, N_TP] * K + [N_BW]), (U, 1))
     obs_space = gym.spaces.Box(-1, 1, (U, OBS_DIM), np.float32)
     mod = BranchingQMixModule(observation_space=obs_space, action_space=gym.spaces.MultiDiscrete(nvec), model_config=mc)
@@ -135,7 +146,9 @@ def test_active_slots_follow_the_served_count():
     obs = torch.as_tensor(np.clip(core.obs, -1, 1), dtype=torch.float32)
     act = branching.active_slots(obs, cfg.quota)
     rows = branching.slot_rows(obs, cfg.quota)
-    assert torch.equal(act, (rows != 0).any(-1)) and act.sum() == int(core.obs[..., cfg.quota * 4].sum() * cfg.quota + 0.5)
+    assert torch.equal(act, (rows != 0).any(-1)) and act.sum() == int(
+        core.obs[..., cfg.quota * 4].sum() * cfg.quota + 0.5
+    )
 
 
 def test_aggregation_ignores_empty_slots():
@@ -152,7 +165,9 @@ def test_aggregation_ignores_empty_slots():
     act = branching.active_slots(batch[Columns.OBS][:, :-1], K)
     other_actions = batch[Columns.ACTIONS].clone()
     flip = torch.stack((~act, ~act), dim=-1).flatten(-2)  # the SF and TP entries of empty slots
-    other_actions[..., :-1] = torch.where(flip, (other_actions[..., :-1] + 1) % torch.tensor([N_SF, N_TP] * K), other_actions[..., :-1])
+    other_actions[..., :-1] = torch.where(
+        flip, (other_actions[..., :-1] + 1) % torch.tensor([N_SF, N_TP] * K), other_actions[..., :-1]
+    )
     other[Columns.ACTIONS] = other_actions
     assert not torch.equal(other_actions, batch[Columns.ACTIONS])
     torch.testing.assert_close(mod.forward_train(other)[Q_TAKEN], out[Q_TAKEN])
@@ -269,11 +284,21 @@ def test_registry_builds_the_branching_module_only_in_per_device_mode():
 
 def test_module_fits_the_team_spaces():
     cfg = ScenarioConfig(n_eds=12, n_uavs=3, episode_len=20, action_mode="per_device")
-    mc = hparams_model_config(QMIXHParams, **{
-        "n_agents": 3, "obs_dim": team_observation_space(cfg).shape[1], "n_actions": cfg.n_joint_actions, "state_dim": 5,
-        "mixer": "qmix", "action_mode": "per_device", "epsilon_anneal_env_steps": 100,
-    })
-    mod = BranchingQMixModule(observation_space=team_observation_space(cfg), action_space=team_action_space(cfg), model_config=mc)
+    mc = hparams_model_config(
+        QMIXHParams,
+        **{
+            "n_agents": 3,
+            "obs_dim": team_observation_space(cfg).shape[1],
+            "n_actions": cfg.n_joint_actions,
+            "state_dim": 5,
+            "mixer": "qmix",
+            "action_mode": "per_device",
+            "epsilon_anneal_env_steps": 100,
+        },
+    )
+    mod = BranchingQMixModule(
+        observation_space=team_observation_space(cfg), action_space=team_action_space(cfg), model_config=mc
+    )
     assert mod.quota == cfg.quota and mod.n_pairs == cfg.n_sf * cfg.n_tp and mod.n_bw == cfg.n_bw
 
 
@@ -287,8 +312,17 @@ def test_per_device_build_trains_and_acts(ray_session, name):
 
     cfg = ScenarioConfig(n_eds=6, n_uavs=2, episode_len=10, action_mode="per_device")
     entry = registry.get(name)
-    hp = entry.hparams({"learning_starts_episodes": 2, "batch_size_episodes": 2, "buffer_size_episodes": 8,
-                        "updates_per_iteration": 2, "gru_hidden": 16, "fc_hidden": 16, "head_hidden": 8})
+    hp = entry.hparams(
+        {
+            "learning_starts_episodes": 2,
+            "batch_size_episodes": 2,
+            "buffer_size_episodes": 8,
+            "updates_per_iteration": 2,
+            "gru_hidden": 16,
+            "fc_hidden": 16,
+            "head_hidden": 8,
+        }
+    )
     algo = entry.build(cfg, hp, registry.Resources(num_envs_per_env_runner=2), 0).build_algo()
     try:
         results = [algo.train() for _ in range(2)]

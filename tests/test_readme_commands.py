@@ -24,7 +24,9 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text(encoding="utf-8")
 # `python -m ...` up to the end of the line or the closing backtick of inline code
-COMMANDS = sorted(c for c in set(re.findall(r"(python -m [^`\n]+)", README)) if "<name>" not in c)  # not a generic mention
+COMMANDS = sorted(
+    c for c in set(re.findall(r"(python -m [^`\n]+)", README)) if "<name>" not in c
+)  # not a generic mention
 MAKE_TARGETS = sorted(set(re.findall(r"^make (\w+)", README, re.M)))
 ENV = {**os.environ, "PYTHONWARNINGS": "ignore", "RAY_ADDRESS": "local"}
 
@@ -46,8 +48,14 @@ def _help(module: str, sub: str | None) -> str:
 def test_the_readme_shows_commands():
     modules = {_argv(c)[0] for c in COMMANDS}
     # the entry points the README promises (a regex that stopped matching would pass vacuously)
-    assert {"uavlora_rllib.tune", "uavlora_rllib.evaluate", "analysis.report", "analysis.animate",
-            "uavlora_rllib.bench", "uavlora_rllib.bench_train"} <= modules
+    assert {
+        "uavlora_rllib.tune",
+        "uavlora_rllib.evaluate",
+        "analysis.report",
+        "analysis.animate",
+        "uavlora_rllib.bench",
+        "uavlora_rllib.bench_train",
+    } <= modules
     assert {"demo", "test"} <= set(MAKE_TARGETS)
 
 
@@ -97,8 +105,9 @@ RUNNABLE = [c for c in COMMANDS if _small(c, Path("/tmp")) is not None]
 @pytest.mark.parametrize("command", RUNNABLE)
 def test_cheap_commands_run(command, tmp_path):
     argv = _small(command, tmp_path)
-    proc = subprocess.run([sys.executable, "-m", *argv], capture_output=True, text=True, env=ENV, cwd=tmp_path,
-                          timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-m", *argv], capture_output=True, text=True, env=ENV, cwd=tmp_path, timeout=600
+    )
     assert proc.returncode == 0, f"{' '.join(argv)}: exit {proc.returncode}\n{proc.stderr[-3000:]}"
     if argv[0] == "analysis.animate":
         assert (tmp_path / "ep.gif").stat().st_size > 0

@@ -54,7 +54,9 @@ def test_factory_per_device_references_and_refusal():
     cfg = ScenarioConfig(action_mode="per_device")
     assert isinstance(make_baseline("greedy", cfg), PerDeviceGreedy)
     assert isinstance(make_baseline("optimal", tiny(3, 1)), PerDeviceOptimal)
-    with pytest.raises(ConfigError, match=r"^scenario\.n_eds: baseline 'optimal' in per_device mode .* limit of 1,000,000"):
+    with pytest.raises(
+        ConfigError, match=r"^scenario\.n_eds: baseline 'optimal' in per_device mode .* limit of 1,000,000"
+    ):
         make_baseline("optimal", cfg)
 
 
@@ -155,8 +157,12 @@ def test_best_fixed_per_device_beats_simple_constants():
     def mean_ee(const):
         core = BatchCore(cfg, len(seeds))
         core.reset(seeds)
-        return np.mean([core.step(np.broadcast_to(const, (len(seeds),) + const.shape).copy()).metrics["ee_sys"]
-                        for _ in range(cfg.episode_len)])
+        return np.mean(
+            [
+                core.step(np.broadcast_to(const, (len(seeds),) + const.shape).copy()).metrics["ee_sys"]
+                for _ in range(cfg.episode_len)
+            ]
+        )
 
     best = mean_ee(action)
     assert best == pytest.approx(policy.selection_ee, rel=1e-6)

@@ -145,17 +145,47 @@ def test_optimal_beats_every_candidate_with_cross_gain():
 SCENARIO_OPTIONS = [{"interference": "cross_gain", "rate_model": "lora_phy", "association": "optimal"}]
 # the smallest updates each learner allows on these 4-slot episodes
 TINY = {
-    "mappo": {"num_epochs": 1, "num_minibatches": 1, "batch_episodes": 2, "max_seq_len": 4, "gru_hidden": 8, "fc_hidden": 8, "critic_hidden": 8},
-    "ippo": {"num_epochs": 1, "num_minibatches": 1, "batch_episodes": 2, "max_seq_len": 4, "gru_hidden": 8, "fc_hidden": 8, "critic_hidden": 8},
+    "mappo": {
+        "num_epochs": 1,
+        "num_minibatches": 1,
+        "batch_episodes": 2,
+        "max_seq_len": 4,
+        "gru_hidden": 8,
+        "fc_hidden": 8,
+        "critic_hidden": 8,
+    },
+    "ippo": {
+        "num_epochs": 1,
+        "num_minibatches": 1,
+        "batch_episodes": 2,
+        "max_seq_len": 4,
+        "gru_hidden": 8,
+        "fc_hidden": 8,
+        "critic_hidden": 8,
+    },
     # one update per episode, so that the first iteration's 2 episodes run the learner (0.25: none yet)
-    "qmix": {"batch_size_episodes": 2, "buffer_size_episodes": 4, "learning_starts_episodes": 2, "gru_hidden": 8, "fc_hidden": 8,
-             "updates_per_episode": 1.0},
-    "vdn": {"batch_size_episodes": 2, "buffer_size_episodes": 4, "learning_starts_episodes": 2, "gru_hidden": 8, "fc_hidden": 8,
-            "updates_per_episode": 1.0},
+    "qmix": {
+        "batch_size_episodes": 2,
+        "buffer_size_episodes": 4,
+        "learning_starts_episodes": 2,
+        "gru_hidden": 8,
+        "fc_hidden": 8,
+        "updates_per_episode": 1.0,
+    },
+    "vdn": {
+        "batch_size_episodes": 2,
+        "buffer_size_episodes": 4,
+        "learning_starts_episodes": 2,
+        "gru_hidden": 8,
+        "fc_hidden": 8,
+        "updates_per_episode": 1.0,
+    },
     "coma": {"batch_episodes": 2, "gru_hidden": 8, "actor_hidden": 8},
 }
 LEARNER_CASES = [
-    (name, mode, options) for name in registry.available() for mode in registry.get(name).action_modes
+    (name, mode, options)
+    for name in registry.available()
+    for mode in registry.get(name).action_modes
     for options in SCENARIO_OPTIONS
 ]
 
@@ -169,8 +199,9 @@ def _finite_leaves(tree, path=""):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name, action_mode, options", LEARNER_CASES,
-                         ids=[f"{n}-{m}-{_combo_id(o)}" for n, m, o in LEARNER_CASES])
+@pytest.mark.parametrize(
+    "name, action_mode, options", LEARNER_CASES, ids=[f"{n}-{m}-{_combo_id(o)}" for n, m, o in LEARNER_CASES]
+)
 def test_one_training_iteration_per_learner(ray_session, name, action_mode, options):
     """Every learner x every action mode it claims x every scenario option: one training
     iteration with finite learner metrics, then its greedy policy plays the scenario."""

@@ -70,9 +70,7 @@ def scenarios(draw) -> ScenarioConfig:
         "reward": (RewardWeights, RewardWeights()),
     }
     for key, (cls, obj) in groups.items():
-        fields[key] = {
-            f: draw(_value(cls, f, getattr(obj, f))) for f in cls.__pydantic_fields__ if draw(st.booleans())
-        }
+        fields[key] = {f: draw(_value(cls, f, getattr(obj, f))) for f in cls.__pydantic_fields__ if draw(st.booleans())}
     tp = draw(st.lists(st.sampled_from([-30.0, -10.0, 0.0, 14.0, 30.0]), min_size=1, max_size=3, unique=True))
     fields.update(
         n_eds=draw(st.integers(1, 8)),

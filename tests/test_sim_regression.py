@@ -106,7 +106,7 @@ def mismatch(name: str, fp: Fingerprint, golden) -> str | None:
     labels = [str(s) for s in golden[f"{name}/labels"]]
     if labels != fp.labels:
         first = next((i for i, (a, b) in enumerate(zip(labels, fp.labels)) if a != b), min(len(labels), len(fp.labels)))
-        return f"array #{first}: recorded {labels[first:first + 1]}, now {fp.labels[first:first + 1]}"
+        return f"array #{first}: recorded {labels[first : first + 1]}, now {fp.labels[first : first + 1]}"
     s0, a0 = golden[f"{name}/sums"].T
     s = np.array(fp.sums)[:, 0]
     bad = np.flatnonzero(np.abs(s - s0) > RTOL * a0)

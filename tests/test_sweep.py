@@ -28,15 +28,24 @@ from uavlora_rllib.experiment.tuner import trial_config
 
 TESTS_DIR = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(TESTS_DIR)
-TINY_MAPPO = {"batch_episodes": 2, "num_epochs": 1, "num_minibatches": 1, "gru_hidden": 8, "fc_hidden": 8,
-              "critic_hidden": 8, "max_seq_len": 10}
+TINY_MAPPO = {
+    "batch_episodes": 2,
+    "num_epochs": 1,
+    "num_minibatches": 1,
+    "gru_hidden": 8,
+    "fc_hidden": 8,
+    "critic_hidden": 8,
+    "max_seq_len": 10,
+}
 EPISODE_LEN = 10  # 2 episodes of 10 slots: 20 env steps per training iteration
 
 
 def sweep_grid(tmp_path, mappo=None, **extra) -> dict:
     return {
         "experiment": "sw",
-        "algorithms": {"mappo": {**TINY_MAPPO, **(mappo if mappo is not None else {"lr": {"loguniform": [1e-4, 1e-2]}})}},
+        "algorithms": {
+            "mappo": {**TINY_MAPPO, **(mappo if mappo is not None else {"lr": {"loguniform": [1e-4, 1e-2]}})}
+        },
         "seeds": [0],
         "n_eds": [6],
         "n_uavs": [2],
@@ -65,13 +74,18 @@ def cli(argv, capsys):
 
 # --------------------------------------------------------------------------- valid sweeps
 def test_search_spaces_expand_with_num_samples_and_grid_search(tmp_path, capsys):
-    data = sweep_grid(tmp_path, {
-        "lr": {"loguniform": [1e-4, 1e-2]},
-        "entropy_coeff": {"choice": [0.0, 0.01]},
-        "num_epochs": {"randint": [1, 4]},
-        "share_actor": {"grid_search": [True, False]},
-        "critic": {"choice": ["central", "local"]},
-    }, seeds=[0, 1], num_samples=3)
+    data = sweep_grid(
+        tmp_path,
+        {
+            "lr": {"loguniform": [1e-4, 1e-2]},
+            "entropy_coeff": {"choice": [0.0, 0.01]},
+            "num_epochs": {"randint": [1, 4]},
+            "share_actor": {"grid_search": [True, False]},
+            "critic": {"choice": ["central", "local"]},
+        },
+        seeds=[0, 1],
+        num_samples=3,
+    )
     grid = parse_grid(data)
     specs = trials(grid)
     assert len(specs) == 2 and is_sweep(grid, specs)
@@ -98,7 +112,9 @@ def test_eval_interval_agrees_with_periodic_eval(tmp_path):
     from uavlora_rllib.experiment import periodic_eval
 
     for interval in (None, 0, 7):
-        grid = parse_grid(sweep_grid(tmp_path, {"lr": 1e-3}, evaluation={"episodes": 1, "interval_env_steps": interval}))
+        grid = parse_grid(
+            sweep_grid(tmp_path, {"lr": 1e-3}, evaluation={"episodes": 1, "interval_env_steps": interval})
+        )
         assert eval_interval(grid) == periodic_eval.resolve_interval(interval, grid.stop.env_steps)
 
 
@@ -113,24 +129,44 @@ BAD_SPACES = [
     ({"lr": {"choice": [1e-3, "x"]}}, "algorithms.mappo.lr.choice.1: expected a number in (0, 1], got 'x'"),
     ({"lr": {"choice": []}}, "algorithms.mappo.lr.choice: expected a non-empty list"),
     ({"lr": {"choice": [1e-3, 1e-3]}}, "algorithms.mappo.lr.choice.1: values must be distinct"),
-    ({"lr": {"normal": [0, 1]}},
-     "algorithms.mappo.lr: unknown search space 'normal'; allowed: grid_search, choice, uniform, loguniform, randint"),
-    ({"lr": {"choice": [1e-3], "uniform": [0.1, 0.2]}}, "algorithms.mappo.lr: a search space is a mapping with one key"),
+    (
+        {"lr": {"normal": [0, 1]}},
+        "algorithms.mappo.lr: unknown search space 'normal'; allowed: grid_search, choice, uniform, loguniform, randint",
+    ),
+    (
+        {"lr": {"choice": [1e-3], "uniform": [0.1, 0.2]}},
+        "algorithms.mappo.lr: a search space is a mapping with one key",
+    ),
     ({"num_epochs": {"uniform": [1, 5]}}, "uniform samples floats and algorithms.mappo.num_epochs is an integer field"),
-    ({"num_epochs": {"randint": [0, 5]}}, "algorithms.mappo.num_epochs.randint.0: Input should be greater than or equal to 1"),
+    (
+        {"num_epochs": {"randint": [0, 5]}},
+        "algorithms.mappo.num_epochs.randint.0: Input should be greater than or equal to 1",
+    ),
     ({"num_epochs": {"randint": [5, 5]}}, "algorithms.mappo.num_epochs.randint: expected lo < hi"),
-    ({"num_epochs": {"grid_search": [2, 2.5]}}, "algorithms.mappo.num_epochs.grid_search.1: Input should be a valid integer"),
-    ({"share_actor": {"randint": [0, 2]}}, "randint samples integers and algorithms.mappo.share_actor is a true/false field"),
-    ({"critic": {"grid_search": ["central", "bogus"]}},
-     "algorithms.mappo.critic.grid_search.1: Input should be 'central' or 'local'"),
+    (
+        {"num_epochs": {"grid_search": [2, 2.5]}},
+        "algorithms.mappo.num_epochs.grid_search.1: Input should be a valid integer",
+    ),
+    (
+        {"share_actor": {"randint": [0, 2]}},
+        "randint samples integers and algorithms.mappo.share_actor is a true/false field",
+    ),
+    (
+        {"critic": {"grid_search": ["central", "bogus"]}},
+        "algorithms.mappo.critic.grid_search.1: Input should be 'central' or 'local'",
+    ),
     ({"nope": {"choice": [1]}}, "algorithms.mappo.nope: unknown field; allowed:"),
     # the algorithm's own cross-checks (hyperparameters x scenario), with the sampled value named
-    ({"actor_agent_heads": {"grid_search": [False, True]}},
-     "algorithms.mappo.actor_agent_heads: true needs share_actor: true"),
+    (
+        {"actor_agent_heads": {"grid_search": [False, True]}},
+        "algorithms.mappo.actor_agent_heads: true needs share_actor: true",
+    ),
 ]
 
 
-@pytest.mark.parametrize("overrides,message", BAD_SPACES, ids=[m.split(":")[0] + str(i) for i, (_, m) in enumerate(BAD_SPACES)])
+@pytest.mark.parametrize(
+    "overrides,message", BAD_SPACES, ids=[m.split(":")[0] + str(i) for i, (_, m) in enumerate(BAD_SPACES)]
+)
 def test_bad_search_space_is_one_line(tmp_path, capsys, overrides, message):
     rc, out, err = cli([write(tmp_path, sweep_grid(tmp_path, overrides)), "--dry-run"], capsys)
     assert rc == 2 and out == ""
@@ -150,32 +186,58 @@ def test_sampled_values_are_checked_together(tmp_path):
 
 
 BAD_SWEEPS = [
-    ({"scheduler": {"type": "asha"}, "evaluation": {"episodes": 1, "interval_env_steps": 0}},
-     "scheduler: needs periodic evaluation of the greedy policy (its metric is eval/ee_sys_mean)"),
-    ({"search_alg": {"type": "optuna"}, "evaluation": {"episodes": 1, "interval_env_steps": 0}},
-     "search_alg: needs periodic evaluation"),
+    (
+        {"scheduler": {"type": "asha"}, "evaluation": {"episodes": 1, "interval_env_steps": 0}},
+        "scheduler: needs periodic evaluation of the greedy policy (its metric is eval/ee_sys_mean)",
+    ),
+    (
+        {"search_alg": {"type": "optuna"}, "evaluation": {"episodes": 1, "interval_env_steps": 0}},
+        "search_alg: needs periodic evaluation",
+    ),
     ({"scheduler": {"type": "hyperband"}}, "scheduler.type: Input should be 'asha', 'pbt' or 'median_stopping'"),
-    ({"scheduler": {"type": "asha", "perturbation_interval": 40}},
-     "scheduler.perturbation_interval: an option of pbt, not of asha"),
-    ({"scheduler": {"type": "asha", "grace_period": 20}},
-     "scheduler.grace_period: 20 env steps is shorter than the periodic evaluation interval (40 env steps"),
+    (
+        {"scheduler": {"type": "asha", "perturbation_interval": 40}},
+        "scheduler.perturbation_interval: an option of pbt, not of asha",
+    ),
+    (
+        {"scheduler": {"type": "asha", "grace_period": 20}},
+        "scheduler.grace_period: 20 env steps is shorter than the periodic evaluation interval (40 env steps",
+    ),
     ({"scheduler": {"type": "pbt", "perturbation_interval": 20}}, "scheduler.perturbation_interval: 20 env steps"),
-    ({"scheduler": {"type": "asha", "reduction_factor": 1}}, "scheduler.reduction_factor: Input should be greater than 1"),
+    (
+        {"scheduler": {"type": "asha", "reduction_factor": 1}},
+        "scheduler.reduction_factor: Input should be greater than 1",
+    ),
     ({"scheduler": {"type": "asha"}, "n_eds": [5, 6]}, "n_eds: scheduler asha needs exactly one value here"),
-    ({"scheduler": {"type": "pbt"}, "algorithms": {"mappo": {"lr": {"uniform": [1e-4, 1e-3]}}, "ippo": None}},
-     "algorithms: scheduler pbt needs exactly one value here"),
-    ({"scheduler": {"type": "pbt"}, "algorithms": {"mappo": {"lr": 1e-3}}}, "scheduler: pbt mutates the hyperparameters"),
-    ({"scheduler": {"type": "pbt", "perturbation_factors": [1.2, 0]}}, "scheduler.perturbation_factors: expected two factors"),
+    (
+        {"scheduler": {"type": "pbt"}, "algorithms": {"mappo": {"lr": {"uniform": [1e-4, 1e-3]}}, "ippo": None}},
+        "algorithms: scheduler pbt needs exactly one value here",
+    ),
+    (
+        {"scheduler": {"type": "pbt"}, "algorithms": {"mappo": {"lr": 1e-3}}},
+        "scheduler: pbt mutates the hyperparameters",
+    ),
+    (
+        {"scheduler": {"type": "pbt", "perturbation_factors": [1.2, 0]}},
+        "scheduler.perturbation_factors: expected two factors",
+    ),
     ({"search_alg": {"type": "hyperopt"}}, "search_alg.type: Input should be 'optuna'"),
     ({"search_alg": {"type": "optuna"}, "seeds": [0, 1]}, "seeds: search_alg optuna needs exactly one value here"),
-    ({"search_alg": {"type": "optuna"}, "algorithms": {"mappo": {"lr": {"grid_search": [1e-3, 1e-4]}}}},
-     "algorithms.mappo.lr.grid_search: optuna cannot sample a grid_search; allowed: choice, uniform, loguniform, randint"),
-    ({"search_alg": {"type": "optuna"}, "algorithms": {"mappo": {"lr": 1e-3}}}, "search_alg: optuna needs at least one search space"),
+    (
+        {"search_alg": {"type": "optuna"}, "algorithms": {"mappo": {"lr": {"grid_search": [1e-3, 1e-4]}}}},
+        "algorithms.mappo.lr.grid_search: optuna cannot sample a grid_search; allowed: choice, uniform, loguniform, randint",
+    ),
+    (
+        {"search_alg": {"type": "optuna"}, "algorithms": {"mappo": {"lr": 1e-3}}},
+        "search_alg: optuna needs at least one search space",
+    ),
     ({"num_samples": 0}, "num_samples: Input should be greater than or equal to 1"),
 ]
 
 
-@pytest.mark.parametrize("extra,message", BAD_SWEEPS, ids=[m.split(":")[0] + str(i) for i, (_, m) in enumerate(BAD_SWEEPS)])
+@pytest.mark.parametrize(
+    "extra,message", BAD_SWEEPS, ids=[m.split(":")[0] + str(i) for i, (_, m) in enumerate(BAD_SWEEPS)]
+)
 def test_bad_scheduler_or_search_alg_is_one_line(tmp_path, capsys, extra, message):
     data = sweep_grid(tmp_path, **extra)
     for algo, over in data["algorithms"].items():  # the tiny network wherever one is set
@@ -193,8 +255,11 @@ def test_tune_objects(tmp_path):
     from ray.tune.schedulers import ASHAScheduler, MedianStoppingRule, PopulationBasedTraining
     from ray.tune.search.optuna import OptunaSearch
 
-    spaces = {"lr": sweep.SearchSpace("loguniform", (1e-4, 1e-2)), "num_epochs": sweep.SearchSpace("randint", (1, 4)),
-              "entropy_coeff": sweep.SearchSpace("choice", (0.0, 0.01))}
+    spaces = {
+        "lr": sweep.SearchSpace("loguniform", (1e-4, 1e-2)),
+        "num_epochs": sweep.SearchSpace("randint", (1, 4)),
+        "entropy_coeff": sweep.SearchSpace("choice", (0.0, 0.01)),
+    }
     assert isinstance(spaces["lr"].to_tune(), tune.search.sample.Float)
     assert spaces["entropy_coeff"].to_mutation() == [0.0, 0.01]
     made = {}
@@ -227,8 +292,17 @@ def test_tune_resolves_the_spaces_inside_the_grid(tmp_path):
 
     from uavlora_rllib.algorithms.common import registry
 
-    grid = parse_grid(sweep_grid(tmp_path, {"lr": {"loguniform": [1e-4, 1e-2]}, "num_epochs": {"randint": [1, 4]},
-                                            "share_actor": {"grid_search": [True, False]}}, seeds=[0, 1]))
+    grid = parse_grid(
+        sweep_grid(
+            tmp_path,
+            {
+                "lr": {"loguniform": [1e-4, 1e-2]},
+                "num_epochs": {"randint": [1, 4]},
+                "share_actor": {"grid_search": [True, False]},
+            },
+            seeds=[0, 1],
+        )
+    )
     specs = trials(grid)
     configs = [trial_config(s, grid, True) for s in specs]
     assert configs[0]["sampled"] == ["lr", "num_epochs", "share_actor"] and configs[0]["sweep"] is True
@@ -239,7 +313,12 @@ def test_tune_resolves_the_spaces_inside_the_grid(tmp_path):
         hp = entry.hparams(cfg["overrides"])
         assert 1e-4 <= hp.lr <= 1e-2 and 1 <= hp.num_epochs <= 3
         assert sweep.sampled_values(cfg) == {"lr": hp.lr, "num_epochs": hp.num_epochs, "share_actor": hp.share_actor}
-    assert {(c["seed"], c["overrides"]["share_actor"]) for c in resolved} == {(0, True), (0, False), (1, True), (1, False)}
+    assert {(c["seed"], c["overrides"]["share_actor"]) for c in resolved} == {
+        (0, True),
+        (0, False),
+        (1, True),
+        (1, False),
+    }
 
 
 def test_trial_names_are_unique_in_a_sweep():
@@ -256,8 +335,19 @@ def test_report_cells_of_a_sweep():
 
     def rec(i, seed, lr, entropy="0.01"):
         params = {"hparam.lr": lr, "hparam.entropy_coeff": entropy}
-        return RunRecord(f"r{i}", f"mappo-V6-U2-s{seed}-t{i:05d}", "FINISHED", i, "train", "mappo", str(seed), 6, 2,
-                         params=params, metrics={"eval/ee_sys_mean": 100.0 + i})
+        return RunRecord(
+            f"r{i}",
+            f"mappo-V6-U2-s{seed}-t{i:05d}",
+            "FINISHED",
+            i,
+            "train",
+            "mappo",
+            str(seed),
+            6,
+            2,
+            params=params,
+            metrics={"eval/ee_sys_mean": 100.0 + i},
+        )
 
     records = [rec(0, 0, "0.001"), rec(1, 1, "0.001"), rec(2, 0, "0.000316227766")]
     assert cell_name(records[2]) == "mappo[entropy_coeff=0.01,lr=0.000316]"
@@ -343,13 +433,21 @@ def _checkpoint_lrs(checkpoint: str) -> tuple[float, float, list[float]]:
 
 
 def _history(client, run, key):
-    return [m.value for m in sorted(client.get_metric_history(run.info.run_id, key), key=lambda m: (m.step, m.timestamp))]
+    return [
+        m.value for m in sorted(client.get_metric_history(run.info.run_id, key), key=lambda m: (m.step, m.timestamp))
+    ]
 
 
 @pytest.mark.slow
 def test_optuna_sampled_lr_is_logged_as_trained(ray_address, tmp_path, capsys):
-    data = sweep_grid(tmp_path, {"lr": {"loguniform": [1e-4, 1e-2]}}, experiment="optuna_lr", num_samples=2,
-                      search_alg={"type": "optuna", "sampler": "random", "seed": 0}, max_concurrent_trials=2)
+    data = sweep_grid(
+        tmp_path,
+        {"lr": {"loguniform": [1e-4, 1e-2]}},
+        experiment="optuna_lr",
+        num_samples=2,
+        search_alg={"type": "optuna", "sampler": "random", "seed": 0},
+        max_concurrent_trials=2,
+    )
     data["stop"] = {"env_steps": 40}
     data["evaluation"]["interval_env_steps"] = 20
     rc, out, err = cli([write(tmp_path, data)], capsys)
@@ -369,10 +467,20 @@ def test_optuna_sampled_lr_is_logged_as_trained(ray_address, tmp_path, capsys):
 
 @pytest.mark.slow
 def test_pbt_mutated_lr_is_logged_as_trained(ray_address, tmp_path, capsys):
-    data = sweep_grid(tmp_path, {"lr": {"loguniform": [1e-4, 1e-2]}}, experiment="pbt_lr", num_samples=2,
-                      max_concurrent_trials=2,
-                      scheduler={"type": "pbt", "perturbation_interval": 40, "quantile_fraction": 0.5,
-                                 "resample_probability": 0.0, "synch": True})
+    data = sweep_grid(
+        tmp_path,
+        {"lr": {"loguniform": [1e-4, 1e-2]}},
+        experiment="pbt_lr",
+        num_samples=2,
+        max_concurrent_trials=2,
+        scheduler={
+            "type": "pbt",
+            "perturbation_interval": 40,
+            "quantile_fraction": 0.5,
+            "resample_probability": 0.0,
+            "synch": True,
+        },
+    )
     data["stop"] = {"env_steps": 120}
     rc, out, err = cli([write(tmp_path, data)], capsys)
     assert rc == 0, err[-3000:]

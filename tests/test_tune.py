@@ -40,8 +40,17 @@ EPISODE_LEN = 10  # 2 episodes of 10 slots = 20 env steps per training iteration
 
 def make_grid(tmp_path, name: str, budget: int, max_concurrent: int | None = None) -> str:
     extra = {"max_concurrent_trials": max_concurrent} if max_concurrent else {}
-    return write_tiny_grid(tmp_path, name, mappo=TINY_MAPPO, episode_len=EPISODE_LEN, budget=budget, seeds=(0, 1),
-                           baselines=("random", "fixed"), episodes=2, **extra)
+    return write_tiny_grid(
+        tmp_path,
+        name,
+        mappo=TINY_MAPPO,
+        episode_len=EPISODE_LEN,
+        budget=budget,
+        seeds=(0, 1),
+        baselines=("random", "fixed"),
+        episodes=2,
+        **extra,
+    )
 
 
 def mlflow_runs(tmp_path, experiment: str) -> list:
@@ -166,7 +175,9 @@ def test_two_trial_grid_end_to_end(ray_address, tmp_path, capsys):
     client, runs2 = mlflow_runs(tmp_path, "e2e")
     assert sorted(r.info.run_id for r in runs2) == sorted(r.info.run_id for r in runs)
     assert all(r.info.status == "FINISHED" for r in runs2)
-    assert {r.info.run_id: len(client.get_metric_history(r.info.run_id, "episode_return_mean")) for r in train} == history
+    assert {
+        r.info.run_id: len(client.get_metric_history(r.info.run_id, "episode_return_mean")) for r in train
+    } == history
 
     # the evaluate CLI on a trial's final checkpoint replays that trial's execution phase exactly
     from uavlora_rllib import evaluate as evaluate_cli
@@ -253,7 +264,11 @@ def test_sigkilled_driver_resumes_with_one_run_each_and_its_runs_adopted(ray_add
     grid_file = make_grid(tmp_path, "killed", budget, max_concurrent=1)
     proc = subprocess.Popen(
         [sys.executable, "-m", "uavlora_rllib.tune", grid_file, "--address", ray_address],
-        cwd=tmp_path, env=dict(os.environ), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        cwd=tmp_path,
+        env=dict(os.environ),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
     )
     exp_dir = tmp_path / "ray_results" / "killed"
     ckpt = str(exp_dir / f"{ALGO}-V6-U2-s0_*" / "checkpoint_*")
@@ -281,7 +296,8 @@ def test_sigkilled_driver_resumes_with_one_run_each_and_its_runs_adopted(ray_add
     assert "took over the lock of a dead driver" in err and "2/2 trials finished" in out
     client, runs = mlflow_runs(tmp_path, "killed")
     assert sorted(r.info.run_name for r in runs) == sorted(
-        [f"{ALGO}-V6-U2-s{s}" for s in (0, 1)] + [f"{b}-V6-U2-s{s}" for b in ("random", "fixed") for s in (0, 1)])
+        [f"{ALGO}-V6-U2-s{s}" for s in (0, 1)] + [f"{b}-V6-U2-s{s}" for b in ("random", "fixed") for s in (0, 1)]
+    )
     assert all(r.info.status == "FINISHED" for r in runs)
     by_name = {r.info.run_name: r.info.run_id for r in runs}
     for name, run_id in running.items():
@@ -308,7 +324,8 @@ def test_resume_before_tune_started_adopts_leftovers(ray_address, tmp_path, caps
     params = run_params(scenario, None, 2)
     partial = {k: params[k] for k in list(params)[:5]}  # killed in the middle of log_params
     left_baseline = tracker.create_run(
-        "random-V6-U2-s0", tracker.base_tags("baseline", "random", 0, 6, 2, budget), partial)
+        "random-V6-U2-s0", tracker.base_tags("baseline", "random", 0, 6, 2, budget), partial
+    )
     tags = tracker.base_tags(KIND_TRAIN, ALGO, 1, 6, 2, budget)
     tags["trial_id"] = "lost0001"
     lost_train = tracker.create_run(f"{ALGO}-V6-U2-s1", tags, {})
@@ -316,8 +333,16 @@ def test_resume_before_tune_started_adopts_leftovers(ray_address, tmp_path, caps
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
     with open(lock_path(str(tmp_path / "ray_results"), "early"), "w") as fh:
-        json.dump({"host": __import__("socket").gethostname(), "pid": dead.pid, "token": "x",
-                   "started": time.time(), "heartbeat": time.time()}, fh)
+        json.dump(
+            {
+                "host": __import__("socket").gethostname(),
+                "pid": dead.pid,
+                "token": "x",
+                "started": time.time(),
+                "heartbeat": time.time(),
+            },
+            fh,
+        )
     assert not (tmp_path / "ray_results" / "early").exists()
 
     rc = tune_cli.main([grid_file, "--resume"])
@@ -326,7 +351,8 @@ def test_resume_before_tune_started_adopts_leftovers(ray_address, tmp_path, caps
     assert "no Tune state" in err and "took over the lock" in err and "2/2 trials finished" in out
     client, runs = mlflow_runs(tmp_path, "early")
     assert sorted(r.info.run_name for r in runs) == sorted(
-        [f"{ALGO}-V6-U2-s{s}" for s in (0, 1)] + [f"{b}-V6-U2-s{s}" for b in ("random", "fixed") for s in (0, 1)])
+        [f"{ALGO}-V6-U2-s{s}" for s in (0, 1)] + [f"{b}-V6-U2-s{s}" for b in ("random", "fixed") for s in (0, 1)]
+    )
     assert all(r.info.status == "FINISHED" for r in runs)
     adopted = next(r for r in runs if r.info.run_name == "random-V6-U2-s0")
     assert adopted.info.run_id == left_baseline

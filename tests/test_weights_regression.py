@@ -76,10 +76,7 @@ def test_weights_after_3_iterations_match_the_golden_file(ray_session, name):
     got = summary(train_weights(name))
     assert sorted(got) == sorted(golden), "the module's parameters and buffers changed"
     bad = {
-        key: (s, s0)
-        for key, (s, _) in got.items()
-        for s0, a0 in [golden[key]]
-        if abs(s - s0) > RTOL * max(a0, 1e-12)
+        key: (s, s0) for key, (s, _) in got.items() for s0, a0 in [golden[key]] if abs(s - s0) > RTOL * max(a0, 1e-12)
     }
     assert not bad, f"{name}: weighted sums off the golden file beyond {RTOL} of sum |w|: {bad}"
 

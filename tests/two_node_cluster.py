@@ -18,15 +18,20 @@ def main() -> None:
     client_port, dashboard_port, head_agent_port, worker_agent_port = map(int, sys.argv[1:5])
     # each raylet's dashboard agent needs its own HTTP port (default 52365 for all: the second
     # agent, or another Ray on the host, would fail to bind and Ray Jobs would find no agent)
-    c = Cluster(initialize_head=True, head_node_args={
-        "num_cpus": 1, "ray_client_server_port": client_port, "include_dashboard": True,
-        "dashboard_host": "127.0.0.1", "dashboard_port": dashboard_port,
-        "dashboard_agent_listen_port": head_agent_port,
-    })
+    c = Cluster(
+        initialize_head=True,
+        head_node_args={
+            "num_cpus": 1,
+            "ray_client_server_port": client_port,
+            "include_dashboard": True,
+            "dashboard_host": "127.0.0.1",
+            "dashboard_port": dashboard_port,
+            "dashboard_agent_listen_port": head_agent_port,
+        },
+    )
     worker = c.add_node(num_cpus=1, dashboard_agent_listen_port=worker_agent_port)
     c.wait_for_nodes()
-    print(json.dumps({"address": c.address, "head_id": c.head_node.node_id, "worker_id": worker.node_id}),
-          flush=True)
+    print(json.dumps({"address": c.address, "head_id": c.head_node.node_id, "worker_id": worker.node_id}), flush=True)
     try:
         for line in sys.stdin:
             if line.strip() == "remove_worker":

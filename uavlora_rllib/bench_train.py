@@ -48,23 +48,45 @@ def _parse_set(items: list[str]) -> dict:
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="python -m uavlora_rllib.bench_train", description=__doc__.split("\n")[0])
     p.add_argument("algo", help="a registered algorithm (python -m uavlora_rllib.tune --list-hparams ALGO)")
-    p.add_argument("--iterations", type=int_in(1, 100_000), default=5,
-                   help="timed training iterations, after one untimed warm-up iteration (default 5)")
+    p.add_argument(
+        "--iterations",
+        type=int_in(1, 100_000),
+        default=5,
+        help="timed training iterations, after one untimed warm-up iteration (default 5)",
+    )
     p.add_argument("--n-eds", type=int_in(1), default=10, help="V, end devices (default 10)")
     p.add_argument("--n-uavs", type=int_in(1), default=2, help="U, UAVs (default 2)")
     p.add_argument("--episode-len", type=int_in(1), default=150, help="slots per episode (default 150)")
-    p.add_argument("--action-mode", choices=("per_uav", "per_device"), default="per_uav",
-                   help="the scenario's action mode (default per_uav)")
-    p.add_argument("--envs-per-runner", type=int_in(1, 100_000), default=8,
-                   help="scenarios sampled at once per env runner, in one BatchCore (default 8)")
-    p.add_argument("--env-runners", type=int_in(0, 10_000), default=0,
-                   help="remote env runners; 0 samples in the algorithm's own process (default 0)")
+    p.add_argument(
+        "--action-mode",
+        choices=("per_uav", "per_device"),
+        default="per_uav",
+        help="the scenario's action mode (default per_uav)",
+    )
+    p.add_argument(
+        "--envs-per-runner",
+        type=int_in(1, 100_000),
+        default=8,
+        help="scenarios sampled at once per env runner, in one BatchCore (default 8)",
+    )
+    p.add_argument(
+        "--env-runners",
+        type=int_in(0, 10_000),
+        default=0,
+        help="remote env runners; 0 samples in the algorithm's own process (default 0)",
+    )
     p.add_argument("--torch-threads", type=int_in(1, 1024), default=1, help="torch threads of the learner (default 1)")
-    p.add_argument("--num-cpus", type=int_in(1, 100_000), default=None,
-                   help="CPUs of the local Ray (default: all of this machine)")
+    p.add_argument(
+        "--num-cpus", type=int_in(1, 100_000), default=None, help="CPUs of the local Ray (default: all of this machine)"
+    )
     p.add_argument("--seed", type=int_in(0, SEED_MAX), default=0, help="training seed (default 0)")
-    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
-                   help="hyperparameter overrides, e.g. --set lr=3e-4 share_actor=true")
+    p.add_argument(
+        "--set",
+        nargs="*",
+        default=[],
+        metavar="KEY=VALUE",
+        help="hyperparameter overrides, e.g. --set lr=3e-4 share_actor=true",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON line as well")
     return p
 

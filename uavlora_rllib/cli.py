@@ -30,8 +30,13 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 def usage() -> str:
     width = max(map(len, COMMANDS))
-    lines = [f"usage: {PROG} {{{','.join(COMMANDS)}}} [ARGS...] | --version", "",
-             "Multi-agent RL for UAV-assisted LoRa networks on Ray RLlib.", "", "commands:"]
+    lines = [
+        f"usage: {PROG} {{{','.join(COMMANDS)}}} [ARGS...] | --version",
+        "",
+        "Multi-agent RL for UAV-assisted LoRa networks on Ray RLlib.",
+        "",
+        "commands:",
+    ]
     lines += [f"  {name:<{width}}  {what}  (python -m {module})" for name, (module, what) in COMMANDS.items()]
     lines += ["", f"{PROG} COMMAND --help shows a command's arguments."]
     return "\n".join(lines)

@@ -140,7 +140,9 @@ def checkpoint_fit_problem(trained: ScenarioConfig, scenario: ScenarioConfig) ->
 
     if spaces(trained) == spaces(scenario):
         return None
-    differ = [f.name for f in dataclasses.fields(ScenarioConfig) if getattr(trained, f.name) != getattr(scenario, f.name)]
+    differ = [
+        f.name for f in dataclasses.fields(ScenarioConfig) if getattr(trained, f.name) != getattr(scenario, f.name)
+    ]
     t_u, t_obs, t_act = spaces(trained)
     u, obs, act = spaces(scenario)
     return (
@@ -154,7 +156,9 @@ def _resolve(args: argparse.Namespace):
     overrides = {k: v for k, v in (("n_eds", args.n_eds), ("n_uavs", args.n_uavs)) if v is not None}
     if args.policy in BASELINES:
         if args.execution != "greedy":
-            raise UsageError(f"--execution: {args.execution!r} applies to a checkpoint; baselines have one execution mode")
+            raise UsageError(
+                f"--execution: {args.execution!r} applies to a checkpoint; baselines have one execution mode"
+            )
         base = _load_yaml_scenario(args.scenario_yaml) if args.scenario_yaml else {}
         cfg = ScenarioConfig.from_dict({**base, **overrides})
         return make_baseline(args.policy, cfg, seed=args.seed, objective=args.objective), cfg
@@ -216,7 +220,14 @@ class _Progress:
 
 
 def run_with_progress(
-    policy: Any, cfg: ScenarioConfig, episodes: int, seed: int, kind: str, label: str, prefix: str = "", out: Any = None,
+    policy: Any,
+    cfg: ScenarioConfig,
+    episodes: int,
+    seed: int,
+    kind: str,
+    label: str,
+    prefix: str = "",
+    out: Any = None,
     bound: Any = None,
 ):
     """evaluation.run_episodes, plus, when the run is estimated to take more than LONG_SECONDS

@@ -81,15 +81,29 @@ def build_parser() -> argparse.ArgumentParser:
         f"descriptions, and exit; ALGO one of {sorted(registry.MODULES)}",
     )
     p.add_argument("--resume", action="store_true", help="continue the grid's Tune experiment")
-    p.add_argument("--dry-run", action="store_true",
-                   help="print the trials, the baseline runs and the grid's estimated cost (from --calibrate), start nothing")
-    p.add_argument("--calibrate", action="store_true",
-                   help="measure on this machine what each distinct trial and baseline of the grid costs (short runs), "
-                        "store it for --dry-run's estimate, then print the dry run")
-    p.add_argument("--calibrate-iterations", type=int_in(1, 100), default=None, metavar="N",
-                   help="with --calibrate: timed training iterations per trial cell, after the warm-up (default 2)")
-    p.add_argument("--address", default=None,
-                   help="Ray cluster address (default: start a local Ray; under `ray job submit`: the job's cluster)")
+    p.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="print the trials, the baseline runs and the grid's estimated cost (from --calibrate), start nothing",
+    )
+    p.add_argument(
+        "--calibrate",
+        action="store_true",
+        help="measure on this machine what each distinct trial and baseline of the grid costs (short runs), "
+        "store it for --dry-run's estimate, then print the dry run",
+    )
+    p.add_argument(
+        "--calibrate-iterations",
+        type=int_in(1, 100),
+        default=None,
+        metavar="N",
+        help="with --calibrate: timed training iterations per trial cell, after the warm-up (default 2)",
+    )
+    p.add_argument(
+        "--address",
+        default=None,
+        help="Ray cluster address (default: start a local Ray; under `ray job submit`: the job's cluster)",
+    )
     p.add_argument(
         "--storage", type=_storage_arg, default=None, help="Ray results directory (overrides the grid's storage)"
     )
@@ -112,14 +126,19 @@ def _calibrate(grid, specs, args: argparse.Namespace) -> int | None:
     if not args.calibrate:
         raise UsageError("--calibrate-iterations: only with --calibrate")
     if args.resume or args.address:
-        raise UsageError("--calibrate: measures this machine in a private local Ray and runs no trial; "
-                         "drop --resume and --address")
+        raise UsageError(
+            "--calibrate: measures this machine in a private local Ray and runs no trial; drop --resume and --address"
+        )
     try:
-        calibration.calibrate(grid, specs, iterations=args.calibrate_iterations or calibration.DEFAULT_ITERATIONS,
-                              num_cpus=args.num_cpus)
+        calibration.calibrate(
+            grid, specs, iterations=args.calibrate_iterations or calibration.DEFAULT_ITERATIONS, num_cpus=args.num_cpus
+        )
     except KeyboardInterrupt:
-        print(f"interrupted: the cells measured so far are kept; measure the rest with  "
-              f"python -m uavlora_rllib.tune {args.grid} --calibrate", file=sys.stderr)
+        print(
+            f"interrupted: the cells measured so far are kept; measure the rest with  "
+            f"python -m uavlora_rllib.tune {args.grid} --calibrate",
+            file=sys.stderr,
+        )
         return EXIT_INTERRUPTED
     return None
 

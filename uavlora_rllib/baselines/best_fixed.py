@@ -58,8 +58,10 @@ def record_slots(cfg: ScenarioConfig, seeds: list) -> Slots:
     parts: list[list[Any]] = []  # per slot: 4 arrays, then the gains or None
     for _ in range(cfg.episode_len):
         s = Slots.of_core(core)
-        parts.append([np.array(a) for a in (s.g_serving, s.serving_idx, s.associated, s.slot_of_ed)]
-                     + [None if s.gains is None else np.array(s.gains)])
+        parts.append(
+            [np.array(a) for a in (s.g_serving, s.serving_idx, s.associated, s.slot_of_ed)]
+            + [None if s.gains is None else np.array(s.gains)]
+        )
         core.step(idle)
     g_serving, serving_idx, associated, slot_of_ed = (np.concatenate([p[i] for p in parts]) for i in range(4))
     gains = None if parts[0][4] is None else np.concatenate([p[4] for p in parts])
@@ -67,8 +69,13 @@ def record_slots(cfg: ScenarioConfig, seeds: list) -> Slots:
 
 
 def _subset(slots: Slots, rows: np.ndarray) -> Slots:
-    return Slots(slots.g_serving[rows], slots.serving_idx[rows], slots.associated[rows], slots.slot_of_ed[rows],
-                 None if slots.gains is None else slots.gains[rows])
+    return Slots(
+        slots.g_serving[rows],
+        slots.serving_idx[rows],
+        slots.associated[rows],
+        slots.slot_of_ed[rows],
+        None if slots.gains is None else slots.gains[rows],
+    )
 
 
 class BestFixedPolicy:
@@ -198,9 +205,11 @@ class _PerDeviceSearch:
         n_u, q_ = cfg.n_uavs, cfg.quota
         u, k = np.arange(n_u)[:, None], np.arange(q_)[None, :]
         top = cfg.n_tp - 1
-        starts = [(u % cfg.n_sf + 0 * k) * cfg.n_tp + top,  # one SF per UAV
-                  ((k + u) % cfg.n_sf) * cfg.n_tp + top,  # spread: row k on SF (k + u) mod n_sf
-                  rng.integers(0, sc.n_set, (n_u, q_))][:BEST_FIXED_RESTARTS]
+        starts = [
+            (u % cfg.n_sf + 0 * k) * cfg.n_tp + top,  # one SF per UAV
+            ((k + u) % cfg.n_sf) * cfg.n_tp + top,  # spread: row k on SF (k + u) mod n_sf
+            rng.integers(0, sc.n_set, (n_u, q_)),
+        ][:BEST_FIXED_RESTARTS]
         used = [(uu, kk) for uu in range(n_u) for kk in range(q_) if (self.rows == uu * q_ + kk).any()]
         best = None
         for const_set in starts:
@@ -213,7 +222,9 @@ class _PerDeviceSearch:
                     p0, q0, m = self._row(const_set, const_bw, uu, kk, p0, q0)
                     moved |= m
                 for uu in range(n_u):
-                    const_bw, p0, q0, m = _best_entry(const_bw, uu, cfg.n_bw, functools.partial(self.bw_keys, const_set), p0, q0)
+                    const_bw, p0, q0, m = _best_entry(
+                        const_bw, uu, cfg.n_bw, functools.partial(self.bw_keys, const_set), p0, q0
+                    )
                     moved |= m
                 if not moved:
                     break

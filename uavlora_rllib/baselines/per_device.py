@@ -41,7 +41,9 @@ class PerDeviceGreedy:
 
     STARTS = ("singletons", "two_shared")
 
-    def __init__(self, cfg: ScenarioConfig, objective: str = "ee", moves_per_coordinate: int = GREEDY_MOVES_PER_COORDINATE):
+    def __init__(
+        self, cfg: ScenarioConfig, objective: str = "ee", moves_per_coordinate: int = GREEDY_MOVES_PER_COORDINATE
+    ):
         self.name = "greedy"
         self.cfg = cfg
         self.objective = objective
@@ -52,7 +54,9 @@ class PerDeviceGreedy:
     def reset(self, core: BatchCore) -> None:
         pass
 
-    def _start(self, kind: str, slots: Slots, setting_ok: np.ndarray, bw_ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _start(
+        self, kind: str, slots: Slots, setting_ok: np.ndarray, bw_ok: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         cfg = self.cfg
         n, v = slots.g_serving.shape
         # gain rank of each ED among the scenario's associated EDs (0 = highest)
@@ -91,7 +95,9 @@ class PerDeviceGreedy:
             qe = qe.reshape(n, -1)
             # every UAV's every BW [N, U * n_bw]
             cand_bw = np.broadcast_to(bw, (cfg.n_uavs, cfg.n_bw, n, cfg.n_uavs)).copy()
-            cand_bw[np.arange(cfg.n_uavs)[:, None], :, :, np.arange(cfg.n_uavs)[:, None]] = np.arange(cfg.n_bw)[None, :, None]
+            cand_bw[np.arange(cfg.n_uavs)[:, None], :, :, np.arange(cfg.n_uavs)[:, None]] = np.arange(cfg.n_bw)[
+                None, :, None
+            ]
             pb, qb = s.score(np.broadcast_to(setting, (cfg.n_uavs, cfg.n_bw, n, v)), cand_bw, slots, setting_ok, bw_ok)
             p = np.concatenate([pe, pb.reshape(-1, n).T], axis=1)
             q = np.concatenate([qe, qb.reshape(-1, n).T], axis=1)

@@ -387,7 +387,9 @@ def evaluation_seconds(name: str, cfg: ScenarioConfig, episodes: int) -> float:
         sel_slots = selection_episodes(cfg) * cfg.episode_len
         if cfg.action_mode == "per_uav":
             total = cfg.n_joint_actions**cfg.n_uavs
-            cand = total if total <= BEST_FIXED_EXHAUSTIVE else 3 * BEST_FIXED_RESTARTS * cfg.n_uavs * cfg.n_joint_actions
+            cand = (
+                total if total <= BEST_FIXED_EXHAUSTIVE else 3 * BEST_FIXED_RESTARTS * cfg.n_uavs * cfg.n_joint_actions
+            )
         else:
             cand = 3 * BEST_FIXED_RESTARTS * (cfg.n_uavs * cfg.quota * cfg.n_sf * cfg.n_tp + cfg.n_uavs * cfg.n_bw)
         return sel_slots * cfg.n_eds * cand / SEARCH_RATE + slots * cfg.n_eds * STEP_SECONDS_PER_ED

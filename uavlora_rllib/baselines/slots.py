@@ -68,20 +68,26 @@ class AllocationScorer:
         snr_db = physics.lin_to_db(physics.snr(t.tp_w[self.set_tp], slots.g_serving[..., None], t.noise_w))
         ok = snr_db[:, :, None, :] >= t.threshold_db[self.set_sf].T[None, None]  # [N, V, n_bw, n_set]
         infeasible = ~ok.any(axis=-1) & slots.associated[..., None]  # [N, V, n_bw]
-        n_bad = np.stack([physics.group_sum(infeasible[..., b], slots.serving_idx, cfg.n_uavs) for b in range(cfg.n_bw)], -1)
+        n_bad = np.stack(
+            [physics.group_sum(infeasible[..., b], slots.serving_idx, cfg.n_uavs) for b in range(cfg.n_bw)], -1
+        )
         bw_ok = n_bad == n_bad.min(axis=-1, keepdims=True)
         return ok | (infeasible | ~slots.associated[..., None])[..., None], bw_ok
 
     @staticmethod
-    def is_allowed(sf_set: np.ndarray, bw: np.ndarray, slots: Slots, setting_ok: np.ndarray, bw_ok: np.ndarray) -> np.ndarray:
+    def is_allowed(
+        sf_set: np.ndarray, bw: np.ndarray, slots: Slots, setting_ok: np.ndarray, bw_ok: np.ndarray
+    ) -> np.ndarray:
         """[..., N] whether an allocation (settings [..., N, V], bw [..., N, U]) is allowed."""
         bw_ed = np.take_along_axis(bw, np.broadcast_to(slots.serving_idx, sf_set.shape), axis=-1)
         n_set = setting_ok.shape[-1]
         flat = setting_ok.reshape(setting_ok.shape[:2] + (-1,))  # [N, V, n_bw * n_set]
-        ok_ed = np.take_along_axis(np.broadcast_to(flat, sf_set.shape + flat.shape[-1:]),
-                                   (bw_ed * n_set + sf_set)[..., None], axis=-1)[..., 0]
-        return np.asarray(ok_ed.all(axis=-1)) & np.take_along_axis(np.broadcast_to(bw_ok, bw.shape + bw_ok.shape[-1:]),
-                                                      bw[..., None], axis=-1)[..., 0].all(axis=-1)
+        ok_ed = np.take_along_axis(
+            np.broadcast_to(flat, sf_set.shape + flat.shape[-1:]), (bw_ed * n_set + sf_set)[..., None], axis=-1
+        )[..., 0]
+        return np.asarray(ok_ed.all(axis=-1)) & np.take_along_axis(
+            np.broadcast_to(bw_ok, bw.shape + bw_ok.shape[-1:]), bw[..., None], axis=-1
+        )[..., 0].all(axis=-1)
 
     # ---------------------------------------------------------------- exact scoring
     def metrics(self, setting: np.ndarray, bw: np.ndarray, slots: Slots) -> dict[str, np.ndarray]:
@@ -145,7 +151,9 @@ class AllocationScorer:
         mover_thr = t.threshold_db[self.set_sf[None, None, :], bw_ed[e, movers][..., None]]
         sfv = t.sf[sf][:, None, None, :]
         with np.errstate(invalid="ignore"):
-            rate = physics.rate_bps(sinr, w_hz[:, None, None, :], sfv, thr[:, None, None, :], cfg.rate_model, cfg.lora_coding_rate)
+            rate = physics.rate_bps(
+                sinr, w_hz[:, None, None, :], sfv, thr[:, None, None, :], cfg.rate_model, cfg.lora_coding_rate
+            )
         mover_rate = physics.rate_bps(mover_sinr, w_hz[e, movers][..., None], t.sf[self.set_sf][None, None], mover_thr,
                                       cfg.rate_model, cfg.lora_coding_rate)  # fmt: skip
         mi, ci = np.arange(m_)[:, None], np.arange(self.n_set)[None, :]
@@ -165,7 +173,9 @@ class AllocationScorer:
         n_assoc = np.maximum(assoc.sum(axis=1), 1)[:, None, None]
         ones = np.ones(new_s.shape + (1,), bool)
         pts_new = physics.margin_score(physics.lin_to_db(new_s)[..., None], mover_thr[..., None], ones)
-        pts_old = physics.margin_score(physics.lin_to_db(mv_s)[..., None, None], thr[e, movers][..., None, None], ones[..., :1, :])
+        pts_old = physics.margin_score(
+            physics.lin_to_db(mv_s)[..., None, None], thr[e, movers][..., None, None], ones[..., :1, :]
+        )
         beta = physics.margin_score(physics.lin_to_db(s), thr, assoc)[:, None, None]
         beta = beta + (pts_new - pts_old) * assoc[e, movers][..., None] / n_assoc
         p_total = np.add.reduce(tx, axis=-1) + cfg.n_uavs * t.hover_w

@@ -20,7 +20,9 @@ from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.sim.observation import obs_dim, state_dim
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
-_NP_INTS = frozenset(np.sctypeDict[k] for k in ("int8", "int16", "int32", "int64", "uint8", "uint16", "uint32", "uint64"))
+_NP_INTS = frozenset(
+    np.sctypeDict[k] for k in ("int8", "int16", "int32", "int64", "uint8", "uint16", "uint32", "uint64")
+)
 LOOKAHEAD = 32  # slots of positions/channels/association/observations precomputed at once (BatchCore)
 STATE_KEY = "state"
 # "human": one line per slot on stdout, printed by reset and step (the simulator is headless; Gymnasium's
@@ -162,8 +164,10 @@ def human_line(core: BatchCore, metrics: Mapping[str, float]) -> str:
     now = f"slot {t}/{cfg.episode_len}: EDs per UAV {per_uav}, unassociated {int((serving < 0).sum())}"
     if not metrics:
         return f"[uavlora] reset; {now}"
-    return (f"[uavlora] played slot {t - 1}: reward {metrics['reward']:.4g}, EE_sys {metrics['ee_sys']:.4g} bit/J, "
-            f"success {metrics['success_rate']:.3f}; {now}")
+    return (
+        f"[uavlora] played slot {t - 1}: reward {metrics['reward']:.4g}, EE_sys {metrics['ee_sys']:.4g} bit/J, "
+        f"success {metrics['success_rate']:.3f}; {now}"
+    )
 
 
 def render_rgb(core: BatchCore, metrics: Mapping[str, float]) -> np.ndarray:
@@ -235,5 +239,3 @@ class UavLoraParallelEnv(_SingleScenario, ParallelEnv):
 
     def close(self) -> None:
         pass
-
-

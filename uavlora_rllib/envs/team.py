@@ -191,15 +191,20 @@ def make_team_env(config: Mapping[str, Any] | None = None):
     return UavLoraTeamEnv(dict(config or {}))
 
 
-def gym_env(scenario: Mapping[str, Any] | ScenarioConfig | None = None, render_mode: str | None = None,
-            **fields: Any) -> UavLoraTeamEnv:
+def gym_env(
+    scenario: Mapping[str, Any] | ScenarioConfig | None = None, render_mode: str | None = None, **fields: Any
+) -> UavLoraTeamEnv:
     """`gymnasium.make("UavLora-v0", ...)`'s entry point: ScenarioConfig fields as keywords or
     `scenario` (docs/model.md#environments); a bad field is one ConfigError naming it."""
     return UavLoraTeamEnv(scenario_with(scenario, fields), render_mode=render_mode)
 
 
-def gym_vector_env(num_envs: int = 1, scenario: Mapping[str, Any] | ScenarioConfig | None = None,
-                   render_mode: str | None = None, **fields: Any) -> UavLoraTeamVectorEnv:
+def gym_vector_env(
+    num_envs: int = 1,
+    scenario: Mapping[str, Any] | ScenarioConfig | None = None,
+    render_mode: str | None = None,
+    **fields: Any,
+) -> UavLoraTeamVectorEnv:
     """`gymnasium.make_vec("UavLora-v0", num_envs=N, vectorization_mode="vector_entry_point")`:
     N scenarios in one BatchCore (docs/model.md#environments); frames are not drawn for N > 1."""
     if render_mode is not None:
@@ -207,7 +212,9 @@ def gym_vector_env(num_envs: int = 1, scenario: Mapping[str, Any] | ScenarioConf
     return UavLoraTeamVectorEnv(scenario_with(scenario, fields), num_envs=num_envs)
 
 
-def sample_through_team_env(config: Any, scenario: ScenarioConfig, resources: Any, algorithm: str, **env_runner_settings: Any) -> Any:
+def sample_through_team_env(
+    config: Any, scenario: ScenarioConfig, resources: Any, algorithm: str, **env_runner_settings: Any
+) -> Any:
     """`config` (an RLlib AlgorithmConfig) set to sample the team view: N scenarios per env
     runner in ONE BatchCore (`gym_env_vectorize_mode="vector_entry_point"`), with the trial's
     `registry.Resources`. The algorithm's own env-runner settings (fragment length, batch mode)

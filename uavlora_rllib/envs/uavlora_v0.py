@@ -25,19 +25,22 @@ from uavlora_rllib.sim.scenario import ScenarioConfig
 metadata = UavLoraParallelEnv.metadata
 
 
-def parallel_env(scenario: ScenarioConfig | Mapping[str, Any] | None = None, render_mode: str | None = None,
-                 **fields: Any) -> UavLoraParallelEnv:
+def parallel_env(
+    scenario: ScenarioConfig | Mapping[str, Any] | None = None, render_mode: str | None = None, **fields: Any
+) -> UavLoraParallelEnv:
     """The PettingZoo ParallelEnv of one scenario; a bad field or render_mode raises one ConfigError naming it."""
     return UavLoraParallelEnv(scenario_with(scenario, fields), render_mode=render_mode)
 
 
-def raw_env(scenario: ScenarioConfig | Mapping[str, Any] | None = None, render_mode: str | None = None,
-            **fields: Any) -> AECEnv:
+def raw_env(
+    scenario: ScenarioConfig | Mapping[str, Any] | None = None, render_mode: str | None = None, **fields: Any
+) -> AECEnv:
     """The AEC view of `parallel_env` (agents act in turn, the slot is played when the last has acted), unwrapped."""
     return parallel_to_aec_wrapper(parallel_env(scenario, render_mode, **fields))
 
 
-def env(scenario: ScenarioConfig | Mapping[str, Any] | None = None, render_mode: str | None = None,
-        **fields: Any) -> AECEnv:
+def env(
+    scenario: ScenarioConfig | Mapping[str, Any] | None = None, render_mode: str | None = None, **fields: Any
+) -> AECEnv:
     """The AEC view with PettingZoo's order enforcing (`pettingzoo.utils.conversions.parallel_to_aec`)."""
     return parallel_to_aec(parallel_env(scenario, render_mode, **fields))

@@ -41,8 +41,13 @@ def evaluate_baseline(spec: BaselineSpec, episodes: int) -> dict[str, Any]:
 class BaselinePool:
     """Submits the baseline tasks and logs each result to MLflow as it arrives."""
 
-    def __init__(self, specs: list[BaselineSpec], episodes: int, log: Callable[[BaselineSpec, Any], None],
-                 out: TextIO | None = None):
+    def __init__(
+        self,
+        specs: list[BaselineSpec],
+        episodes: int,
+        log: Callable[[BaselineSpec, Any], None],
+        out: TextIO | None = None,
+    ):
         self.specs = specs
         self.episodes = episodes
         self.log = log  # (spec, summary dict or the task's exception) -> None; writes MLflow
@@ -62,8 +67,12 @@ class BaselinePool:
         task = ray.remote(num_cpus=BASELINE_CPUS, max_retries=3)(evaluate_baseline)
         if self.specs:  # the phase's progress: this line, then one "(k/n)" line per result
             cost = sum(evaluation_seconds(s.baseline, s.scenario, self.episodes) for s in self.specs)
-            print(f"baselines: {len(self.specs)} evaluations submitted as Ray tasks, about "
-                  f"{cost / 60:.1f} CPU-minutes in all (estimate)", file=self.out, flush=True)
+            print(
+                f"baselines: {len(self.specs)} evaluations submitted as Ray tasks, about "
+                f"{cost / 60:.1f} CPU-minutes in all (estimate)",
+                file=self.out,
+                flush=True,
+            )
         for spec in self.specs:
             self._refs[task.options(name=f"baseline:{spec.name}").remote(spec, self.episodes)] = spec
         if self._refs:
@@ -93,11 +102,18 @@ class BaselinePool:
                 if isinstance(result, BaseException):
                     msg = " ".join(str(result).split())[:300]
                     self.failed.append((spec.name, msg))
-                    print(f"baseline {spec.name}: FAILED: {msg} ({self.logged}/{len(self.specs)})",
-                          file=self.out, flush=True)
+                    print(
+                        f"baseline {spec.name}: FAILED: {msg} ({self.logged}/{len(self.specs)})",
+                        file=self.out,
+                        flush=True,
+                    )
                 else:
-                    print(f"baseline {spec.name}: evaluated in {result.get('_wall_s', 0.0):.1f} s "
-                          f"({self.logged}/{len(self.specs)})", file=self.out, flush=True)
+                    print(
+                        f"baseline {spec.name}: evaluated in {result.get('_wall_s', 0.0):.1f} s "
+                        f"({self.logged}/{len(self.specs)})",
+                        file=self.out,
+                        flush=True,
+                    )
 
     @property
     def pending(self) -> int:
@@ -151,8 +167,9 @@ def baseline_logger(grid: GridConfig, tracker):
             return result
 
         try:
-            tracker.log_baseline(spec.baseline, spec.name, spec.seed, spec.n_eds, spec.n_uavs, params, evaluate,
-                                 grid.stop.env_steps)
+            tracker.log_baseline(
+                spec.baseline, spec.name, spec.seed, spec.n_eds, spec.n_uavs, params, evaluate, grid.stop.env_steps
+            )
         except Exception as exc:
             if exc is not result:  # the evaluation's own error is recorded as a FAILED run
                 raise

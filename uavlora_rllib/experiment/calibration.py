@@ -40,8 +40,13 @@ from uavlora_rllib.config_errors import ConfigError
 FORMAT = 1
 PATH_ENV = "UAVLORA_CALIBRATION"  # another calibration file (a shared one, or a test's)
 # Resources fields that change how fast a trial trains (the CPUs reserved do not: Ray does not pin)
-SPEED_RESOURCES = ("num_env_runners", "num_envs_per_env_runner", "torch_threads", "num_learners",
-                   "num_gpus_per_learner")
+SPEED_RESOURCES = (
+    "num_env_runners",
+    "num_envs_per_env_runner",
+    "torch_threads",
+    "num_learners",
+    "num_gpus_per_learner",
+)
 DEFAULT_ITERATIONS = 2  # timed training iterations per cell (after the warm-up)
 # A baseline whose (unloaded, single-core) cost model, `baselines.policies.evaluation_seconds`,
 # exceeds this many seconds is timed on fewer episodes and scaled by episodes (except best_fixed,
@@ -89,8 +94,10 @@ def train_cell(spec, resources) -> Cell:
         "resources": {k: getattr(resources, k) for k in SPEED_RESOURCES},
     }
     r = content["resources"]
-    label = (f"{spec.algorithm} {_scenario_label(scenario)} runners={r['num_env_runners']} "
-             f"envs/runner={r['num_envs_per_env_runner']}")
+    label = (
+        f"{spec.algorithm} {_scenario_label(scenario)} runners={r['num_env_runners']} "
+        f"envs/runner={r['num_envs_per_env_runner']}"
+    )
     return Cell("train", json.loads(_canonical(content)), label)
 
 
@@ -98,8 +105,9 @@ def baseline_cell(spec, episodes: int) -> Cell:
     """The cell of a baseline run (grid.BaselineSpec) of `episodes` evaluation episodes."""
     scenario = spec.scenario.to_dict()
     content = {"baseline": spec.baseline, "scenario": scenario, "episodes": int(episodes)}
-    return Cell("baseline", json.loads(_canonical(content)),
-                f"{spec.baseline} {_scenario_label(scenario)} {episodes} episodes")
+    return Cell(
+        "baseline", json.loads(_canonical(content)), f"{spec.baseline} {_scenario_label(scenario)} {episodes} episodes"
+    )
 
 
 def grid_train_cells(grid, specs) -> dict[str, tuple[Cell, list[int]]]:
@@ -238,8 +246,17 @@ def _locked(path: str) -> Iterator[None]:
 def _stamp(cell: Cell, machine: Mapping[str, Any], version: str, **fields: Any) -> dict[str, Any]:
     now = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
-    return {"cell_key": cell.key, "kind": cell.kind, "label": cell.label, "cell": dict(cell.content),
-            "machine": dict(machine), "version": version, "measured_at": now, "load_1min": load, **fields}
+    return {
+        "cell_key": cell.key,
+        "kind": cell.kind,
+        "label": cell.label,
+        "cell": dict(cell.content),
+        "machine": dict(machine),
+        "version": version,
+        "measured_at": now,
+        "load_1min": load,
+        **fields,
+    }
 
 
 # --------------------------------------------------------------------------- measuring
@@ -273,15 +290,29 @@ def measure_train_cell(grid, spec, iterations: int) -> dict[str, Any]:
 
     entry = registry.get(spec.algorithm)
     episodes = grid.evaluation.episodes
-    m = measure_training(entry, spec.scenario, spec.hparams, grid.resources, spec.seed, iterations,
-                         warmup_until_learning=True,
-                         after=_evaluation_timer(entry, spec.scenario, episodes, spec.seed))
+    m = measure_training(
+        entry,
+        spec.scenario,
+        spec.hparams,
+        grid.resources,
+        spec.seed,
+        iterations,
+        warmup_until_learning=True,
+        after=_evaluation_timer(entry, spec.scenario, episodes, spec.seed),
+    )
     periodic_s, final_s = m.after
-    return {"env_steps_per_s": m.env_steps_per_s, "seconds_per_iteration": m.seconds_per_iteration,
-            "env_steps_per_iteration": m.env_steps_per_iteration, "build_s": m.build_s,
-            "iterations": len(m.rows), "warmup_iterations": m.warmup_iterations,
-            "learning_started": m.learning_started, "periodic_eval_s": periodic_s, "final_eval_s": final_s,
-            "eval_episodes": episodes}
+    return {
+        "env_steps_per_s": m.env_steps_per_s,
+        "seconds_per_iteration": m.seconds_per_iteration,
+        "env_steps_per_iteration": m.env_steps_per_iteration,
+        "build_s": m.build_s,
+        "iterations": len(m.rows),
+        "warmup_iterations": m.warmup_iterations,
+        "learning_started": m.learning_started,
+        "periodic_eval_s": periodic_s,
+        "final_eval_s": final_s,
+        "eval_episodes": episodes,
+    }
 
 
 def baseline_episodes_to_time(name: str, scenario, episodes: int) -> int:
@@ -306,8 +337,14 @@ def measure_baseline_cell(spec, episodes: int) -> dict[str, Any]:
     return {"seconds": wall * episodes / timed, "timed_episodes": timed, "timed_s": wall, "episodes": episodes}
 
 
-def calibrate(grid, specs, path: str | None = None, iterations: int = DEFAULT_ITERATIONS,
-              num_cpus: int | None = None, out: TextIO | None = None) -> int:
+def calibrate(
+    grid,
+    specs,
+    path: str | None = None,
+    iterations: int = DEFAULT_ITERATIONS,
+    num_cpus: int | None = None,
+    out: TextIO | None = None,
+) -> int:
     """Measure every cell of the grid not yet recorded for this machine and version and record
     each as soon as it is measured; returns how many were measured."""
     out = out or sys.stdout
@@ -318,24 +355,31 @@ def calibrate(grid, specs, path: str | None = None, iterations: int = DEFAULT_IT
     todo_t = [(c, s) for c, s in trains if not store.has(c.key, machine, version)]
     todo_b = [(c, s) for c, s in bases if not store.has(c.key, machine, version)]
     kept = len(trains) + len(bases) - len(todo_t) - len(todo_b)
-    print(f"calibration: {len(todo_t)} trial cells and {len(todo_b)} baseline cells to measure on "
-          f"{describe_machine(machine)} ({kept} already in {store.path})", file=out, flush=True)
+    print(
+        f"calibration: {len(todo_t)} trial cells and {len(todo_b)} baseline cells to measure on "
+        f"{describe_machine(machine)} ({kept} already in {store.path})",
+        file=out,
+        flush=True,
+    )
     t_start = time.perf_counter()
     if todo_t:
         _calibrate_trials(grid, todo_t, store, machine, version, iterations, num_cpus, out)
     for i, (cell, spec) in enumerate(todo_b, 1):
         fields = measure_baseline_cell(spec, grid.evaluation.episodes)
         store.put(_stamp(cell, machine, version, **fields))
-        scaled = (f" (timed on {fields['timed_episodes']} of {fields['episodes']} episodes, scaled)"
-                  if fields["timed_episodes"] < fields["episodes"] else "")
+        scaled = (
+            f" (timed on {fields['timed_episodes']} of {fields['episodes']} episodes, scaled)"
+            if fields["timed_episodes"] < fields["episodes"]
+            else ""
+        )
         print(f"  [{i}/{len(todo_b)}] {cell.label}: {fields['seconds']:.1f} s{scaled}", file=out, flush=True)
-    print(f"calibration: done in {time.perf_counter() - t_start:.0f} s; written to {store.path}", file=out,
-          flush=True)
+    print(f"calibration: done in {time.perf_counter() - t_start:.0f} s; written to {store.path}", file=out, flush=True)
     return len(todo_t) + len(todo_b)
 
 
-def _calibrate_trials(grid, todo, store: Store, machine, version: str, iterations: int, num_cpus: int | None,
-                      out: TextIO) -> None:
+def _calibrate_trials(
+    grid, todo, store: Store, machine, version: str, iterations: int, num_cpus: int | None, out: TextIO
+) -> None:
     """Measure the trial cells in one private local Ray."""
     import ray
 
@@ -345,19 +389,31 @@ def _calibrate_trials(grid, todo, store: Store, machine, version: str, iteration
     need = trial_cpus(grid.resources)
     cpus = int(max(num_cpus or os.cpu_count() or 1, math.ceil(need)))
     if need > (os.cpu_count() or 1):
-        print(f"note: a trial reserves {need:g} CPUs and this machine has {os.cpu_count()}: measured with its "
-              "processes sharing the cores", file=out, flush=True)
-    ray.init(address="local", num_cpus=cpus, include_dashboard=False, log_to_driver=False,
-             runtime_env={"worker_process_setup_hook": SETUP_HOOK})
+        print(
+            f"note: a trial reserves {need:g} CPUs and this machine has {os.cpu_count()}: measured with its "
+            "processes sharing the cores",
+            file=out,
+            flush=True,
+        )
+    ray.init(
+        address="local",
+        num_cpus=cpus,
+        include_dashboard=False,
+        log_to_driver=False,
+        runtime_env={"worker_process_setup_hook": SETUP_HOOK},
+    )
     try:
         for i, (cell, spec) in enumerate(todo, 1):
             t0 = time.perf_counter()
             fields = measure_train_cell(grid, spec, iterations)
             store.put(_stamp(cell, machine, version, **fields))
             late = "" if fields["learning_started"] else "; the learner had not updated yet (rate too high)"
-            print(f"  [{i}/{len(todo)}] {cell.label}: {fields['env_steps_per_s']:,.0f} env steps/s, "
-                  f"{fields['seconds_per_iteration']:.1f} s per iteration; evaluation {fields['periodic_eval_s']:.1f} s "
-                  f"periodic, {fields['final_eval_s']:.1f} s final ({time.perf_counter() - t0:.0f} s){late}",
-                  file=out, flush=True)
+            print(
+                f"  [{i}/{len(todo)}] {cell.label}: {fields['env_steps_per_s']:,.0f} env steps/s, "
+                f"{fields['seconds_per_iteration']:.1f} s per iteration; evaluation {fields['periodic_eval_s']:.1f} s "
+                f"periodic, {fields['final_eval_s']:.1f} s final ({time.perf_counter() - t0:.0f} s){late}",
+                file=out,
+                flush=True,
+            )
     finally:
         ray.shutdown()

@@ -49,7 +49,7 @@ def _relative_under_job(field: str, value: str) -> ConfigError:
         f"{field}: {value!r} is relative, and under `ray job submit` the working directory is Ray's "
         f"read-only copy of --working-dir; use an absolute path on storage every node shares, an MLflow "
         f"server URI for mlflow.tracking_uri, or set {LAUNCH_DIR_ENV} in the job's runtime env "
-        f"(--runtime-env-json '{{\"env_vars\": {{\"{LAUNCH_DIR_ENV}\": \"/shared/dir\"}}}}')"
+        f'(--runtime-env-json \'{{"env_vars": {{"{LAUNCH_DIR_ENV}": "/shared/dir"}}}}\')'
     )
 
 
@@ -71,7 +71,7 @@ def resolve_tracking_uri(uri: str, field: str = "mlflow.tracking_uri") -> str:
     prefix = "sqlite:///"
     if not uri.startswith(prefix) or ":memory:" in uri:
         return uri
-    path = uri[len(prefix):]
+    path = uri[len(prefix) :]
     if path.startswith("/"):
         return uri
     return prefix + resolve_path(path, field)
@@ -137,8 +137,11 @@ def connect(address: str | None, num_cpus: int | None) -> None:
             except ConnectionAbortedError as exc:
                 # Ray Client's proxy starts one server process per client and gives up when that
                 # takes too long (a busy head); that is worth another try, a refusal is not
-                if not address.startswith("ray://") or "Initialization failure" not in str(exc) \
-                        or attempt == CLIENT_START_TRIES - 1:
+                if (
+                    not address.startswith("ray://")
+                    or "Initialization failure" not in str(exc)
+                    or attempt == CLIENT_START_TRIES - 1
+                ):
                     raise
                 time.sleep(2.0 * (attempt + 1))
     except Exception as exc:  # ConnectionError, AuthenticationError, TimeoutError, ValueError, ...

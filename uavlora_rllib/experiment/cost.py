@@ -73,8 +73,11 @@ def trial_seconds(record: Mapping[str, Any], budget: int, interval: int, episode
     """One trial's wall seconds from its cell's record (evaluations scaled to `episodes`)."""
     per_episode = episodes / max(int(record["eval_episodes"]), 1)
     n_eval = periodic_evaluations(budget, interval, record["env_steps_per_iteration"])
-    return (record["build_s"] + budget / record["env_steps_per_s"]
-            + (n_eval * record["periodic_eval_s"] + record["final_eval_s"]) * per_episode)
+    return (
+        record["build_s"]
+        + budget / record["env_steps_per_s"]
+        + (n_eval * record["periodic_eval_s"] + record["final_eval_s"]) * per_episode
+    )
 
 
 def trials_per_spec(grid, specs) -> list[int]:
@@ -98,20 +101,25 @@ def estimate(grid, specs, store: calibration.Store, machine: Mapping[str, Any], 
         if record is not None:
             row.wall_s = trial_seconds(record, budget, interval, episodes)
         rows.append(row)
-    baselines = [(cell, len(members), store.find(key, machine, version))
-                 for key, (cell, members) in calibration.grid_baseline_cells(grid).items()]
+    baselines = [
+        (cell, len(members), store.find(key, machine, version))
+        for key, (cell, members) in calibration.grid_baseline_cells(grid).items()
+    ]
     cost = GridCost(rows, calibration.trial_cpus(grid.resources), baselines, dict(machine), version, store.path)
     used = [r.record for r in rows if r.record is not None] + [rec for _, _, rec in baselines if rec is not None]
     others = {calibration.describe_machine(r["machine"]) for r in used if r["machine"] != dict(machine)}
     for other in sorted(others):
-        cost.notes.append(f"note: measured on another machine ({other}); this one is "
-                          f"{calibration.describe_machine(machine)}")
+        cost.notes.append(
+            f"note: measured on another machine ({other}); this one is {calibration.describe_machine(machine)}"
+        )
     scaled = sorted({r.record["eval_episodes"] for r in rows if r.record and r.record["eval_episodes"] != episodes})
     if scaled:
         cost.notes.append(f"note: evaluation times scaled by episodes from {scaled} to the grid's {episodes}")
     early = [r for r in rows if r.record and not r.record.get("learning_started", True)]
     if early:
-        cost.notes.append(f"note: {len(early)} trial(s) calibrated before their learner updated; their rate is too high")
+        cost.notes.append(
+            f"note: {len(early)} trial(s) calibrated before their learner updated; their rate is too high"
+        )
     if grid.scheduler is not None:
         cost.notes.append(f"note: the {grid.scheduler.type} scheduler stops some trials early: an upper bound")
     if any(s.spaces for s in specs):
@@ -152,42 +160,59 @@ def report_lines(cost: GridCost, grid, grid_file: str, cpus: float, cpus_given: 
     lines = [f"cost estimate (calibration {cost.path}, version {cost.version}):"]
     if not any(r.record for r in cost.rows) and not any(rec for _, _, rec in cost.baselines):
         n_cells = len({r.cell.key for r in cost.rows})
-        return lines + [f"  not calibrated: none of the grid's {n_cells} trial cell(s) and {len(cost.baselines)} "
-                        f"baseline cell(s) is in the calibration for version {cost.version}",
-                        f"calibrate with: python -m uavlora_rllib.tune {grid_file} --calibrate"]
+        return lines + [
+            f"  not calibrated: none of the grid's {n_cells} trial cell(s) and {len(cost.baselines)} "
+            f"baseline cell(s) is in the calibration for version {cost.version}",
+            f"calibrate with: python -m uavlora_rllib.tune {grid_file} --calibrate",
+        ]
     lines += cost.notes + _trial_lines(cost) + _baseline_lines(cost)
     trial_h, base_h = cost.trial_cpu_s() / 3600, cost.baseline_cpu_s() / 3600
     if not cost.complete:
-        return lines + _missing_lines(cost, grid_file) + [
-            f"partial: {trial_h + base_h:.2f} CPU-hours for the calibrated part only "
-            f"({sum(r.trials for r in cost.rows if r.record)} of {sum(r.trials for r in cost.rows)} trials; "
-            "no total until every cell is calibrated)"]
-    lines.append(f"grid: {trial_h + base_h:.2f} CPU-hours = {sum(r.trials for r in cost.rows)} trials {trial_h:.2f} "
-                 f"(wall x {cost.cpus_per_trial:g} CPUs each) + baselines {base_h:.2f}")
+        return (
+            lines
+            + _missing_lines(cost, grid_file)
+            + [
+                f"partial: {trial_h + base_h:.2f} CPU-hours for the calibrated part only "
+                f"({sum(r.trials for r in cost.rows if r.record)} of {sum(r.trials for r in cost.rows)} trials; "
+                "no total until every cell is calibrated)"
+            ]
+        )
+    lines.append(
+        f"grid: {trial_h + base_h:.2f} CPU-hours = {sum(r.trials for r in cost.rows)} trials {trial_h:.2f} "
+        f"(wall x {cost.cpus_per_trial:g} CPUs each) + baselines {base_h:.2f}"
+    )
     where = f"{cpus:g} CPUs (--num-cpus)" if cpus_given else f"this machine's {cpus:g} CPUs"
     wall, slots = wall_clock_s(cost, cpus, grid.max_concurrent_trials)
     if slots == 0:
-        lines.append(f"wall-clock: a trial needs {cost.cpus_per_trial:g} CPUs, more than {where}; "
-                     "give --num-cpus N to size another machine")
+        lines.append(
+            f"wall-clock: a trial needs {cost.cpus_per_trial:g} CPUs, more than {where}; "
+            "give --num-cpus N to size another machine"
+        )
     else:
         capped = grid.max_concurrent_trials is not None and slots == grid.max_concurrent_trials
-        lines.append(f"wall-clock: about {wall / 3600:.2f} h on {where} ({slots} trial(s) at once"
-                     f"{', max_concurrent_trials' if capped else ''}; the baselines beside them)")
+        lines.append(
+            f"wall-clock: about {wall / 3600:.2f} h on {where} ({slots} trial(s) at once"
+            f"{', max_concurrent_trials' if capped else ''}; the baselines beside them)"
+        )
     return lines
 
 
 def _trial_lines(cost: GridCost) -> list[str]:
     """One row per trial (per grid point in a sweep, with its number of trials)."""
     counts = any(r.trials > 1 for r in cost.rows)
-    lines = [f"{'#':>4}  {'trial':<24} {'env steps/s':>12} {'wall h':>8} {'CPUs':>5} {'CPU-h':>8}"
-             + ("  trials" if counts else "")]
+    lines = [
+        f"{'#':>4}  {'trial':<24} {'env steps/s':>12} {'wall h':>8} {'CPUs':>5} {'CPU-h':>8}"
+        + ("  trials" if counts else "")
+    ]
     for r in cost.rows:
         count = f"  x{r.trials}" if counts else ""
         if r.record is None:
             lines.append(f"{r.index:>4}  {r.name:<24} {'not calibrated':>12}{count}")
         else:
-            lines.append(f"{r.index:>4}  {r.name:<24} {r.record['env_steps_per_s']:>12,.0f} {r.wall_s / 3600:>8.2f} "
-                         f"{cost.cpus_per_trial:>5g} {r.wall_s * cost.cpus_per_trial / 3600:>8.2f}{count}")
+            lines.append(
+                f"{r.index:>4}  {r.name:<24} {r.record['env_steps_per_s']:>12,.0f} {r.wall_s / 3600:>8.2f} "
+                f"{cost.cpus_per_trial:>5g} {r.wall_s * cost.cpus_per_trial / 3600:>8.2f}{count}"
+            )
     return lines
 
 
@@ -198,12 +223,16 @@ def _missing_lines(cost: GridCost, grid_file: str, most: int = 12) -> list[str]:
         if r.record is None:
             by_cell.setdefault(r.cell.key, (r.cell, []))[1].append(r.index)
     missing_b = [(c, n) for c, n, rec in cost.baselines if rec is None]
-    cells = ([f"  {cell.label} (trials {_ranges(ix)})" for cell, ix in by_cell.values()]
-             + [f"  {cell.label} ({n} baseline runs)" for cell, n in missing_b])
+    cells = [f"  {cell.label} (trials {_ranges(ix)})" for cell, ix in by_cell.values()] + [
+        f"  {cell.label} ({n} baseline runs)" for cell, n in missing_b
+    ]
     more = [f"  ... and {len(cells) - most} more"] if len(cells) > most else []
-    return ([f"not calibrated for version {cost.version}: {len(by_cell)} trial cell(s), "
-             f"{len(missing_b)} baseline cell(s):"] + cells[:most] + more
-            + [f"calibrate with: python -m uavlora_rllib.tune {grid_file} --calibrate"])
+    return (
+        [f"not calibrated for version {cost.version}: {len(by_cell)} trial cell(s), {len(missing_b)} baseline cell(s):"]
+        + cells[:most]
+        + more
+        + [f"calibrate with: python -m uavlora_rllib.tune {grid_file} --calibrate"]
+    )
 
 
 def _baseline_lines(cost: GridCost) -> list[str]:
@@ -218,8 +247,12 @@ def _baseline_lines(cost: GridCost) -> list[str]:
     for kind, runs in kinds.items():
         hours = sum(n * rec["seconds"] for n, rec in runs) / 3600
         scaled = [rec for _, rec in runs if rec["timed_episodes"] < rec["episodes"]]
-        note = (f"; timed on {min(r['timed_episodes'] for r in scaled)} to {max(r['timed_episodes'] for r in scaled)} "
-                f"of {scaled[0]['episodes']} episodes and scaled by episodes" if scaled else "")
+        note = (
+            f"; timed on {min(r['timed_episodes'] for r in scaled)} to {max(r['timed_episodes'] for r in scaled)} "
+            f"of {scaled[0]['episodes']} episodes and scaled by episodes"
+            if scaled
+            else ""
+        )
         lines.append(f"  {kind:<12} {sum(n for n, _ in runs):>4} runs {hours:>8.3f} CPU-h{note}")
     return lines
 

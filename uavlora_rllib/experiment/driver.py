@@ -73,8 +73,15 @@ def run_grid(grid: GridConfig, grid_file: str, args: argparse.Namespace) -> int:
             lock.release()
 
 
-def _run_locked(grid: GridConfig, grid_file: str, args: argparse.Namespace, specs: list[TrialSpec], storage: str,
-                exp_path: str, uri: str) -> int:
+def _run_locked(
+    grid: GridConfig,
+    grid_file: str,
+    args: argparse.Namespace,
+    specs: list[TrialSpec],
+    storage: str,
+    exp_path: str,
+    uri: str,
+) -> int:
     """Connect, check, then run the baselines and the trials (the driver lock is held)."""
     import ray
 
@@ -125,8 +132,10 @@ def _check_resume(args: argparse.Namespace, exp_path: str, storage: str) -> bool
             "or change experiment/--storage, or delete it"
         )
     if args.resume and not restorable:
-        print(f"note: no Tune state at {exp_path} yet (the grid stopped before Tune started): starting the trials",
-              file=sys.stderr)
+        print(
+            f"note: no Tune state at {exp_path} yet (the grid stopped before Tune started): starting the trials",
+            file=sys.stderr,
+        )
     if args.address and "://" not in storage:
         print(f"note: on a cluster, storage {storage} must be a path shared by every node", file=sys.stderr)
     return restorable
@@ -166,8 +175,9 @@ def _start_baselines(grid: GridConfig, tracker):
     """The baseline evaluations not yet FINISHED in MLflow, started as Ray tasks."""
     from uavlora_rllib.experiment.baseline_tasks import BaselinePool, baseline_logger, baselines_to_run
 
-    return BaselinePool(baselines_to_run(grid, tracker), grid.evaluation.episodes,
-                        baseline_logger(grid, tracker)).start()
+    return BaselinePool(
+        baselines_to_run(grid, tracker), grid.evaluation.episodes, baseline_logger(grid, tracker)
+    ).start()
 
 
 def _fit(tuner, pool):
@@ -230,14 +240,26 @@ def _close_unfinished_runs(tracker, grid_status: str = "KILLED") -> None:
         print("MLflow unreachable: runs left RUNNING are adopted by --resume", file=sys.stderr)
 
 
-def _report(grid: GridConfig, args: argparse.Namespace, specs: list[TrialSpec], uri: str, exp_path: str, results,
-            pool, done: int, interrupted: bool, wall: float) -> int:
+def _report(
+    grid: GridConfig,
+    args: argparse.Namespace,
+    specs: list[TrialSpec],
+    uri: str,
+    exp_path: str,
+    results,
+    pool,
+    done: int,
+    interrupted: bool,
+    wall: float,
+) -> int:
     """Print the grid's outcome and where its results are; the exit code."""
     failed = len(results.errors)
     print(f"\n{done}/{trial_count(grid, specs)} trials finished, {failed} failed, in {wall:.0f} s")
     if pool.failed:
         print(f"{len(pool.failed)} baseline evaluation(s) failed: {', '.join(n for n, _ in pool.failed)}")
-    print(f"MLflow: {describe_uri(uri)} (experiment {grid.experiment!r}; view with: mlflow ui --backend-store-uri {uri})")
+    print(
+        f"MLflow: {describe_uri(uri)} (experiment {grid.experiment!r}; view with: mlflow ui --backend-store-uri {uri})"
+    )
     print(f"Ray results and checkpoints: {exp_path}")
     if failed or pool.failed:
         return EXIT_FAILED

@@ -58,8 +58,9 @@ def _read(path: str) -> LockInfo | None:
     try:
         with open(path) as fh:
             data = json.load(fh)
-        return LockInfo(str(data["host"]), int(data["pid"]), str(data["token"]),
-                        float(data["started"]), float(data["heartbeat"]))
+        return LockInfo(
+            str(data["host"]), int(data["pid"]), str(data["token"]), float(data["started"]), float(data["heartbeat"])
+        )
     except FileNotFoundError:
         return None
     except (OSError, ValueError, KeyError, TypeError):
@@ -102,8 +103,15 @@ class DriverLock:
 
     # ---- file
     def _payload(self) -> str:
-        return json.dumps({"host": self.host, "pid": os.getpid(), "token": self.token,
-                           "started": self.started, "heartbeat": time.time()})
+        return json.dumps(
+            {
+                "host": self.host,
+                "pid": os.getpid(),
+                "token": self.token,
+                "started": self.started,
+                "heartbeat": time.time(),
+            }
+        )
 
     def _create(self) -> bool:
         try:

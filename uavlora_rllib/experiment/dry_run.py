@@ -32,9 +32,12 @@ def sweep_lines(grid: GridConfig, specs: list[TrialSpec]) -> list[str]:
     """The dry run's description of a sweep: spaces, samples, scheduler, search algorithm."""
     from uavlora_rllib.experiment import sweep
 
-    lines = [f"sweep: {trial_count(grid, specs)} trials = {len(specs)} grid points x grid_search values x "
-             f"num_samples {grid.num_samples}" if grid.search_alg is None else
-             f"sweep: {grid.num_samples} trials (num_samples) suggested by {grid.search_alg.type}"]
+    lines = [
+        f"sweep: {trial_count(grid, specs)} trials = {len(specs)} grid points x grid_search values x "
+        f"num_samples {grid.num_samples}"
+        if grid.search_alg is None
+        else f"sweep: {grid.num_samples} trials (num_samples) suggested by {grid.search_alg.type}"
+    ]
     seen = set()
     for s in specs:
         for name, space in s.spaces.items():
@@ -46,7 +49,11 @@ def sweep_lines(grid: GridConfig, specs: list[TrialSpec]) -> list[str]:
         what = "perturbation_interval" if grid.scheduler.type == "pbt" else "grace_period"
         lines.append(f"  scheduler: {grid.scheduler.type} ({what} {interval} env steps)")
     if grid.search_alg is not None:
-        lines.append(f"  search_alg: {grid.search_alg.type} ({grid.search_alg.sampler} sampler, seed {grid.search_alg.seed})")
+        lines.append(
+            f"  search_alg: {grid.search_alg.type} ({grid.search_alg.sampler} sampler, seed {grid.search_alg.seed})"
+        )
     if grid.scheduler is not None or grid.search_alg is not None:
-        lines.append(f"  metric: {sweep.METRIC} (max), the greedy policy evaluated every {eval_interval(grid)} env steps")
+        lines.append(
+            f"  metric: {sweep.METRIC} (max), the greedy policy evaluated every {eval_interval(grid)} env steps"
+        )
     return lines

@@ -99,7 +99,10 @@ def run_episodes(
     while done < episodes:
         core.reset([first + done + i for i in range(n_envs)])
         policy.reset(core)
-        sums = {k: np.zeros(n_envs) for k in ("ee_sys", "success_rate", "mean_sinr_db", "n_unassociated", "p_total_w", "reward")}
+        sums = {
+            k: np.zeros(n_envs)
+            for k in ("ee_sys", "success_rate", "mean_sinr_db", "n_unassociated", "p_total_w", "reward")
+        }
         bound_sum = np.zeros(n_envs)
         for _ in range(cfg.episode_len):
             if bound is not None:

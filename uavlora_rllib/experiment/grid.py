@@ -391,8 +391,12 @@ def eval_interval(grid: GridConfig) -> int:
 def is_sweep(grid: GridConfig, specs: list[TrialSpec]) -> bool:
     """Whether trials are sampled (search spaces, num_samples, scheduler or search algorithm):
     then trial and run names carry the trial's number, since (algorithm, V, U, seed) repeats."""
-    return (grid.num_samples > 1 or grid.scheduler is not None or grid.search_alg is not None
-            or any(s.spaces for s in specs))
+    return (
+        grid.num_samples > 1
+        or grid.scheduler is not None
+        or grid.search_alg is not None
+        or any(s.spaces for s in specs)
+    )
 
 
 def scenario_for(grid: GridConfig, n_eds: int, n_uavs: int) -> ScenarioConfig:
@@ -411,8 +415,10 @@ def _validate(grid: GridConfig) -> None:
         entry = registry.get(name, path=f"algorithms.{name}")
         fixed, spaces[name] = algorithm_spaces(grid, entry)
         # every checked combination of sampled values (one, the fixed values, without spaces)
-        hparams = [entry.hparams({**fixed, **combo}, prefix=f"algorithms.{name}")
-                   for combo in sweep.representative_combinations(spaces[name])]
+        hparams = [
+            entry.hparams({**fixed, **combo}, prefix=f"algorithms.{name}")
+            for combo in sweep.representative_combinations(spaces[name])
+        ]
         entries[name] = (entry, hparams)
     sweep.check_sweep(grid, spaces, eval_interval(grid))
 

@@ -79,9 +79,15 @@ class MlflowTrialCallback(Callback):
     ``budget_env_steps`` and ``eval_episodes``.
     """
 
-    def __init__(self, tracking_uri: str, experiment: str, grid_file: str, commit: str | None = None,
-                 retry_timeout_s: float = DEFAULT_RETRY_TIMEOUT_S,
-                 checkpoint_artifact_max_mb: float = DEFAULT_CHECKPOINT_ARTIFACT_MAX_MB):
+    def __init__(
+        self,
+        tracking_uri: str,
+        experiment: str,
+        grid_file: str,
+        commit: str | None = None,
+        retry_timeout_s: float = DEFAULT_RETRY_TIMEOUT_S,
+        checkpoint_artifact_max_mb: float = DEFAULT_CHECKPOINT_ARTIFACT_MAX_MB,
+    ):
         self.tracking_uri = tracking_uri
         self.experiment = experiment
         self.grid_file = grid_file
@@ -109,8 +115,9 @@ class MlflowTrialCallback(Callback):
     @property
     def tracker(self) -> Tracker:
         if self._tracker is None:
-            self._tracker = Tracker(self.tracking_uri, self.experiment, self.grid_file, self.commit,
-                                    retry_timeout_s=self.retry_timeout_s)
+            self._tracker = Tracker(
+                self.tracking_uri, self.experiment, self.grid_file, self.commit, retry_timeout_s=self.retry_timeout_s
+            )
         return self._tracker
 
     def run_id(self, trial) -> str:
@@ -137,18 +144,27 @@ class MlflowTrialCallback(Callback):
             # in a sweep several trials share (algorithm, seed, V, U): a sibling's run is no orphan
             replaced = [] if cfg.get("sweep") else self.tracker.replace_orphans(cfg, tid)
             if replaced:
-                print(f"MLflow: replaced {len(replaced)} unfinished run(s) of a trial whose Tune state was lost "
-                      f"({run_name(cfg['algorithm'], cfg['n_eds'], cfg['n_uavs'], cfg['seed'])})", flush=True)
+                print(
+                    f"MLflow: replaced {len(replaced)} unfinished run(s) of a trial whose Tune state was lost "
+                    f"({run_name(cfg['algorithm'], cfg['n_eds'], cfg['n_uavs'], cfg['seed'])})",
+                    flush=True,
+                )
             tags = self.tracker.base_tags(
                 KIND_TRAIN, cfg["algorithm"], cfg["seed"], cfg["n_eds"], cfg["n_uavs"], cfg["budget_env_steps"]
             )
             tags["trial_id"] = tid
             tags["checkpoint"] = ""
             sampled = sampled_values(cfg)  # a sweep's values for this trial, as Tune resolved them
-            params = {**identity, **run_params(
-                cfg["scenario"], cfg["budget_env_steps"], cfg["eval_episodes"], {**cfg["hparams"], **sampled},
-                cfg["resources"]
-            )}
+            params = {
+                **identity,
+                **run_params(
+                    cfg["scenario"],
+                    cfg["budget_env_steps"],
+                    cfg["eval_episodes"],
+                    {**cfg["hparams"], **sampled},
+                    cfg["resources"],
+                ),
+            }
             params.update(sampled_params(sampled))
             name = trial_run_name(cfg, tid)
             run_id = self.tracker.create_run(name, tags, params)
@@ -193,8 +209,10 @@ class MlflowTrialCallback(Callback):
         else:
             size = directory_mb(where)
             if size > limit:
-                reason = (f"not uploaded: {size:.1f} MB > mlflow.checkpoint_artifact_max_mb {limit:g} "
-                          "(tag checkpoint is its path)")
+                reason = (
+                    f"not uploaded: {size:.1f} MB > mlflow.checkpoint_artifact_max_mb {limit:g} "
+                    "(tag checkpoint is its path)"
+                )
             else:
                 run = self.tracker.get_run(run_id)
                 if run.data.tags.get("checkpoint_artifact_source") != where:
@@ -219,8 +237,10 @@ class MlflowTrialCallback(Callback):
         """A trial Tune holds as finished whose run is not FINISHED: log what is missing from
         its result.json (or its last result) and end the run. True when something was done."""
         existing = self.tracker.run_for_trial(trial.trial_id)
-        if existing is not None and existing.info.status == "FINISHED" and any(
-            k.startswith(EVAL_PREFIX) for k in existing.data.metrics
+        if (
+            existing is not None
+            and existing.info.status == "FINISHED"
+            and any(k.startswith(EVAL_PREFIX) for k in existing.data.metrics)
         ):
             return False
         rows = read_trial_results(getattr(trial, "path", None)) or ([trial.last_result] if trial.last_result else [])

@@ -131,8 +131,13 @@ def git_repo_url(repo_dir: str | None = None) -> str | None:
     """The checkout's ``origin`` URL when it is a web or SSH address the UI can link to, else None."""
     repo_dir = repo_dir or os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     try:
-        out = subprocess.run(["git", "-C", repo_dir, "config", "--get", "remote.origin.url"],
-                             capture_output=True, text=True, timeout=10, check=True)
+        out = subprocess.run(
+            ["git", "-C", repo_dir, "config", "--get", "remote.origin.url"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
+        )
     except (OSError, subprocess.SubprocessError):
         return None
     url = out.stdout.strip()
@@ -159,8 +164,14 @@ def _without_identity(params: Mapping[str, str]) -> dict[str, str]:
 class Tracker:
     """The grid's MLflow experiment, through `MlflowClient` (the only writer: the driver)."""
 
-    def __init__(self, tracking_uri: str, experiment: str, grid_file: str, commit: str | None = None,
-                 retry_timeout_s: float = DEFAULT_RETRY_TIMEOUT_S):
+    def __init__(
+        self,
+        tracking_uri: str,
+        experiment: str,
+        grid_file: str,
+        commit: str | None = None,
+        retry_timeout_s: float = DEFAULT_RETRY_TIMEOUT_S,
+    ):
         from mlflow.tracking import MlflowClient
 
         if tracking_uri.startswith(("http://", "https://")):
@@ -238,7 +249,10 @@ class Tracker:
         while True:
             page = self._call(
                 self.client.search_runs,
-                [self.experiment_id], filter_string, max_results=1000, order_by=["attributes.start_time ASC"],
+                [self.experiment_id],
+                filter_string,
+                max_results=1000,
+                order_by=["attributes.start_time ASC"],
                 page_token=token,
             )
             runs.extend(page)
@@ -316,8 +330,12 @@ class Tracker:
             if runs:
                 self._grid_run_id = runs[0].info.run_id
             else:
-                tags = {"kind": KIND_GRID, "git_commit": self.commit,
-                        "grid_file": self.grid_file[:MAX_TAG_VAL_LENGTH], **self.source_tags()}
+                tags = {
+                    "kind": KIND_GRID,
+                    "git_commit": self.commit,
+                    "grid_file": self.grid_file[:MAX_TAG_VAL_LENGTH],
+                    **self.source_tags(),
+                }
                 run = self._call(self.client.create_run, self.experiment_id, run_name=self.experiment, tags=tags)
                 self._grid_run_id = run.info.run_id
                 if os.path.isfile(self.grid_file):
@@ -411,7 +429,8 @@ class Tracker:
         killed driver may have logged only some of them): the first is adopted, the rest are
         leftovers of older crashes and are deleted so that one run remains."""
         runs = [
-            r for r in self.search(self.identity_filter(KIND_BASELINE, name, seed, n_eds, n_uavs))
+            r
+            for r in self.search(self.identity_filter(KIND_BASELINE, name, seed, n_eds, n_uavs))
             if r.info.status in UNFINISHED and all(params.get(k) == v for k, v in r.data.params.items())
         ]
         for extra in runs[1:]:
@@ -472,9 +491,7 @@ class Tracker:
         under another trial id is a trial Tune no longer knows (the driver died before Tune
         saved it), whose training restarts from scratch under `trial_id`.
         """
-        runs = self.search(
-            self.identity_filter(KIND_TRAIN, cfg["algorithm"], cfg["seed"], cfg["n_eds"], cfg["n_uavs"])
-        )
+        runs = self.search(self.identity_filter(KIND_TRAIN, cfg["algorithm"], cfg["seed"], cfg["n_eds"], cfg["n_uavs"]))
         gone = [r.info.run_id for r in runs if r.data.tags.get("trial_id") != trial_id and r.info.status in UNFINISHED]
         for run_id in gone:
             self.delete(run_id)

@@ -300,8 +300,9 @@ def trial_config_yaml(cfg: Mapping[str, Any], trial_id: str) -> str:
     import yaml
 
     doc = {"trial_id": trial_id, **_plain(cfg)}
-    return "# the resolved config of this trial (uavlora_rllib.tune; docs/model.md#mlflow-runs)\n" + \
-        yaml.safe_dump(doc, sort_keys=False)
+    return "# the resolved config of this trial (uavlora_rllib.tune; docs/model.md#mlflow-runs)\n" + yaml.safe_dump(
+        doc, sort_keys=False
+    )
 
 
 def curves_csv(histories: Mapping[str, list[tuple[int, float]]]) -> str:

@@ -131,7 +131,7 @@ def _check_value(hparams_cls: type, fixed: Mapping[str, Any], name: str, value: 
     except ConfigError as exc:
         text = str(exc)
         if text.startswith(f"{field_path}:"):
-            raise ConfigError(f"{where}:{text[len(field_path) + 1:]}") from None
+            raise ConfigError(f"{where}:{text[len(field_path) + 1 :]}") from None
         raise ConfigError(f"{text} (with {where} = {value!r})") from None
 
 
@@ -163,11 +163,15 @@ def parse_space(hparams_cls: type, fixed: Mapping[str, Any], name: str, spec: Ma
     # ranges
     if kind == "randint":
         if base is not int:
-            raise ConfigError(f"{where}: randint samples integers and {path} is {_type_name(base)}; "
-                              "allowed: uniform or loguniform (float fields), choice or grid_search (any field)")
+            raise ConfigError(
+                f"{where}: randint samples integers and {path} is {_type_name(base)}; "
+                "allowed: uniform or loguniform (float fields), choice or grid_search (any field)"
+            )
     elif base is not float:
-        raise ConfigError(f"{where}: {kind} samples floats and {path} is {_type_name(base)}; allowed: "
-                          f"{'randint, ' if base is int else ''}choice or grid_search")
+        raise ConfigError(
+            f"{where}: {kind} samples floats and {path} is {_type_name(base)}; allowed: "
+            f"{'randint, ' if base is int else ''}choice or grid_search"
+        )
     if len(arg) != 2:
         raise ConfigError(f"{where}: expected a list [lo, hi] of two numbers, got {arg!r}")
     for i, value in enumerate(arg):
@@ -175,7 +179,9 @@ def parse_space(hparams_cls: type, fixed: Mapping[str, Any], name: str, spec: Ma
     lo, hi = arg
     if kind == "randint":
         if not hi > lo:
-            raise ConfigError(f"{where}: expected lo < hi (randint samples lo <= x < hi, as Ray Tune's), got [{lo}, {hi}]")
+            raise ConfigError(
+                f"{where}: expected lo < hi (randint samples lo <= x < hi, as Ray Tune's), got [{lo}, {hi}]"
+            )
         _check_value(hparams_cls, fixed, name, hi - 1, f"{where}.1", prefix)  # the largest sample
     elif not hi > lo:
         raise ConfigError(f"{where}: expected lo < hi, got [{lo!r}, {hi!r}]")
@@ -202,9 +208,7 @@ def split_overrides(hparams_cls: type, overrides: Mapping[str, Any] | None, pref
     fields = getattr(hparams_cls, "__pydantic_fields__", {})
     fixed = {k: v for k, v in overrides.items() if not (k in fields and is_space(v, fields[k].annotation))}
     build(hparams_cls, fixed, prefix)  # unknown fields, bad fixed values, cross-field checks
-    spaces = {
-        k: parse_space(hparams_cls, fixed, k, v, prefix) for k, v in overrides.items() if k not in fixed
-    }
+    spaces = {k: parse_space(hparams_cls, fixed, k, v, prefix) for k, v in overrides.items() if k not in fixed}
     for combo in representative_combinations(spaces):
         if len(combo) < 2:
             break  # one sampled field: every candidate was built with the fixed values already
@@ -265,25 +269,35 @@ class SchedulerConfig:
         own = {
             "asha": {"grace_period", "reduction_factor", "brackets"},
             "median_stopping": {"grace_period", "min_samples_required", "hard_stop"},
-            "pbt": {"perturbation_interval", "burn_in_period", "quantile_fraction", "resample_probability",
-                    "perturbation_factors", "synch"},
+            "pbt": {
+                "perturbation_interval",
+                "burn_in_period",
+                "quantile_fraction",
+                "resample_probability",
+                "perturbation_factors",
+                "synch",
+            },
         }
         defaults = SchedulerConfig(type=self.type)
         for f in dataclasses.fields(self):
             if f.name != "type" and f.name not in own[self.type] and getattr(self, f.name) != getattr(defaults, f.name):
                 users = [k for k, v in own.items() if f.name in v]
-                raise ConfigError(f"{prefix}.{f.name}: an option of {' and '.join(users)}, not of {self.type}; "
-                                  f"allowed for {self.type}: {', '.join(sorted(own[self.type]))}")
+                raise ConfigError(
+                    f"{prefix}.{f.name}: an option of {' and '.join(users)}, not of {self.type}; "
+                    f"allowed for {self.type}: {', '.join(sorted(own[self.type]))}"
+                )
         for name in ("grace_period", "perturbation_interval"):
             value = getattr(self, name)
             if value is not None and name in own[self.type] and value < interval:
                 raise ConfigError(
                     f"{prefix}.{name}: {value} env steps is shorter than the periodic evaluation interval "
                     f"({interval} env steps, evaluation.interval_env_steps), so the metric {METRIC} would not "
-                    f"be measured again in between; allowed: at least {interval}")
+                    f"be measured again in between; allowed: at least {interval}"
+                )
         if self.type == "pbt" and any(not (0 < f < 10) for f in self.perturbation_factors):
-            raise ConfigError(f"{prefix}.perturbation_factors: expected two factors in (0, 10), "
-                              f"got {list(self.perturbation_factors)}")
+            raise ConfigError(
+                f"{prefix}.perturbation_factors: expected two factors in (0, 10), got {list(self.perturbation_factors)}"
+            )
 
     def interval(self, eval_interval: int) -> int:
         value = self.perturbation_interval if self.type == "pbt" else self.grace_period
@@ -307,33 +321,50 @@ def check_sweep(grid: Any, spaces: Mapping[str, Mapping[str, SearchSpace]], inte
     if needs_metric and interval < 1:
         raise ConfigError(
             f"{needs_metric[0]}: needs periodic evaluation of the greedy policy (its metric is {METRIC}); "
-            "evaluation.interval_env_steps is 0; allowed: null (budget / 20) or a positive number of env steps")
+            "evaluation.interval_env_steps is 0; allowed: null (budget / 20) or a positive number of env steps"
+        )
     if grid.scheduler is not None:
         grid.scheduler.check(grid, interval)
-        _single(grid, "scheduler", ("n_eds", "n_uavs") + (("algorithms",) if grid.scheduler.type == "pbt" else ()),
-                "it compares trials" if grid.scheduler.type != "pbt" else "it copies checkpoints between trials")
+        _single(
+            grid,
+            "scheduler",
+            ("n_eds", "n_uavs") + (("algorithms",) if grid.scheduler.type == "pbt" else ()),
+            "it compares trials" if grid.scheduler.type != "pbt" else "it copies checkpoints between trials",
+        )
         if grid.scheduler.type == "pbt" and not any(spaces.values()):
-            raise ConfigError("scheduler: pbt mutates the hyperparameters given as search spaces, and the grid has none; "
-                              "allowed: e.g. algorithms.<algo>.lr: {loguniform: [1.0e-5, 1.0e-3]}")
+            raise ConfigError(
+                "scheduler: pbt mutates the hyperparameters given as search spaces, and the grid has none; "
+                "allowed: e.g. algorithms.<algo>.lr: {loguniform: [1.0e-5, 1.0e-3]}"
+            )
     if grid.search_alg is not None:
-        _single(grid, "search_alg", ("algorithms", "seeds", "n_eds", "n_uavs"),
-                "it suggests one configuration per trial and cannot expand a grid")
+        _single(
+            grid,
+            "search_alg",
+            ("algorithms", "seeds", "n_eds", "n_uavs"),
+            "it suggests one configuration per trial and cannot expand a grid",
+        )
         for algo, algo_spaces in spaces.items():
             for name, space in algo_spaces.items():
                 if space.kind == "grid_search":
-                    raise ConfigError(f"algorithms.{algo}.{name}.grid_search: {grid.search_alg.type} cannot sample a "
-                                      "grid_search; allowed: choice, uniform, loguniform, randint")
+                    raise ConfigError(
+                        f"algorithms.{algo}.{name}.grid_search: {grid.search_alg.type} cannot sample a "
+                        "grid_search; allowed: choice, uniform, loguniform, randint"
+                    )
         if not any(spaces.values()):
-            raise ConfigError(f"search_alg: {grid.search_alg.type} needs at least one search space and the grid has "
-                              "none; allowed: e.g. algorithms.<algo>.lr: {loguniform: [1.0e-5, 1.0e-3]}")
+            raise ConfigError(
+                f"search_alg: {grid.search_alg.type} needs at least one search space and the grid has "
+                "none; allowed: e.g. algorithms.<algo>.lr: {loguniform: [1.0e-5, 1.0e-3]}"
+            )
 
 
 def _single(grid: Any, what: str, keys: tuple[str, ...], why: str) -> None:
     for key in keys:
         n = len(getattr(grid, key))
         if n != 1:
-            raise ConfigError(f"{key}: {what} {getattr(grid, what).type} needs exactly one value here ({why}), "
-                              f"got {n}; sweep the others in separate grids")
+            raise ConfigError(
+                f"{key}: {what} {getattr(grid, what).type} needs exactly one value here ({why}), "
+                f"got {n}; sweep the others in separate grids"
+            )
 
 
 # --------------------------------------------------------------------------- Tune objects
@@ -347,11 +378,17 @@ def make_scheduler(grid: Any, spaces: Mapping[str, SearchSpace], eval_interval: 
     interval = s.interval(eval_interval)
     common = {"time_attr": TIME_ATTR, "metric": SWEEP_METRIC, "mode": MODE}
     if s.type == "asha":
-        return schedulers.ASHAScheduler(max_t=grid.stop.env_steps, grace_period=min(interval, grid.stop.env_steps),
-                                        reduction_factor=s.reduction_factor, brackets=s.brackets, **common)
+        return schedulers.ASHAScheduler(
+            max_t=grid.stop.env_steps,
+            grace_period=min(interval, grid.stop.env_steps),
+            reduction_factor=s.reduction_factor,
+            brackets=s.brackets,
+            **common,
+        )
     if s.type == "median_stopping":
-        return schedulers.MedianStoppingRule(grace_period=interval, min_samples_required=s.min_samples_required,
-                                             hard_stop=s.hard_stop, **common)
+        return schedulers.MedianStoppingRule(
+            grace_period=interval, min_samples_required=s.min_samples_required, hard_stop=s.hard_stop, **common
+        )
     return schedulers.PopulationBasedTraining(
         perturbation_interval=interval,
         burn_in_period=s.burn_in_period,
@@ -370,7 +407,9 @@ class ClampToSpaces:
     so a mutated trial never leaves the range the grid validated."""
 
     def __init__(self, spaces: Mapping[str, SearchSpace]):
-        self.bounds = {k: s.representatives for k, s in spaces.items() if s.kind in ("uniform", "loguniform", "randint")}
+        self.bounds = {
+            k: s.representatives for k, s in spaces.items() if s.kind in ("uniform", "loguniform", "randint")
+        }
 
     def __call__(self, config: dict) -> dict:
         overrides = config.get("trial", {}).get("overrides", {})
@@ -405,6 +444,7 @@ def sampled_values(cfg: Mapping[str, Any]) -> dict[str, Any]:
 
 def variant_label(values: Mapping[str, Any]) -> str:
     """'lr=0.000316,entropy_coeff=0.01': a trial's sampled values, short (names, report)."""
+
     def show(v: Any) -> str:
         return f"{v:.3g}" if isinstance(v, float) else str(v)
 

@@ -40,7 +40,8 @@ class UavLoraTrainable(tune.Trainable):
         self.hparams = self.entry.hparams(cfg["overrides"])
         algo_config = self.entry.build(self.scenario, self.hparams, resources, int(cfg["seed"]))
         self._eval_settings = periodic_eval.PeriodicEvalSettings(
-            self.scenario, int(cfg.get("eval_interval_env_steps", 0)), int(cfg["eval_episodes"]), int(cfg["seed"]))
+            self.scenario, int(cfg.get("eval_interval_env_steps", 0)), int(cfg["eval_episodes"]), int(cfg["seed"])
+        )
         periodic_eval.attach(algo_config, self._eval_settings)
         self.algo = algo_config.build_algo()
         self._last_steps: int | None = 0

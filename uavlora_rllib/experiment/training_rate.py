@@ -64,8 +64,17 @@ def _timers(result: dict) -> dict:
     return dict(result.get("timers", {}))
 
 
-def measure_training(entry, scenario, hparams, resources, seed: int, iterations: int, *,
-                     warmup_until_learning: bool = False, after: Callable[[Any], Any] | None = None) -> TrainingRate:
+def measure_training(
+    entry,
+    scenario,
+    hparams,
+    resources,
+    seed: int,
+    iterations: int,
+    *,
+    warmup_until_learning: bool = False,
+    after: Callable[[Any], Any] | None = None,
+) -> TrainingRate:
     """Build `entry`'s algorithm for (scenario, hparams, resources, seed), train one warm-up
     iteration (with `warmup_until_learning`, more until the learner has updated, as a replay
     algorithm only learns once its buffer fills), then time `iterations` iterations.
@@ -89,8 +98,7 @@ def measure_training(entry, scenario, hparams, resources, seed: int, iterations:
         for _ in range(iterations):
             t = time.perf_counter()
             res = algo.train()
-            row = {"wall_s": time.perf_counter() - t,
-                   "env_steps": res["env_runners"].get("num_env_steps_sampled", 0)}
+            row = {"wall_s": time.perf_counter() - t, "env_steps": res["env_runners"].get("num_env_steps_sampled", 0)}
             cur = _timers(res)
             for key, name in TIMER_KEYS.items():
                 row[name] = this_iteration(cur.get(key), prev.get(key))

@@ -24,8 +24,10 @@ def trial_config(spec: TrialSpec, grid: GridConfig, sweeping: bool = False) -> d
     named in ``sampled``."""
     from uavlora_rllib.experiment import periodic_eval  # imports RLlib: not at module import
 
-    overrides = {k: (spec.spaces[k].to_tune() if k in spec.spaces else v)
-                 for k, v in algorithm_overrides(grid, spec.algorithm).items()}
+    overrides = {
+        k: (spec.spaces[k].to_tune() if k in spec.spaces else v)
+        for k, v in algorithm_overrides(grid, spec.algorithm).items()
+    }
     return {
         "algorithm": spec.algorithm,
         "seed": spec.seed,
@@ -39,7 +41,9 @@ def trial_config(spec: TrialSpec, grid: GridConfig, sweeping: bool = False) -> d
         "resources": dataclasses.asdict(grid.resources),
         "budget_env_steps": grid.stop.env_steps,
         "eval_episodes": grid.evaluation.episodes,
-        "eval_interval_env_steps": periodic_eval.resolve_interval(grid.evaluation.interval_env_steps, grid.stop.env_steps),
+        "eval_interval_env_steps": periodic_eval.resolve_interval(
+            grid.evaluation.interval_env_steps, grid.stop.env_steps
+        ),
         "plugins": list(grid.plugins),
     }
 
@@ -70,8 +74,13 @@ def status_reporter(sampled: Sequence[str] = ()):
     from ray.tune import CLIReporter
 
     return CLIReporter(
-        parameter_columns={"trial/algorithm": "algorithm", "trial/n_eds": "V", "trial/n_uavs": "U",
-                           "trial/seed": "seed", **{f"trial/overrides/{k}": k for k in sampled}},
+        parameter_columns={
+            "trial/algorithm": "algorithm",
+            "trial/n_eds": "V",
+            "trial/n_uavs": "U",
+            "trial/seed": "seed",
+            **{f"trial/overrides/{k}": k for k in sampled},
+        },
         metric_columns={"env_steps": "env steps", "episode_return_mean": "return", "ee_sys_mean": "EE"},
         max_report_frequency=30,
         sort_by_metric=False,
@@ -85,8 +94,14 @@ def make_tuner(grid: GridConfig, specs: list[TrialSpec], storage: str, uri: str,
     from uavlora_rllib.experiment.mlflow_callback import MlflowTrialCallback
     from uavlora_rllib.experiment.trainable import UavLoraTrainable
 
-    callback = MlflowTrialCallback(uri, grid.experiment, grid_file, commit, retry_timeout_s=grid.mlflow.retry_timeout_s,
-                                   checkpoint_artifact_max_mb=grid.mlflow.checkpoint_artifact_max_mb)
+    callback = MlflowTrialCallback(
+        uri,
+        grid.experiment,
+        grid_file,
+        commit,
+        retry_timeout_s=grid.mlflow.retry_timeout_s,
+        checkpoint_artifact_max_mb=grid.mlflow.checkpoint_artifact_max_mb,
+    )
     sweeping = is_sweep(grid, specs)
     configs = [trial_config(s, grid, sweeping) for s in specs]
     # a search algorithm suggests the sampled values of one grid point (sweep.check_sweep)
@@ -109,7 +124,8 @@ def make_tuner(grid: GridConfig, specs: list[TrialSpec], storage: str, uri: str,
             storage_path=storage,
             callbacks=[callback],
             checkpoint_config=tune.CheckpointConfig(
-                checkpoint_frequency=grid.checkpoint_every, checkpoint_at_end=True,
+                checkpoint_frequency=grid.checkpoint_every,
+                checkpoint_at_end=True,
                 # PBT restores a trial from another's checkpoint some iterations later: keep them all
                 num_to_keep=None if grid.scheduler is not None and grid.scheduler.type == "pbt" else 2,
             ),
@@ -120,8 +136,16 @@ def make_tuner(grid: GridConfig, specs: list[TrialSpec], storage: str, uri: str,
     )
 
 
-def tuner_for(grid: GridConfig, specs: list[TrialSpec], storage: str, uri: str, grid_file: str, exp_path: str,
-               commit: str, restore: bool):
+def tuner_for(
+    grid: GridConfig,
+    specs: list[TrialSpec],
+    storage: str,
+    uri: str,
+    grid_file: str,
+    exp_path: str,
+    commit: str,
+    restore: bool,
+):
     """The Tuner of the grid: restored from `exp_path` (--resume), or new."""
     from ray import tune
 

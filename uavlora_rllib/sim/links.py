@@ -201,7 +201,5 @@ class AllPairLinks(LinkStage):
 def default_link_stage(cfg: ScenarioConfig, n_envs: int) -> LinkStage:
     """NearestLinks where it is exact (greedy association, the paper's interference, a gain
     strictly decreasing in d_h), AllPairLinks otherwise."""
-    nearest = (
-        cfg.association == "greedy" and cfg.interference == "paper" and physics.gain_decreases_with_distance(cfg)
-    )
+    nearest = cfg.association == "greedy" and cfg.interference == "paper" and physics.gain_decreases_with_distance(cfg)
     return (NearestLinks if nearest else AllPairLinks)(cfg, n_envs)

@@ -48,7 +48,9 @@ class MobilityConfig:
     """Gauss-Markov ED mobility, the paper's Eq. (gm), with the decisions of docs/model.md#mobility."""
 
     memory: float = Field(default=0.85, ge=0.0, le=1.0, description="eth, temporal correlation of the velocity, [0, 1]")
-    sigma: float = Field(default=0.5, ge=0.0, le=1e3, description="sigma-hat, randomness of the velocity (m/s), [0, 1e3]")
+    sigma: float = Field(
+        default=0.5, ge=0.0, le=1e3, description="sigma-hat, randomness of the velocity (m/s), [0, 1e3]"
+    )
     dt_s: float = Field(default=0.5, gt=0.0, le=3600.0, description="slot duration Delta t (s), (0, 3600]")
     v_max_mps: float = Field(default=1.0, gt=0.0, le=1e3, description="speed clip (m/s), (0, 1e3]")
     mean_velocity_init_mps: float = Field(
@@ -85,7 +87,9 @@ class RewardWeights:
     w1: float = Field(default=4e-4, ge=-1e6, le=1e6, description="weight of EE_sys, [-1e6, 1e6]")
     w2: float = Field(default=5.0, ge=-1e6, le=1e6, description="weight of the success rate Xi, [-1e6, 1e6]")
     w3: float = Field(default=1.0, ge=-1e6, le=1e6, description="weight of the SNR-margin score beta, [-1e6, 1e6]")
-    w4: float = Field(default=-1e-2, ge=-1e6, le=1e6, description="weight of P_total (always a penalty: |w4|), [-1e6, 1e6]")
+    w4: float = Field(
+        default=-1e-2, ge=-1e6, le=1e6, description="weight of P_total (always a penalty: |w4|), [-1e6, 1e6]"
+    )
 
 
 @dataclass(config=_STRICT)
@@ -101,7 +105,9 @@ class ScenarioConfig:
         default=None, ge=1, le=10_000, description="Lambda_max, [1, 10000]; None -> ceil(1.5 V / U)"
     )
     carrier_hz: float = Field(default=868e6, ge=1e6, le=1e11, description="carrier frequency f (Hz), [1e6, 1e11]")
-    speed_of_light_mps: float = Field(default=3e8, ge=1e6, le=1e9, description="c in the free-space term (m/s), [1e6, 1e9]")
+    speed_of_light_mps: float = Field(
+        default=3e8, ge=1e6, le=1e9, description="c in the free-space term (m/s), [1e6, 1e9]"
+    )
     los_a: float = Field(
         default=4.88, ge=0.0, le=100.0, description="Al-Hourani 'a' (vartheta), elevation in degrees, [0, 100]"
     )

@@ -137,7 +137,11 @@ class BranchQCritic(nn.Module):
         rows = onehot[..., None, None, :].expand(*lead, u_n, l_n, self.n_onehot).clone()
         own = (actions.long() + self.offsets).unsqueeze(-1)  # [..., U, L, 1]
         rows.scatter_(-1, own, 0.0)  # branch l of u left out of its own row
-        ids = torch.eye(self.n_ids, device=actions.device).reshape(u_n, l_n, self.n_ids).expand(*lead, u_n, l_n, self.n_ids)
+        ids = (
+            torch.eye(self.n_ids, device=actions.device)
+            .reshape(u_n, l_n, self.n_ids)
+            .expand(*lead, u_n, l_n, self.n_ids)
+        )
         parts = [state[..., None, None, :].expand(*lead, u_n, l_n, self.state_dim), rows, ids]
         if self.obs_dim:
             assert obs is not None  # (obs_dim > 0)

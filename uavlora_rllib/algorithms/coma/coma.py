@@ -53,7 +53,9 @@ NAME = "coma"
 class COMAHParams:
     """COMA's hyperparameters; defaults from the paper's training table where it has them."""
 
-    lr_actor: float = Field(default=1e-4, gt=0, le=1, description="Adam step size of the actor [1/update] (paper: lr 1e-4)")
+    lr_actor: float = Field(
+        default=1e-4, gt=0, le=1, description="Adam step size of the actor [1/update] (paper: lr 1e-4)"
+    )
     lr_critic: float = Field(
         default=5e-4,
         gt=0,
@@ -62,13 +64,21 @@ class COMAHParams:
         "actor's)",
     )
     gamma: float = Field(default=0.99, gt=0, le=1, description="discount per slot [-]")
-    td_lambda: float = Field(default=0.8, ge=0, le=1, description="lambda of the critic's TD(lambda) targets [-] (Foerster et al.)")
-    entropy_coeff: float = Field(default=0.01, ge=0, description="weight of the mean per-agent policy entropy in the actor loss [1/nat]")
-    grad_clip: float = Field(default=10.0, gt=0, description="max global L2 gradient norm, per optimizer (actor, critic) [-]")
+    td_lambda: float = Field(
+        default=0.8, ge=0, le=1, description="lambda of the critic's TD(lambda) targets [-] (Foerster et al.)"
+    )
+    entropy_coeff: float = Field(
+        default=0.01, ge=0, description="weight of the mean per-agent policy entropy in the actor loss [1/nat]"
+    )
+    grad_clip: float = Field(
+        default=10.0, gt=0, description="max global L2 gradient norm, per optimizer (actor, critic) [-]"
+    )
     batch_episodes: int = Field(
         default=16, ge=1, description="whole episodes per update [episodes] (paper: batch 16); a multiple of all envs"
     )
-    tau: float = Field(default=0.01, gt=0, le=1, description="Polyak weight of the target critic per update [-] (paper)")
+    tau: float = Field(
+        default=0.01, gt=0, le=1, description="Polyak weight of the target critic per update [-] (paper)"
+    )
     target_hard_update_every: int = Field(
         default=0, ge=0, description="> 0: hard target copy every K updates instead of Polyak [updates]"
     )
@@ -83,7 +93,9 @@ class COMAHParams:
         default=True,
         description="with share_actor=true: each UAV also gets its own linear output layer, added to the shared one [bool]",
     )
-    critic_hidden: tuple[int, ...] = Field(default=(128, 128), description="ReLU layer widths of the critic MLP [units]")
+    critic_hidden: tuple[int, ...] = Field(
+        default=(128, 128), description="ReLU layer widths of the critic MLP [units]"
+    )
     critic_use_obs: bool = Field(default=True, description="also give the critic UAV u's own observation row [bool]")
     critic_factored_actions: bool = Field(
         default=True,
@@ -95,7 +107,9 @@ class COMAHParams:
         default=True, description="Q = V + (D - mean D) head: untried actions start at the state's value [bool]"
     )
     critic_steps: int = Field(
-        default=4, ge=0, description="critic-only gradient steps on each batch before the joint step [steps] (critic first, as in the paper)"
+        default=4,
+        ge=0,
+        description="critic-only gradient steps on each batch before the joint step [steps] (critic first, as in the paper)",
     )
     updates_per_iteration: int = Field(
         default=8,
@@ -107,8 +121,12 @@ class COMAHParams:
     ratio_clip: float = Field(
         default=0.2, gt=0, le=1, description="clip of each UAV's probability ratio when updates_per_iteration > 1 [-]"
     )
-    critic_warmup_updates: int = Field(default=0, ge=0, description="first updates that train the critic only [updates]; 0: off")
-    normalize_advantages: bool = Field(default=False, description="standardise the advantages over the batch [bool] (not in COMA)")
+    critic_warmup_updates: int = Field(
+        default=0, ge=0, description="first updates that train the critic only [updates]; 0: off"
+    )
+    normalize_advantages: bool = Field(
+        default=False, description="standardise the advantages over the batch [bool] (not in COMA)"
+    )
     reward_scale: float = Field(default=1.0, gt=0, description="factor on the rewards in the critic targets [-]")
 
     def check(self, scenario: ScenarioConfig, resources: Resources, path: str) -> None:

@@ -136,7 +136,11 @@ class COMATorchLearner(TargetNetworkLearner):
         for name, net, lr in ((ACTOR_OPT, module.actor, hp.lr_actor), (CRITIC_OPT, module.critic, hp.lr_critic)):
             params = list(net.parameters())
             self.register_optimizer(
-                module_id=module_id, optimizer_name=name, optimizer=torch.optim.Adam(params), params=params, lr_or_lr_schedule=lr
+                module_id=module_id,
+                optimizer_name=name,
+                optimizer=torch.optim.Adam(params),
+                params=params,
+                lr_or_lr_schedule=lr,
             )
 
     @override(TorchLearner)

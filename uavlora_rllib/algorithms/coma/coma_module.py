@@ -300,7 +300,9 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
         as MAPPO's per_device head) and the critic is branching.BranchQCritic."""
         mc = self.model_config
         if nvec.shape[0] != self.n_agents or not (nvec == nvec[0]).all():
-            raise ValueError(f"COMA per_device needs the same nvec row for all {self.n_agents} UAVs, got {nvec.tolist()}")
+            raise ValueError(
+                f"COMA per_device needs the same nvec row for all {self.n_agents} UAVs, got {nvec.tolist()}"
+            )
         self.state_dim = int(mc["state_dim"])
         self.use_obs = bool(mc["critic_use_obs"])
         self.head = ActionHead(nvec[0].tolist())

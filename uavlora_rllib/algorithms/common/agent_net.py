@@ -103,7 +103,9 @@ class RecurrentAgentNet(nn.Module):
         self.obs_dim, self.n_agents, self.n_out = obs_dim, n_agents, n_out
         self.gru_hidden, self.share = gru_hidden, share
         self.in_dim = obs_dim + (n_agents if share else 0)
-        stacks = [_AgentStack(self.in_dim, fc_hidden, gru_hidden, n_out, out_hidden) for _ in range(1 if share else n_agents)]
+        stacks = [
+            _AgentStack(self.in_dim, fc_hidden, gru_hidden, n_out, out_hidden) for _ in range(1 if share else n_agents)
+        ]
         if out_gain is not None:  # e.g. 0.01 for a PPO actor: a near-uniform initial policy
             for net in stacks:
                 last = cast(nn.Linear, net.out[-1])
@@ -184,7 +186,9 @@ class RecurrentAgentNet(nn.Module):
         nn.GRU's equations and operation order (r, z, n gates; h' = n + z (h - n)); the input
         projection of all T steps is one batched product, as nn.GRU does on the CPU."""
         u, b, t, f = z.shape
-        w_ih, w_hh, b_ih, b_hh = (self._stacked(f"gru.{k}_l0") for k in ("weight_ih", "weight_hh", "bias_ih", "bias_hh"))
+        w_ih, w_hh, b_ih, b_hh = (
+            self._stacked(f"gru.{k}_l0") for k in ("weight_ih", "weight_hh", "bias_ih", "bias_hh")
+        )
         z = z.transpose(1, 2).reshape(u, t * b, f)  # time-major rows, as nn.GRU sums its gradients
         gi = torch.baddbmm(b_ih.unsqueeze(1), z, w_ih.transpose(1, 2))
         w_hh_t, b_hh = w_hh.transpose(1, 2), b_hh.unsqueeze(1)

@@ -52,7 +52,9 @@ class EpisodeAlgorithm(Algorithm, abc.ABC):
         self.metrics.aggregate(runner_metrics, key=ENV_RUNNER_RESULTS)
         n_updates = self.add_episodes(episodes)
         timesteps = {
-            NUM_ENV_STEPS_SAMPLED_LIFETIME: self.metrics.peek((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0)
+            NUM_ENV_STEPS_SAMPLED_LIFETIME: self.metrics.peek(
+                (ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0
+            )
         }
         for _ in range(n_updates):
             batch = self.next_batch()

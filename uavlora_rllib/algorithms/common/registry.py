@@ -46,16 +46,22 @@ MODULES: dict[str, str] = {
 class Resources:
     """How one trial samples and learns (grid YAML `resources:`)."""
 
-    num_env_runners: int = Field(default=0, ge=0, description="remote env runners; 0: sample in the trial's own process")
+    num_env_runners: int = Field(
+        default=0, ge=0, description="remote env runners; 0: sample in the trial's own process"
+    )
     num_envs_per_env_runner: int = Field(default=16, ge=1, description="scenarios per env runner, all in one BatchCore")
     num_cpus_per_env_runner: float = Field(default=1.0, gt=0, description="CPUs reserved per remote env runner")
     num_learners: int = Field(
-        default=0, ge=0, description="remote learner actors (data-parallel updates); 0: learn in the trial's own process"
+        default=0,
+        ge=0,
+        description="remote learner actors (data-parallel updates); 0: learn in the trial's own process",
     )
     num_gpus_per_learner: float = Field(
         default=0.0, ge=0, description="GPUs per learner (per the trial's own process when num_learners is 0)"
     )
-    num_cpus_per_learner: float = Field(default=1.0, gt=0, description="CPUs per learner (the trial's process when num_learners is 0)")
+    num_cpus_per_learner: float = Field(
+        default=1.0, gt=0, description="CPUs per learner (the trial's process when num_learners is 0)"
+    )
     torch_threads: int = Field(default=1, ge=1, description="torch intra-op threads per process")
 
     def bundles(self) -> list[dict[str, float]]:

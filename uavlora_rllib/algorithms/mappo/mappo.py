@@ -60,7 +60,9 @@ class MAPPOHParams:
     clip_param: float = Field(default=0.2, gt=0.0, le=1.0, description="PPO ratio clip epsilon, per agent [-] (paper)")
     num_epochs: int = Field(default=15, ge=1, description="passes over each train batch [epochs] (paper)")
     batch_episodes: int = Field(
-        default=16, ge=1, description="train batch [episodes]: 16 x episode_len env steps, each holding all U agents (paper)"
+        default=16,
+        ge=1,
+        description="train batch [episodes]: 16 x episode_len env steps, each holding all U agents (paper)",
     )
     num_minibatches: int = Field(
         default=4,
@@ -74,15 +76,23 @@ class MAPPOHParams:
         "rollout (docs/model.md#training-defaults)",
     )
     gru_hidden: int = Field(default=128, ge=1, description="GRU width of the actor [units] (paper)")
-    fc_hidden: int = Field(default=128, ge=1, description="width of the actor's ReLU layers before and after the GRU [units]")
-    critic_hidden: int = Field(default=128, ge=1, description="width of the critic's two ReLU layers [units] (decision)")
+    fc_hidden: int = Field(
+        default=128, ge=1, description="width of the actor's ReLU layers before and after the GRU [units]"
+    )
+    critic_hidden: int = Field(
+        default=128, ge=1, description="width of the critic's two ReLU layers [units] (decision)"
+    )
     entropy_coeff: float = Field(
         default=0.001,
         ge=0.0,
         description="weight of the mean per-agent entropy bonus [-] (docs/model.md#training-defaults)",
     )
-    vf_loss_coeff: float = Field(default=1.0, ge=0.0, description="weight of the value loss [-] (actor and critic share Adam)")
-    grad_clip: float | None = Field(default=10.0, gt=0.0, description="global gradient-norm clip [-]; null: off (decision)")
+    vf_loss_coeff: float = Field(
+        default=1.0, ge=0.0, description="weight of the value loss [-] (actor and critic share Adam)"
+    )
+    grad_clip: float | None = Field(
+        default=10.0, gt=0.0, description="global gradient-norm clip [-]; null: off (decision)"
+    )
     share_actor: bool = Field(
         default=False,
         description="one actor for all UAVs (+ agent-id one-hot) [bool]; false: one actor per UAV, so that "
@@ -98,7 +108,9 @@ class MAPPOHParams:
         description="'central' (V(s, u) on the global state, MAPPO) | 'local' (V(o_u, u), IPPO); "
         "null: the algorithm's own",
     )
-    value_norm: bool = Field(default=True, description="running mean/std normalisation of the value targets [bool] (MAPPO's ValueNorm)")
+    value_norm: bool = Field(
+        default=True, description="running mean/std normalisation of the value targets [bool] (MAPPO's ValueNorm)"
+    )
     value_clip: float | None = Field(
         default=0.2, gt=0.0, description="value-loss clip around the old prediction [normalised value units]; null: off"
     )

@@ -169,7 +169,10 @@ class MAPPOTorchLearner(TorchLearner):
         # the per-parameter loop, many small ops per minibatch update.
         params = self.get_parameters(self.module[module_id])
         self.register_optimizer(
-            module_id=module_id, optimizer=torch.optim.Adam(params, foreach=True), params=params, lr_or_lr_schedule=config.lr
+            module_id=module_id,
+            optimizer=torch.optim.Adam(params, foreach=True),
+            params=params,
+            lr_or_lr_schedule=config.lr,
         )
 
     @override(TorchLearner)

@@ -144,7 +144,11 @@ class MAPPOTorchRLModule(RecurrentActorForward, TorchRLModule, ValueFunctionAPI,
         if not self.inference_only:  # TorchRLModule would delete it anyway (InferenceOnlyAPI)
             in_dim = int(mc["state_dim"]) if self.critic_kind == "central" else self.obs_dim
             self.critic = Critic(
-                in_dim, int(mc["critic_hidden"]), self.n_agents, bool(mc["value_norm"]), shared=self.critic_kind == "central"
+                in_dim,
+                int(mc["critic_hidden"]),
+                self.n_agents,
+                bool(mc["value_norm"]),
+                shared=self.critic_kind == "central",
             )
 
     @override(InferenceOnlyAPI)

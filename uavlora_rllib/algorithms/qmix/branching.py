@@ -163,9 +163,13 @@ class BranchingAgentNet(nn.Module):
             raise ValueError(f"obs_dim: expected {quota * OBS_ROW + OBS_EXTRA} for quota {quota}, got {obs_dim}")
         self.quota, self.n_pairs, self.n_bw = quota, n_pairs, n_bw
         self.n_agents, self.gru_hidden = n_agents, gru_hidden
-        self.torso = RecurrentAgentNet(obs_dim, n_agents, fc_hidden, fc_hidden=fc_hidden, gru_hidden=gru_hidden, share=share)
+        self.torso = RecurrentAgentNet(
+            obs_dim, n_agents, fc_hidden, fc_hidden=fc_hidden, gru_hidden=gru_hidden, share=share
+        )
         groups = 1 if share else n_agents
-        self.slot_heads = BranchHeads(groups, quota if slot_head == "per_slot" else 1, fc_hidden, OBS_ROW, head_hidden, n_pairs)
+        self.slot_heads = BranchHeads(
+            groups, quota if slot_head == "per_slot" else 1, fc_hidden, OBS_ROW, head_hidden, n_pairs
+        )
         self.bw_head = BranchHeads(groups, 1, fc_hidden, 0, head_hidden, n_bw)
         self.value_head = BranchHeads(groups, 1, fc_hidden, 0, head_hidden, 1) if dueling else None
 

@@ -39,7 +39,9 @@ class BranchingQMixModule(QMixModule):
         mc = self.model_config
         nvec = np.asarray(self.action_space.nvec)
         if nvec.ndim != 2 or nvec.shape[0] != self.n_agents:
-            raise ValueError(f"action space: expected per_device MultiDiscrete [U={self.n_agents}, 2 quota + 1], got {nvec.shape}")
+            raise ValueError(
+                f"action space: expected per_device MultiDiscrete [U={self.n_agents}, 2 quota + 1], got {nvec.shape}"
+            )
         self.quota, n_sf, self.n_tp, self.n_bw = branching.action_dims(nvec[0])
         self.n_pairs = n_sf * self.n_tp
         return branching.BranchingAgentNet(

@@ -82,7 +82,9 @@ def _updates_per_episode(default: float):
 class QMIXHParams:
     """QMIX/VDN hyperparameters (grid YAML `algorithms.qmix:` / `algorithms.vdn:`)."""
 
-    lr: float = Field(default=1e-4, gt=0, le=1, description="Adam step size, agent network and mixer [1/update] (paper)")
+    lr: float = Field(
+        default=1e-4, gt=0, le=1, description="Adam step size, agent network and mixer [1/update] (paper)"
+    )
     gamma: float = Field(default=0.99, ge=0, le=1, description="discount per slot [-] (paper)")
     gru_hidden: int = Field(default=128, ge=1, description="GRU width of the agent network [units] (paper)")
     fc_hidden: int = Field(default=128, ge=1, description="width of the ReLU layer before the GRU [units] (decision)")
@@ -120,13 +122,23 @@ class QMIXHParams:
     hypernet_embed_dim: int = Field(
         default=64, ge=1, description="hidden width of the 2-layer weight hypernetworks [units]; unused by VDN"
     )
-    double_q: bool = Field(default=True, description="double Q [bool]: the online net picks argmax at t+1, the target net evaluates it")
-    n_step: int = Field(default=1, ge=1, description="n of the n-step TD targets [slots] (truncated at the episode end)")
-    tau: float = Field(default=0.01, gt=0, le=1, description="soft target update weight after every gradient update [-] (paper)")
+    double_q: bool = Field(
+        default=True, description="double Q [bool]: the online net picks argmax at t+1, the target net evaluates it"
+    )
+    n_step: int = Field(
+        default=1, ge=1, description="n of the n-step TD targets [slots] (truncated at the episode end)"
+    )
+    tau: float = Field(
+        default=0.01, gt=0, le=1, description="soft target update weight after every gradient update [-] (paper)"
+    )
     grad_clip: float = Field(default=10.0, gt=0, description="global gradient-norm clip [-] (decision)")
-    batch_size_episodes: int = Field(default=16, ge=1, description="whole episodes per gradient update [episodes] (paper)")
+    batch_size_episodes: int = Field(
+        default=16, ge=1, description="whole episodes per gradient update [episodes] (paper)"
+    )
     buffer_size_episodes: int = Field(default=32, ge=1, description="replay capacity |D| [episodes] (paper)")
-    learning_starts_episodes: int = Field(default=16, ge=1, description="episodes in the replay before the first update [episodes]")
+    learning_starts_episodes: int = Field(
+        default=16, ge=1, description="episodes in the replay before the first update [episodes]"
+    )
     updates_per_episode: float = _updates_per_episode(0.25)
     updates_per_iteration: int | None = Field(
         default=None,
@@ -136,7 +148,10 @@ class QMIXHParams:
     )
     epsilon_start: float = Field(default=1.0, ge=0, le=1, description="exploration epsilon at t = 0 [probability]")
     epsilon_end: float = Field(
-        default=0.05, ge=0, le=1, description="exploration epsilon after the anneal, also the sampled execution's [probability]"
+        default=0.05,
+        ge=0,
+        le=1,
+        description="exploration epsilon after the anneal, also the sampled execution's [probability]",
     )
     epsilon_anneal_fraction: float = Field(
         default=0.05, ge=0, le=1, description="share of t_max_env_steps over which epsilon anneals linearly [-] (paper)"
@@ -145,7 +160,7 @@ class QMIXHParams:
         default=2_000_000,
         ge=1,
         description="the paper's training budget T_max [env steps]: the epsilon schedule is a share of it; "
-        "independent of a grid's stop.env_steps, so a short run explores as the paper's first env steps do"
+        "independent of a grid's stop.env_steps, so a short run explores as the paper's first env steps do",
     )
 
     @model_validator(mode="after")
@@ -301,7 +316,9 @@ class QMIX(EpisodeAlgorithm):
             if chunks[0].t_started != 0:  # its start was never seen (e.g. after a restore)
                 self._episodes_dropped += 1
                 continue
-            obs = np.concatenate([np.asarray(chunks[0].get_observations())] + [np.asarray(c.get_observations())[1:] for c in chunks[1:]])
+            obs = np.concatenate(
+                [np.asarray(chunks[0].get_observations())] + [np.asarray(c.get_observations())[1:] for c in chunks[1:]]
+            )
             infos = list(chunks[0].get_infos()) + [i for c in chunks[1:] for i in list(c.get_infos())[1:]]
             actions = np.concatenate([np.asarray(c.get_actions()) for c in chunks])
             rewards = np.concatenate([np.asarray(c.get_rewards()) for c in chunks])

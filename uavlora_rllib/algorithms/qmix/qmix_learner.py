@@ -62,7 +62,9 @@ class QMIXTorchLearner(TargetNetworkLearner):
     def compute_loss_for_module(self, *, module_id, config, batch: dict[str, Any], fwd_out: dict[str, Any]):
         rewards = batch[Columns.REWARDS].float()
         q_tot = fwd_out[Q_TOT]
-        y = nstep_targets(rewards, fwd_out[TARGET_Q_TOT_NEXT].detach(), batch[TERMINATED], config.gamma, config.hparams.n_step)
+        y = nstep_targets(
+            rewards, fwd_out[TARGET_Q_TOT_NEXT].detach(), batch[TERMINATED], config.gamma, config.hparams.n_step
+        )
         td = q_tot - y
         loss = (td**2).mean()
         self.metrics.log_dict(

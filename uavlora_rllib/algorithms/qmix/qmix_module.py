@@ -81,14 +81,18 @@ class VDNMixer(nn.Module):
 class QMixer(nn.Module):
     """Monotonic mixing network with hypernetworks on the global state."""
 
-    def __init__(self, n_agents: int, state_dim: int, embed_dim: int = 32, hypernet_embed: int = 64, state_bias: bool = True):
+    def __init__(
+        self, n_agents: int, state_dim: int, embed_dim: int = 32, hypernet_embed: int = 64, state_bias: bool = True
+    ):
         super().__init__()
         self.n_agents, self.embed_dim = n_agents, embed_dim
         self.hyper_w1 = nn.Sequential(
             nn.Linear(state_dim, hypernet_embed), nn.ReLU(), nn.Linear(hypernet_embed, n_agents * embed_dim)
         )
         self.hyper_b1 = nn.Linear(state_dim, embed_dim)
-        self.hyper_w2 = nn.Sequential(nn.Linear(state_dim, hypernet_embed), nn.ReLU(), nn.Linear(hypernet_embed, embed_dim))
+        self.hyper_w2 = nn.Sequential(
+            nn.Linear(state_dim, hypernet_embed), nn.ReLU(), nn.Linear(hypernet_embed, embed_dim)
+        )
         self.v = _state_value(state_dim, embed_dim) if state_bias else None
 
     @override(nn.Module)

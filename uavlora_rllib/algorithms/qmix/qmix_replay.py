@@ -63,7 +63,9 @@ class EpisodeReplay:
                 f"(whole episodes of {t} steps), got {obs.shape} and {actions.shape}"
             )
         if rewards.shape != (t,) or state.shape != self.state.shape[1:]:
-            raise ValueError(f"episode: expected rewards ({t},) and state {self.state.shape[1:]}, got {rewards.shape}, {state.shape}")
+            raise ValueError(
+                f"episode: expected rewards ({t},) and state {self.state.shape[1:]}, got {rewards.shape}, {state.shape}"
+            )
         i = self.next
         self.obs[i], self.actions[i], self.rewards[i], self.state[i] = obs, actions, rewards, state
         self.terminated[i] = bool(terminated)

@@ -102,4 +102,3 @@ def lin_to_db(x: np.ndarray | float, out: np.ndarray | None = None) -> np.ndarra
     np.log10(x, out=x)
     x *= 10.0
     return at_least(x, DB_FLOOR, out=x)
-

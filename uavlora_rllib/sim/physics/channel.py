@@ -147,4 +147,3 @@ def uav_positions(cfg: ScenarioConfig) -> np.ndarray:
     """docs/model.md#scenario: UAVs evenly along the horizontal mid-line, x_i = (i + 0.5) L / U, y = L / 2."""
     i = np.arange(cfg.n_uavs, dtype=np.float64)
     return np.stack([(i + 0.5) * cfg.area_m / cfg.n_uavs, np.full(cfg.n_uavs, cfg.area_m / 2.0)], axis=-1)
-

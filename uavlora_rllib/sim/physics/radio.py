@@ -29,7 +29,6 @@ def snr_threshold_db(sf: np.ndarray | int, bw_khz: np.ndarray | int) -> np.ndarr
     return table[np.searchsorted(sfs, sf_a), np.searchsorted(bws, bw_a)]
 
 
-
 # ---------------------------------------------------------------- SNR, SINR (Eq. sinr), rate (Eq. shannon)
 def snr(tx_power_w: np.ndarray, gain: np.ndarray, noise_w: float) -> np.ndarray:
     """rho = P G / sigma^2 (linear)."""
@@ -132,4 +131,3 @@ def rate_bps(
         out[...] = r
         return out
     return r
-

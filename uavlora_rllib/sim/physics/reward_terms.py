@@ -19,10 +19,14 @@ def hover_power_w(cfg: ScenarioConfig) -> float:
     return float(h.n_rotors * w_r**1.5 * (profile + induced))
 
 
-
 # ---------------------------------------------------------------- EE (Eq. sys_ee) and the reward terms
 def energy_efficiency(
-    rate: np.ndarray, tx_power_w: np.ndarray, serving_uav: np.ndarray, associated: np.ndarray, hover_w: float, n_uavs: int
+    rate: np.ndarray,
+    tx_power_w: np.ndarray,
+    serving_uav: np.ndarray,
+    associated: np.ndarray,
+    hover_w: float,
+    n_uavs: int,
 ) -> np.ndarray:
     """EE_sys[t] = sum_u (sum_v a_uv R_uv) / (sum_v a_uv P_v + P_hover_u), bits per joule, one slot.
 
@@ -60,7 +64,9 @@ def margin_score(snr_db: np.ndarray, threshold_db: np.ndarray, associated: np.nd
     """beta[t] (docs/model.md#metrics-and-reward): mean over associated EDs of m = SNR_dB - rho_thr scored as
     min(m, 20) / 20 for m >= 0 and max(m / 2, -10) for m < 0; 0 when no ED is associated.
     (Evaluated as clip(m, -20, 20) / (20 if m >= 0 else 2): max(m / 2, -10) = max(m, -20) / 2.)"""
-    return mean_over_associated(margin_points(snr_db, threshold_db), associated, np.add.reduce(associated, axis=-1), 0.0)
+    return mean_over_associated(
+        margin_points(snr_db, threshold_db), associated, np.add.reduce(associated, axis=-1), 0.0
+    )
 
 
 def margin_points(snr_db: np.ndarray, threshold_db: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
@@ -100,4 +106,3 @@ def total_power_of_tx_sum(tx_sum_w: np.ndarray, hover_w: float, n_uavs: int) -> 
 def reward(ee: np.ndarray, xi: np.ndarray, beta: np.ndarray, p_total: np.ndarray, w: RewardWeights) -> np.ndarray:
     """Eq. (reward): r = w1 EE + w2 Xi + w3 beta - |w4| P_total (w4 is a penalty whatever its sign)."""
     return w.w1 * ee + w.w2 * xi + w.w3 * beta - abs(w.w4) * p_total
-
