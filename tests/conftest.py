@@ -88,6 +88,19 @@ def paper_cfg() -> ScenarioConfig:
     return ScenarioConfig()
 
 
+# MAPPO at its smallest, for tests that need a grid to run, not to learn: 2 episodes per
+# iteration, one epoch of one minibatch, 8-unit networks.
+TINY_MAPPO = {
+    "batch_episodes": 2,
+    "num_epochs": 1,
+    "num_minibatches": 1,
+    "gru_hidden": 8,
+    "fc_hidden": 8,
+    "critic_hidden": 8,
+    "max_seq_len": 10,
+}
+
+
 def write_tiny_grid(
     tmp_path,
     name: str,

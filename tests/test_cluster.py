@@ -22,21 +22,12 @@ import tempfile
 import time
 
 import pytest
-from conftest import wait_for_mlflow_server, write_tiny_grid
+from conftest import TINY_MAPPO, wait_for_mlflow_server, write_tiny_grid
 
 pytestmark = pytest.mark.slow
 
 TESTS_DIR = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(TESTS_DIR)
-TINY_MAPPO = {
-    "batch_episodes": 2,
-    "num_epochs": 1,
-    "num_minibatches": 1,
-    "gru_hidden": 8,
-    "fc_hidden": 8,
-    "critic_hidden": 8,
-    "max_seq_len": 10,
-}
 EPISODE_LEN = 10  # 20 env steps per training iteration
 
 

@@ -23,21 +23,12 @@ import time
 
 import netns
 import pytest
-from conftest import write_tiny_grid
+from conftest import TINY_MAPPO, write_tiny_grid
 
 pytestmark = pytest.mark.slow
 
 # the ports exist only inside the namespaces, so the defaults are private to this test
 GCS_PORT, DASHBOARD_PORT, MLFLOW_PORT = 6379, 8265, 5000
-TINY_MAPPO = {
-    "batch_episodes": 2,
-    "num_epochs": 1,
-    "num_minibatches": 1,
-    "gru_hidden": 8,
-    "fc_hidden": 8,
-    "critic_hidden": 8,
-    "max_seq_len": 10,
-}
 PLUGIN = '''"""MAPPO registered as "mappo_wd": importable only from the job's working dir."""
 from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.algorithms.mappo.mappo import MAPPOConfig

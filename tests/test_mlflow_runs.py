@@ -23,7 +23,7 @@ import time
 
 import pytest
 import yaml
-from conftest import wait_for_mlflow_server, write_tiny_grid
+from conftest import TINY_MAPPO, wait_for_mlflow_server, write_tiny_grid
 
 from uavlora_rllib.experiment import run_schema
 from uavlora_rllib.experiment.mlflow_client import Tracker, TrackingRefused, git_commit
@@ -173,16 +173,7 @@ def test_refused_credentials_are_one_line(monkeypatch):
 
 
 # --------------------------------------------------------------------------- slow: a real server
-TINY_MAPPO = {
-    "lr": 3e-4,
-    "batch_episodes": 2,
-    "num_epochs": 1,
-    "num_minibatches": 1,
-    "gru_hidden": 8,
-    "fc_hidden": 8,
-    "critic_hidden": 8,
-    "max_seq_len": 10,
-}
+TINY_MAPPO = {**TINY_MAPPO, "lr": 3e-4}
 EPISODE_LEN = 10
 BUDGET = 40  # 2 iterations of 2 episodes
 ADMIN, ADMIN_PW = "admin", "uavlora-admin-pw-0"  # the basic-auth app wants 12+ characters

@@ -8,6 +8,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import pytest
+from conftest import TINY_MAPPO
 
 from uavlora_rllib.experiment import periodic_eval as pe
 from uavlora_rllib.experiment.run_schema import metrics_to_log
@@ -101,17 +102,7 @@ def test_points_equal_an_independent_evaluation(ray_session, tmp_path, monkeypat
     import uavlora_rllib.envs.multi_agent  # noqa: F401  (registers the env)
 
     entry = registry.get("mappo")
-    hp = entry.hparams(
-        {
-            "batch_episodes": 2,
-            "num_epochs": 1,
-            "num_minibatches": 1,
-            "gru_hidden": 8,
-            "fc_hidden": 8,
-            "critic_hidden": 8,
-            "max_seq_len": 10,
-        }
-    )
+    hp = entry.hparams(TINY_MAPPO)
     cfg = entry.build(SCEN, hp, registry.Resources(num_env_runners=0, num_envs_per_env_runner=2), 0)
     pe.attach(cfg, pe.PeriodicEvalSettings(SCEN, 20, 3, 5))  # 20 env steps = every iteration
     algo = cfg.build_algo()

@@ -11,6 +11,7 @@ import pickle
 
 import pytest
 import yaml
+from conftest import TINY_MAPPO
 
 from uavlora_rllib import tune as tune_cli
 from uavlora_rllib.config_errors import ConfigError
@@ -28,15 +29,6 @@ from uavlora_rllib.experiment.tuner import trial_config
 
 TESTS_DIR = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(TESTS_DIR)
-TINY_MAPPO = {
-    "batch_episodes": 2,
-    "num_epochs": 1,
-    "num_minibatches": 1,
-    "gru_hidden": 8,
-    "fc_hidden": 8,
-    "critic_hidden": 8,
-    "max_seq_len": 10,
-}
 EPISODE_LEN = 10  # 2 episodes of 10 slots: 20 env steps per training iteration
 
 

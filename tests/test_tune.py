@@ -16,7 +16,7 @@ import sys
 import time
 
 import pytest
-from conftest import write_tiny_grid
+from conftest import TINY_MAPPO, write_tiny_grid
 
 from uavlora_rllib import tune as tune_cli
 from uavlora_rllib.experiment.evaluation import EPISODE_METRICS
@@ -25,16 +25,7 @@ from uavlora_rllib.experiment.mlflow_client import git_commit
 pytestmark = pytest.mark.slow
 
 ALGO = "mappo"
-TINY_MAPPO = {
-    "lr": 3e-4,
-    "batch_episodes": 2,
-    "num_epochs": 1,
-    "num_minibatches": 1,
-    "gru_hidden": 8,
-    "fc_hidden": 8,
-    "critic_hidden": 8,
-    "max_seq_len": 10,
-}
+TINY_MAPPO = {**TINY_MAPPO, "lr": 3e-4}
 EPISODE_LEN = 10  # 2 episodes of 10 slots = 20 env steps per training iteration
 
 
