@@ -40,7 +40,7 @@ from ray.rllib.utils.annotations import override
 
 from uavlora_rllib.algorithms.coma.coma_learner import COMATorchLearner, episode_batch
 from uavlora_rllib.algorithms.coma.coma_module import COMATorchRLModule
-from uavlora_rllib.algorithms.common.config import HParamsConfig
+from uavlora_rllib.algorithms.common.config import HParamsConfig, check_actor_heads
 from uavlora_rllib.algorithms.common.episode_algorithm import EpisodeAlgorithm
 from uavlora_rllib.algorithms.common.registry import Resources, register_algorithm
 from uavlora_rllib.config_errors import ConfigError
@@ -133,11 +133,7 @@ class COMAHParams:
         """COMA learns from whole episodes, sampled in whole rounds of all envs of all runners;
         the per_device critic (branching.BranchQCritic) needs a hidden layer; per-UAV heads need the
         shared actor they sit on."""
-        if self.actor_agent_heads and not self.share_actor:
-            raise ConfigError(
-                f"{path}.actor_agent_heads: true needs share_actor: true (one actor per UAV already has "
-                "its own output layer); allowed: false, or share_actor: true"
-            )
+        check_actor_heads(self.share_actor, self.actor_agent_heads, path)
         if scenario.action_mode == "per_device" and not self.critic_hidden:
             raise ConfigError(
                 f"{path}.critic_hidden: per_device needs at least one critic layer (the per-branch critic "

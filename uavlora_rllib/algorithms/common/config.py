@@ -30,6 +30,7 @@ from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 from ray.rllib.utils.annotations import override
 
 from uavlora_rllib.algorithms.common.metrics import log_episode_metrics
+from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.sim.observation import obs_dim, state_dim
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
@@ -85,6 +86,15 @@ class HParamsConfig(abc.ABC):
         """`AlgorithmConfig.env_runners` arguments of this algorithm's sampling (fragment
         length, batch mode) beyond the trial's resources; none: RLlib's defaults."""
         return {}
+
+
+def check_actor_heads(share_actor: bool, actor_agent_heads: bool, path: str) -> None:
+    """Per-UAV output heads sit on a shared actor; with one actor per UAV they have nothing to add."""
+    if actor_agent_heads and not share_actor:
+        raise ConfigError(
+            f"{path}.actor_agent_heads: true needs share_actor: true (one actor per UAV already has "
+            "its own output layer); allowed: false, or share_actor: true"
+        )
 
 
 def apply_resources(config: Any, resources: Any) -> Any:

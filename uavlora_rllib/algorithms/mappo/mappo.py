@@ -33,7 +33,7 @@ from pydantic.dataclasses import dataclass as typed_dataclass
 from ray.rllib.algorithms.ppo import PPO, PPOConfig
 from ray.rllib.utils.annotations import override
 
-from uavlora_rllib.algorithms.common.config import HParamsConfig
+from uavlora_rllib.algorithms.common.config import HParamsConfig, check_actor_heads
 from uavlora_rllib.algorithms.common.registry import Resources, register_algorithm
 from uavlora_rllib.algorithms.mappo.mappo_learner import MAPPOTorchLearner
 from uavlora_rllib.algorithms.mappo.mappo_module import MAPPOTorchRLModule
@@ -118,11 +118,7 @@ class MAPPOHParams:
     def check(self, scenario: ScenarioConfig, resources: Resources, path: str) -> None:
         """A minibatch must hold at least one GRU sequence of the scenario's episodes; per-UAV
         heads need the shared actor they sit on."""
-        if self.actor_agent_heads and not self.share_actor:
-            raise ConfigError(
-                f"{path}.actor_agent_heads: true needs share_actor: true (one actor per UAV already has "
-                "its own output layer); allowed: false, or share_actor: true"
-            )
+        check_actor_heads(self.share_actor, self.actor_agent_heads, path)
         minibatch = self.batch_episodes * scenario.episode_len // self.num_minibatches
         if minibatch < min(self.max_seq_len, scenario.episode_len):
             raise ConfigError(
