@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter, defaultdict
+from collections.abc import Collection
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -55,15 +56,17 @@ class Cell:
     def scenario(self) -> tuple[int, int]:
         return (self.n_eds, self.n_uavs)
 
-    def values(self, metric: str = EE_KEY) -> np.ndarray:
-        return np.array([r.metrics.get(metric, math.nan) for r in self.runs], dtype=float)
+    def values(self, metric: str = EE_KEY, seeds: Collection[str] | None = None) -> np.ndarray:
+        """The metric per run, of the runs whose seed is in `seeds` (all runs when None)."""
+        runs = self.runs if seeds is None else [r for r in self.runs if str(r.seed) in seeds]
+        return np.array([r.metrics.get(metric, math.nan) for r in runs], dtype=float)
 
-    def summary(self, metric: str = EE_KEY) -> stats.SeedSummary:
-        v = self.values(metric)
+    def summary(self, metric: str = EE_KEY, seeds: Collection[str] | None = None) -> stats.SeedSummary:
+        v = self.values(metric, seeds)
         return stats.summarize(v[np.isfinite(v)])
 
-    def mean_of(self, metric: str) -> float:
-        v = self.values(metric)
+    def mean_of(self, metric: str, seeds: Collection[str] | None = None) -> float:
+        v = self.values(metric, seeds)
         v = v[np.isfinite(v)]
         return float(v.mean()) if v.size else math.nan
 
@@ -105,31 +108,45 @@ class Organised:
     def kind_of(self, algorithm: str) -> str:
         return next((c.kind for c in self.cells.values() if c.algorithm == algorithm), "train")
 
-    def reference(self, scenario: tuple[int, int]) -> Reference | None:
+    def reference(self, scenario: tuple[int, int], seeds: Collection[str] | None = None) -> Reference | None:
         """The optimum where the scenario has `optimal` baseline runs, else the greedy baseline,
-        else None; in either action mode (its runs' scenario.action_mode labels it)."""
+        else None; in either action mode (its runs' scenario.action_mode labels it). With `seeds`,
+        its mean is over those seeds only, so that a learner is divided by the reference of the
+        same evaluation episodes (each seed has its own); None where it has none of them."""
         for name in REFERENCE_BASELINES:
             cell = self.cells.get((*scenario, name))
             if cell is not None and cell.kind == "baseline" and cell.runs:
-                m = cell.summary().mean
+                m = cell.summary(seeds=seeds).mean
                 if math.isfinite(m) and m > 0:
                     modes = sorted({r.params.get("scenario.action_mode", "per_uav") for r in cell.runs})
-                    return Reference(name, m, "/".join(modes), cell.mean_of(BOUND_KEY))
+                    return Reference(name, m, "/".join(modes), cell.mean_of(BOUND_KEY, seeds))
         return None
 
-    def normalised(self, cell: Cell) -> np.ndarray:
-        """The cell's per-seed execution EE as a share of its scenario's reference (the same
-        denominator as every "share of reference" of the report); empty without a reference."""
+    def matched_seeds(self, cell: Cell, *baselines: str) -> list[str]:
+        """The cell's seeds that the scenario's reference and each named baseline also ran: the
+        seeds on which a share or ratio compares the same evaluation episodes."""
         ref = self.reference(cell.scenario)
+        names = ([ref.name] if ref is not None else []) + list(baselines)
+        have = [set(c.seeds) for n in names if (c := self.cells.get((*cell.scenario, n))) is not None]
+        return [s for s in cell.seeds if all(s in h for h in have)]
+
+    def normalised(self, cell: Cell) -> np.ndarray:
+        """The cell's per-seed execution EE as a share of its scenario's reference over the same
+        seeds (the denominator of every "share of reference" of the report); empty without one."""
+        seeds = self.matched_seeds(cell)
+        ref = self.reference(cell.scenario, seeds)
         if ref is None:
             return np.empty(0)
-        v = cell.values()
+        v = cell.values(seeds=seeds)
         return v[np.isfinite(v)] / ref.mean
 
-    def baseline_mean(self, scenario: tuple[int, int], name: str) -> float:
-        """Seed-mean execution EE of baseline `name` in the scenario; NaN where it has no runs."""
+    def baseline_mean(self, scenario: tuple[int, int], name: str, seeds: Collection[str] | None = None) -> float:
+        """Seed-mean execution EE of baseline `name` in the scenario (over `seeds` only, when
+        given); NaN where it has no such runs."""
         cell = self.cells.get((*scenario, name))
-        return cell.summary().mean if cell is not None and cell.kind == "baseline" and cell.runs else math.nan
+        return (
+            cell.summary(seeds=seeds).mean if cell is not None and cell.kind == "baseline" and cell.runs else math.nan
+        )
 
     def find_train(self, name: str) -> str | None:
         """The learner called `name` (case-insensitive), or None."""
@@ -214,7 +231,16 @@ def organise(records: list[RunRecord]) -> Organised:
             warnings.append(
                 f"{where}: its runs differ in {mixed}; they are averaged together (check the joined experiments)"
             )
-    return Organised(cells, warnings, records)
+    org = Organised(cells, warnings, records)
+    for key in sorted(cells):
+        cell, ref = cells[key], org.reference(key[:2])
+        unmatched = [s for s in cell.seeds if s not in org.matched_seeds(cell)] if ref is not None else []
+        if unmatched:
+            warnings.append(
+                f"V={cell.n_eds} U={cell.n_uavs} {cell.algorithm} ({cell.kind}): seed(s) {', '.join(unmatched)} have no "
+                f"{ref.name} run on their evaluation episodes; left out of every share of the reference"
+            )
+    return org
 
 
 def _mixed_params(runs: list[RunRecord]) -> str:

@@ -59,8 +59,10 @@ STATS_TEXT = """\
 - share of reference: seed-mean EE / seed-mean EE of the scenario's reference baseline, the
   `optimal` one (the exact per-slot optimum, docs/model.md) where it ran, else `greedy`, in
   whichever action mode the scenario's runs use (per_uav or per_device; the open-loop table
-  names it); the column names which. Open-loop check: `best_fixed`'s share of that reference;
-  at {open_loop} or above a constant action counts as optimal.
+  names it); the column names which. Both means are over the matched seeds: those the learner,
+  the reference and (in the learning verdicts) `best_fixed` all ran, since each seed has its own
+  evaluation episodes; the learning verdicts name any seed left out. Open-loop check: `best_fixed`'s
+  share of that reference; at {open_loop} or above a constant action counts as optimal.
 - paper table: ratio of seed means mappo / other with a 95% Fieller interval over seeds
   (independent samples, t with min(n_a, n_b) - 1 degrees of freedom); improvement = 100 (ratio - 1).
 - Fig. 3a (a): each run's `eval/ee_sys_mean` history (the greedy policy evaluated every

@@ -251,10 +251,13 @@ def open_loop_table(org: Organised) -> list[dict[str, Any]]:
     """Per scenario with a reference: the reference, its upper bound, and best_fixed's share."""
     rows = []
     for scen in org.scenarios():
-        ref = org.reference(scen)
+        bf_cell = org.cells.get((*scen, BEST_FIXED))
+        # over the seeds both ran (each seed has its own evaluation episodes); the reference alone without best_fixed
+        seeds = org.matched_seeds(bf_cell) if bf_cell is not None and bf_cell.kind == "baseline" else None
+        ref = org.reference(scen, seeds or None)
         if ref is None:
             continue
-        bf = org.baseline_mean(scen, BEST_FIXED)
+        bf = org.baseline_mean(scen, BEST_FIXED, seeds or None)
         share = bf / ref.mean
         rows.append({
             "n_eds": scen[0], "n_uavs": scen[1], "action_mode": ref.mode, "reference_baseline": ref.name,

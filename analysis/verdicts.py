@@ -37,7 +37,8 @@ TABLE_LEARNING_COLUMNS = (
     "n_uavs",
     "action_mode",
     "algorithm",
-    "n_seeds",
+    "n_seeds",  # seeds that the learner, the reference and best_fixed all ran; every ratio is over these
+    "unmatched_seeds",  # the learner's other seeds, left out of every ratio
     "env_steps",  # the runs' budget (stop.env_steps)
     "reference_baseline",
     "share_of_reference",
@@ -65,22 +66,28 @@ def learning_table(org: Organised, history: History) -> list[dict[str, Any]]:
     """One row per learner (kind=train) of each scenario that has a reference baseline."""
     rows = []
     for scen in org.scenarios():
-        ref = org.reference(scen)
-        if ref is None:
+        if org.reference(scen) is None:
             continue
-        bf = org.baseline_mean(scen, BEST_FIXED)
         for cell in sorted(org.cells_of(scen), key=lambda c: c.algorithm):
             if cell.kind != "train" or not cell.runs:
                 continue
-            ee = cell.summary().mean
-            spreads = [last_evals_spread(history(r, EE_KEY)[1]) for r in cell.runs]
+            # every ratio over the seeds that the learner, the reference and best_fixed all ran:
+            # each seed has its own evaluation episodes, so unmatched seeds would compare different episodes
+            seeds = org.matched_seeds(cell, BEST_FIXED)
+            ref = org.reference(scen, seeds) if seeds else None
+            if ref is None:
+                continue
+            runs = [r for r in cell.runs if str(r.seed) in seeds]
+            ee, bf = cell.summary(seeds=seeds).mean, org.baseline_mean(scen, BEST_FIXED, seeds)
+            spreads = [last_evals_spread(history(r, EE_KEY)[1]) for r in runs]
             spread = max(spreads) if spreads and all(math.isfinite(s) for s in spreads) else math.nan
-            budgets = sorted({r.params.get("stop.env_steps", "") for r in cell.runs})
+            budgets = sorted({r.params.get("stop.env_steps", "") for r in runs})
             share, target = ee / ref.mean, share_target(ref.mode, scen[1])
-            judged = len(cell.runs) >= JUDGED_SEEDS and all(b.isdigit() and int(b) >= JUDGED_ENV_STEPS for b in budgets)
+            judged = len(runs) >= JUDGED_SEEDS and all(b.isdigit() and int(b) >= JUDGED_ENV_STEPS for b in budgets)
             rows.append({
                 "n_eds": scen[0], "n_uavs": scen[1], "action_mode": ref.mode, "algorithm": cell.algorithm,
-                "n_seeds": len(cell.runs), "env_steps": "/".join(b for b in budgets if b) or "",
+                "n_seeds": len(runs), "unmatched_seeds": " ".join(s for s in cell.seeds if s not in seeds),
+                "env_steps": "/".join(b for b in budgets if b) or "",
                 "reference_baseline": ref.name, "share_of_reference": share,
                 "best_fixed_share_of_reference": bf / ref.mean, "share_of_best_fixed": ee / bf,
                 "above_best_fixed": "" if not math.isfinite(bf) else str(ee > bf).lower(),
@@ -100,7 +107,7 @@ def learning_md(rows: list[dict[str, Any]]) -> str:
         "U",
         "mode",
         "learner",
-        "seeds",
+        "matched seeds",
         "env steps",
         "share of reference",
         "best_fixed share",
@@ -111,7 +118,8 @@ def learning_md(rows: list[dict[str, Any]]) -> str:
         "share target",
         "met",
     ]
-    body = [[str(r["n_eds"]), str(r["n_uavs"]), r["action_mode"], r["algorithm"], str(r["n_seeds"]), r["env_steps"] or "n/a",
+    body = [[str(r["n_eds"]), str(r["n_uavs"]), r["action_mode"], r["algorithm"],
+             str(r["n_seeds"]) + (f" (left out: {r['unmatched_seeds']})" if r["unmatched_seeds"] else ""), r["env_steps"] or "n/a",
              fmt(r["share_of_reference"], ".3f"), fmt(r["best_fixed_share_of_reference"], ".3f"),
              fmt(r["share_of_best_fixed"], ".3f"), r["above_best_fixed"] or "n/a",
              fmt(r["max_last_evals_spread"], ".3f"), r["settled"] or "n/a (too few evaluations)",

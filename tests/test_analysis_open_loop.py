@@ -53,3 +53,16 @@ def test_open_loop_rows_shares_modes_and_bracket():
     assert "V=60 U=4 (per_device): best_fixed reaches 0.500" in md
     assert "V=60 U=8 (per_device): no best_fixed run" in md
     assert OPEN_LOOP_SHARE == 0.98
+
+
+def test_open_loop_share_and_normalised_scores_use_matched_seeds():
+    runs = [
+        _run(0, "greedy", (60, 4), 100.0, "per_device", seed="0"),
+        _run(1, "greedy", (60, 4), 300.0, "per_device", seed="1"),
+        _run(2, "best_fixed", (60, 4), 50.0, "per_device", seed="0"),  # seed 0 only
+    ]
+    org = organise(runs)
+    (row,) = open_loop_table(org)
+    assert row["best_fixed_share_of_reference"] == pytest.approx(0.5)  # not 50 / 200
+    assert org.reference((60, 4)).mean == pytest.approx(200.0)  # without seeds: all of them
+    assert org.normalised(org.cells[(60, 4, "best_fixed")]) == pytest.approx([0.5])

@@ -51,6 +51,8 @@ def test_learning_rows_shares_best_fixed_and_swings():
     runs = [
         _run(0, "greedy", 100.0, kind="baseline"),
         _run(1, "best_fixed", 80.0, kind="baseline"),
+        _run(10, "greedy", 100.0, kind="baseline", seed="1"),
+        _run(11, "best_fixed", 80.0, kind="baseline", seed="1"),
         _run(2, "mappo", 95.0, seed="0"),
         _run(3, "mappo", 97.0, seed="1"),
         _run(4, "ippo", 72.0),
@@ -75,7 +77,7 @@ def test_learning_rows_shares_best_fixed_and_swings():
 
 
 def test_share_target_is_judged_on_three_seeds_at_the_budget():
-    runs = [_run(0, "greedy", 100.0, kind="baseline")] + [
+    runs = [_run(10 + k, "greedy", 100.0, kind="baseline", seed=str(k)) for k in range(3)] + [
         _run(2 + k, "mappo", v, seed=str(k)) for k, v in enumerate((95.0, 97.0, 72.0))
     ]
     (row,) = learning_table(organise(runs), _history)
@@ -93,3 +95,25 @@ def test_a_seed_without_enough_evaluations_leaves_settled_open():
     (row,) = learning_table(organise(runs), _history)
     assert row["settled"] == "" and math.isnan(row["max_last_evals_spread"]) and row["above_best_fixed"] == ""
     assert "n/a (too few evaluations)" in learning_md([row])
+
+
+def test_ratios_compare_matched_seeds_only():
+    """Each seed has its own evaluation episodes: a learner missing a seed (or a baseline missing
+    one) is compared on the seeds both ran, never a 2-seed mean over a 3-seed mean (issue 23)."""
+    runs = [
+        *[_run(k, "greedy", 100.0, kind="baseline", seed=str(k)) for k in range(3)],
+        *[_run(10 + k, "best_fixed", v, kind="baseline", seed=str(k)) for k, v in enumerate((90.0, 90.0, 30.0))],
+        _run(20, "coma", 90.0, seed="0"),
+        _run(21, "coma", 90.0, seed="1"),
+        _run(22, "ippo", 72.0, seed="0"),
+        _run(23, "ippo", 72.0, seed="5"),  # no reference for seed 5
+    ]
+    rows = {r["algorithm"]: r for r in learning_table(organise(runs), lambda r, k: ([], []))}
+    c = rows["coma"]
+    assert c["share_of_best_fixed"] == pytest.approx(1.0)  # not 90 / 70 over all best_fixed seeds
+    assert c["best_fixed_share_of_reference"] == pytest.approx(0.9) and c["above_best_fixed"] == "false"
+    assert c["n_seeds"] == 2 and c["unmatched_seeds"] == ""
+    i = rows["ippo"]
+    assert i["n_seeds"] == 1 and i["unmatched_seeds"] == "5"
+    assert i["share_of_reference"] == pytest.approx(0.72)
+    assert "| ippo | 1 (left out: 5) |" in learning_md([i])
