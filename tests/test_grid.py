@@ -430,11 +430,16 @@ def test_shipped_grids_are_valid():
     assert fig3c.n_eds == [60] and fig3c.n_uavs == [2, 4, 6, 8]
     fig3a = load_grid(os.path.join(folder, "paper_fig3a.yaml"))
     assert fig3a.stop.env_steps == 2_000_000 and fig3a.n_eds == [10] and fig3a.n_uavs == [2]
-    for fig, full in (("3a", fig3a), ("3b", fig3b), ("3c", fig3c)):  # the same figures at the converged budget
-        fit = load_grid(os.path.join(folder, f"paper_fig{fig}_3seeds.yaml"))
-        assert (fit.n_eds, fit.n_uavs, fit.seeds) == (full.n_eds, full.n_uavs, [0, 1, 2])
-        assert fit.stop.env_steps == 200_000 and fit.scenario.get("action_mode") == "per_uav"
+    # the same figures at the converged budget, split so that no scenario runs twice (3b's V=10 is 3a's
+    # scenario, 3c's U=2 is one of 3b's): together they cover every scenario of the full grids once
+    fits = {f: load_grid(os.path.join(folder, f"paper_fig{f}_3seeds.yaml")) for f in ("3a", "3b", "3c")}
+    cover = [(v, u) for g in fits.values() for v in g.n_eds for u in g.n_uavs]
+    full = {(v, u) for g in (fig3a, fig3b, fig3c) for v in g.n_eds for u in g.n_uavs}
+    assert len(cover) == len(set(cover)) and set(cover) == full
+    for fit in fits.values():
+        assert fit.seeds == [0, 1, 2] and fit.stop.env_steps == 200_000 and fit.scenario.get("action_mode") == "per_uav"
         assert set(fit.algorithms) == {"mappo", "ippo", "vdn", "qmix", "coma"} and "best_fixed" in fit.baselines
+        assert (fit.evaluation.episodes, fit.evaluation.interval_env_steps) == (10, 20_000)
 
 
 def test_parse_grid_without_file(tmp_path):
