@@ -63,7 +63,9 @@ class COMAHParams:
         description="Adam step size of the critic [1/update] (pymarl's COMA critic lr; the paper's 1e-4 is the "
         "actor's)",
     )
-    gamma: float = Field(default=0.99, gt=0, le=1, description="discount per slot [-]")
+    gamma: float = Field(
+        default=0.99, ge=0, le=1, description="discount per slot [-]; 0: the critic regresses the slot's reward alone"
+    )
     td_lambda: float = Field(
         default=0.8, ge=0, le=1, description="lambda of the critic's TD(lambda) targets [-] (Foerster et al.)"
     )
