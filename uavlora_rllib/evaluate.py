@@ -26,7 +26,7 @@ import math
 import os
 import sys
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from uavlora_rllib.baselines.policies import BASELINES, OBJECTIVES, REFERENCES, evaluation_seconds, make_baseline
 from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in, positive_int, seed
@@ -35,6 +35,9 @@ from uavlora_rllib.experiment.evaluation import BOUND_METRIC
 from uavlora_rllib.experiment.grid import parse_yaml, read_yaml_text
 from uavlora_rllib.sim.actions import ActionError
 from uavlora_rllib.sim.scenario import ScenarioConfig
+
+if TYPE_CHECKING:
+    from uavlora_rllib.experiment.open_loop import OpenLoopCheck
 
 PROG = "evaluate"
 MAX_EPISODES = 1_000_000
@@ -71,6 +74,12 @@ def build_parser() -> argparse.ArgumentParser:
         default="greedy",
         help="a checkpoint's actions: greedy (argmax, the paper's execution phase; default) or sampled "
         "from its policy (seeded by --seed)",
+    )
+    p.add_argument(
+        "--open-loop",
+        action="store_true",
+        help="then play the episodes again and report how open-loop the policy is: the share of its decisions "
+        "equal to its own modal action, and what that action earns replayed as a constant (docs/model.md)",
     )
     return p
 
@@ -270,6 +279,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         bound = upper_bound_of_core if args.policy in REFERENCES else None
         result = run_with_progress(policy, cfg, args.episodes, args.seed, kind, label, prefix=f"{PROG}: ", bound=bound)
+        check = None
+        if args.open_loop:
+            from uavlora_rllib.experiment.open_loop import open_loop_check
+
+            check = open_loop_check(policy, cfg, args.episodes, args.seed)
     except (UsageError, ConfigError) as exc:
         return fail(exc, PROG)
     except ActionError as exc:  # a policy whose actions do not fit the scenario's action space
@@ -281,10 +295,32 @@ def main(argv: Sequence[str] | None = None) -> int:
         out = json_summary(summary)
         if not all(math.isfinite(v) for k, v in out.items() if k not in ("ci95", "episodes")):
             print("evaluate: warning: non-finite metric in the summary", file=sys.stderr)
+        if check is not None:
+            out["open_loop"] = open_loop_json(check)
         print(json.dumps(out))
     else:
         print(format_table(getattr(policy, "name", args.policy), cfg, summary))
+        if check is not None:
+            print(open_loop_line(check))
     return 0
+
+
+def open_loop_json(check: OpenLoopCheck) -> dict[str, Any]:
+    return {
+        "modal_share": check.modal_share,
+        "policy_ee_sys_mean": check.policy_ee,
+        "modal_ee_sys_mean": check.modal_ee,
+        "modal_ratio": check.modal_ratio,
+        "modal_action": check.action.tolist(),
+    }
+
+
+def open_loop_line(check: OpenLoopCheck) -> str:
+    return (
+        f"open-loop check: {check.modal_share:.1%} of the acting decisions equal the policy's modal action; "
+        f"replayed as a constant it earns {check.modal_ee:.1f} bit/J, {check.modal_ratio:.3f} of the policy's "
+        f"{check.policy_ee:.1f} on the same episodes"
+    )
 
 
 if __name__ == "__main__":
