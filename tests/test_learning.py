@@ -69,18 +69,19 @@ CI: dict[str, tuple[dict, int]] = {
 PER_DEVICE = ScenarioConfig(n_eds=12, n_uavs=3, episode_len=20, action_mode="per_device")
 # the learners that act per ED, and their CI budgets there: (overrides, training iterations)
 PER_DEVICE_LEARNERS = [n for n in LEARNERS if "per_device" in registry.get(n).action_modes]
+# Discount 0 where it is set: a slot's action never changes later states, so every discount has the same
+# optimal policy, and at 0 the critic regresses the slot's reward alone (docs/model.md#training-defaults)
 PER_DEVICE_CI: dict[str, tuple[dict, int]] = {
-    "mappo": (_PPO_CI, 200),  # 200 x 8 episodes x 20 slots = 32,000 env steps
+    "mappo": ({**_PPO_CI, "gamma": 0.0}, 120),  # 120 x 8 episodes x 20 slots = 19,200 env steps
     "qmix": (_Q_CI, 200),  # 200 x 4 episodes x 20 slots = 16,000 env steps
     "vdn": (_Q_CI, 200),
-    "ippo": ({**_PPO_CI, "batch_episodes": 16}, 160),  # 160 x 16 episodes x 20 slots = 51,200 env steps
+    "ippo": ({**_PPO_CI, "batch_episodes": 16, "gamma": 0.0}, 120),  # 120 x 16 episodes x 20 slots = 38,400
+    # 200 x 16 episodes x 20 slots = 64,000 env steps, 8 updates each
+    "coma": ({"gamma": 0.0, "entropy_coeff": 0.05, "lr_actor": 3e-4}, 200),
 }
 # per_device learners whose CI-sized training does not yet beat best_fixed here, and why; they keep
 # the other learning tests, and the issue that asks for it stays open (results: BENCHMARKS.md#per_device-learning-benchmark)
-PER_DEVICE_NOT_YET: dict[str, str] = {
-    "coma": "the factored actor settles early on a poor setting: below best_fixed with a larger entropy bonus, and with "
-    "one actor per UAV",
-}
+PER_DEVICE_NOT_YET: dict[str, str] = {}
 BEAT_BEST_FIXED = 1.02  # greedy EE / the open-loop best constant's on the same episodes, per_device
 OPEN_LOOP_MAX = 0.9  # the premise: best_fixed's share of the per_device greedy reference
 BEAT_RANDOM = 1.3  # greedy EE / random EE, well below the optimum's and far above the collapsed policy's
