@@ -76,12 +76,13 @@ PER_DEVICE_CI: dict[str, tuple[dict, int]] = {
     "qmix": (_Q_CI, 200),  # 200 x 4 episodes x 20 slots = 16,000 env steps
     "vdn": (_Q_CI, 200),
     "ippo": ({**_PPO_CI, "batch_episodes": 16, "gamma": 0.0}, 120),  # 120 x 16 episodes x 20 slots = 38,400
-    # 200 x 16 episodes x 20 slots = 64,000 env steps, 8 updates each
-    "coma": ({"gamma": 0.0, "entropy_coeff": 0.05, "lr_actor": 3e-4}, 200),
 }
 # per_device learners whose CI-sized training does not yet beat best_fixed here, and why; they keep
 # the other learning tests, and the issue that asks for it stays open (results: BENCHMARKS.md#per_device-learning-benchmark)
-PER_DEVICE_NOT_YET: dict[str, str] = {}
+PER_DEVICE_NOT_YET: dict[str, str] = {
+    "coma": "beats best_fixed here only after ~160 iterations of 16 episodes (gamma 0, entropy 0.05, actor lr 3e-4: "
+    "1.147x at 200), about 13 min of one core: more than CI's time budget holds",
+}
 BEAT_BEST_FIXED = 1.02  # greedy EE / the open-loop best constant's on the same episodes, per_device
 OPEN_LOOP_MAX = 0.9  # the premise: best_fixed's share of the per_device greedy reference
 BEAT_RANDOM = 1.3  # greedy EE / random EE, well below the optimum's and far above the collapsed policy's
