@@ -57,10 +57,14 @@ class _Recorder:
 def _acting(core: BatchCore, cfg: ScenarioConfig, shape: tuple[int, ...]) -> np.ndarray:
     if cfg.action_mode == "per_uav":
         return np.ones(shape, dtype=bool)
-    served = np.stack([(core.serving == u).sum(axis=1) for u in range(cfg.n_uavs)], axis=1)  # [N, U]
-    slot = np.arange(shape[-1] - 1) // 2  # components 2k, 2k + 1: ED slot k; the last: the BW
-    mask = np.ones(shape, dtype=bool)
-    mask[..., :-1] = slot[None, None, :] < served[..., None]
+    # the components the simulator reads (sim.actions): each served ED's (SF, TP) at its UAV's
+    # slot `slot_of_ed`, and every UAV's BW
+    mask = np.zeros(shape, dtype=bool)
+    mask[..., -1] = True
+    n, ed = np.nonzero(core.associated)
+    slot = core.slot_of_ed[n, ed]
+    mask[n, core.serving[n, ed], 2 * slot] = True
+    mask[n, core.serving[n, ed], 2 * slot + 1] = True
     return mask
 
 
