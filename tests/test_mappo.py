@@ -258,6 +258,83 @@ def test_shared_actor_with_per_uav_heads():
         entry.build(SMALL, entry.hparams({"actor_agent_heads": True, "share_actor": False}), RES, 0)
 
 
+PER_DEVICE = ScenarioConfig(n_eds=6, n_uavs=2, episode_len=10, action_mode="per_device")
+
+
+def _per_ed_module(heads: str):
+    from ray.rllib.core.rl_module.rl_module import RLModuleSpec
+
+    spec = RLModuleSpec(
+        module_class=MAPPOTorchRLModule,
+        observation_space=team_observation_space(PER_DEVICE),
+        action_space=team_action_space(PER_DEVICE),
+        model_config=hparams_model_config(
+            MAPPOHParams, critic="central", state_dim=state_dim(PER_DEVICE), actor_heads=heads, max_seq_len=8
+        ),
+    )
+    return spec.build()
+
+
+@pytest.mark.parametrize("heads", ["per_slot", "shared"])
+def test_per_ed_heads_read_each_slots_own_row(heads):
+    """actor_heads: the flat layout of logits, a near-uniform start, and slot k's head reading row k:
+    with the trunk's input to the heads cut, a change to ED row j moves slot j's logits only."""
+    from uavlora_rllib.algorithms.common.per_ed_actor import PerEDActor
+
+    m = _per_ed_module(heads)
+    assert isinstance(m.actor, PerEDActor)
+    quota, u, d = PER_DEVICE.quota, PER_DEVICE.n_uavs, obs_dim(PER_DEVICE)
+    n_slot = len(PER_DEVICE.sf_set) + len(PER_DEVICE.tp_dbm)
+    torch.manual_seed(0)
+    obs = torch.rand(2, 3, u, d) * 2 - 1
+    batch = {"obs": obs, "state_in": {"h": torch.zeros(2, u, 128)}}
+    logits = m.forward_train(batch)["action_dist_inputs"]
+    assert logits.shape == (2, 3, u, m.head.n_logits) == (2, 3, u, n_slot * quota + len(PER_DEVICE.bw_khz))
+    assert float(logits.detach().abs().max()) < 0.05  # near-uniform initial policy, as the flat actor's
+    with torch.no_grad():
+        m.actor.slot_heads.w1[:, :, : m.actor.slot_heads.in_x] = 0.0  # heads read their rows only
+        m.actor.slot_heads.w2.normal_(0, 1.0)
+    logits = m.forward_train(batch)["action_dist_inputs"]
+    j = 1
+    moved = obs.clone()
+    moved[..., 4 * j : 4 * j + 4] = -obs[..., 4 * j : 4 * j + 4]
+    changed = (m.forward_train({**batch, "obs": moved})["action_dist_inputs"] - logits).abs()
+    per_slot = changed[..., : n_slot * quota].unflatten(-1, (quota, n_slot)).amax(dim=(0, 1, 2, 4))
+    assert per_slot[j] > 1e-3 and torch.all(per_slot[torch.arange(quota) != j] == 0.0), per_slot
+    # shared: two slots holding the same row differ only through their one-hot
+    same = obs.clone()
+    same[..., 4:8] = same[..., 0:4]
+    out = m.forward_train({**batch, "obs": same})["action_dist_inputs"][..., : 2 * n_slot].unflatten(-1, (2, n_slot))
+    assert not torch.allclose(out[..., 0, :], out[..., 1, :])
+    if heads == "shared":
+        with torch.no_grad():
+            m.actor.slot_heads.w1[:, :, m.actor.slot_heads.in_x + 4 :] = 0.0  # cut the one-hot too
+        out = m.forward_train({**batch, "obs": same})["action_dist_inputs"][..., : 2 * n_slot]
+        assert torch.allclose(out[..., :n_slot], out[..., n_slot:])
+
+
+@pytest.mark.parametrize(
+    "overrides, scenario, message",
+    [
+        (
+            {"actor_heads": "per_slot"},
+            SMALL,
+            r"algorithms\.mappo\.actor_heads: 'per_slot' needs action_mode per_device",
+        ),
+        (
+            {"actor_heads": "shared", "share_actor": True, "actor_agent_heads": True},
+            PER_DEVICE,
+            r"algorithms\.mappo\.actor_agent_heads: true only with actor_heads 'flat'",
+        ),
+        ({"actor_heads": "per_ed"}, PER_DEVICE, "actor_heads"),
+    ],
+)
+def test_per_ed_heads_refused_where_they_do_not_apply(overrides, scenario, message):
+    entry = registry.get("mappo")
+    with pytest.raises(ConfigError, match=message):
+        entry.build(scenario, entry.hparams(overrides), RES, 0)
+
+
 # ---------------------------------------------------------------- GRU state
 def test_module_carries_gru_state():
     m = _module(SMALL)
@@ -336,24 +413,28 @@ def test_per_agent_gae_bootstraps_truncation_and_splits_chunks():
 
 # ---------------------------------------------------------------- training (Ray)
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["mappo", "ippo"])
-def test_trains_a_few_iterations(ray_session, name):
-    algo = _build(name, SMALL, FAST)
+@pytest.mark.parametrize(
+    "name, cfg, overrides",
+    [("mappo", SMALL, {}), ("ippo", SMALL, {}), ("mappo", PER_DEVICE, {"actor_heads": "shared"})],
+    ids=["mappo", "ippo", "mappo-per_ed_heads"],
+)
+def test_trains_a_few_iterations(ray_session, name, cfg, overrides):
+    algo = _build(name, cfg, {**FAST, **overrides})
     try:
         for _ in range(2):
             res = algo.train()
         er = res["env_runners"]
-        assert er["num_env_steps_sampled_lifetime"] == 2 * FAST["batch_episodes"] * SMALL.episode_len
+        assert er["num_env_steps_sampled_lifetime"] == 2 * FAST["batch_episodes"] * cfg.episode_len
         assert er["ee_sys_mean"] > 0 and 0.0 <= er["success_rate"] <= 1.0
         lr = res["learners"]["default_policy"]
         assert np.isfinite(lr["policy_loss"]) and np.isfinite(lr["vf_loss"])
         module = algo.env_runner.module
         assert module.inference_only and not hasattr(module, "critic")  # env runners: actor only
         weights = algo.learner_group.get_weights(["default_policy"])["default_policy"]  # public API
-        expected = state_dim(SMALL) if name == "mappo" else obs_dim(SMALL) + SMALL.n_uavs  # local: + id
+        expected = state_dim(cfg) if name == "mappo" else obs_dim(cfg) + cfg.n_uavs  # local: + id
         assert weights["critic.net.0.weight"].shape[1] == expected
         assert weights["critic.value_norm.debias"] > 0  # value normalisation updated
-        res = run_episodes(registry.get(name).greedy_policy(algo, SMALL), SMALL, episodes=2)
+        res = run_episodes(registry.get(name).greedy_policy(algo, cfg), cfg, episodes=2)
         assert res.mean("ee_sys_mean") > 0
     finally:
         algo.stop()

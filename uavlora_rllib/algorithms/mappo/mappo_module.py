@@ -38,6 +38,7 @@ from torch import nn
 from uavlora_rllib.algorithms.common.actor_module import RecurrentActorForward
 from uavlora_rllib.algorithms.common.agent_net import ActionHead, RecurrentAgentNet
 from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE
+from uavlora_rllib.algorithms.common.per_ed_actor import PerEDActor
 from uavlora_rllib.algorithms.common.threads import set_torch_threads
 
 
@@ -129,17 +130,33 @@ class MAPPOTorchRLModule(RecurrentActorForward, TorchRLModule, ValueFunctionAPI,
         self.per_device = nvec.ndim == 2
         self.head = ActionHead(row.tolist())
         fc_hidden = int(mc["fc_hidden"])
-        self.actor = RecurrentAgentNet(
-            self.obs_dim,
-            self.n_agents,
-            self.head.n_logits,
-            fc_hidden=fc_hidden,
-            gru_hidden=int(mc["gru_hidden"]),
-            share=bool(mc["share_actor"]),
-            agent_heads=bool(mc["actor_agent_heads"]),  # RecurrentAgentNet refuses it unshared
-            out_hidden=fc_hidden,
-            out_gain=0.01,  # near-uniform initial policy (standard for PPO actors)
-        )
+        self.actor: RecurrentAgentNet | PerEDActor
+        if mc["actor_heads"] != "flat":  # per_device only (MAPPOHParams.check)
+            quota, n_bw = (len(row) - 1) // 2, int(row[-1])
+            self.actor = PerEDActor(
+                self.obs_dim,
+                self.n_agents,
+                quota,
+                int(row[0]),
+                int(row[1]),
+                n_bw,
+                heads=str(mc["actor_heads"]),
+                fc_hidden=fc_hidden,
+                gru_hidden=int(mc["gru_hidden"]),
+                share=bool(mc["share_actor"]),
+            )
+        else:
+            self.actor = RecurrentAgentNet(
+                self.obs_dim,
+                self.n_agents,
+                self.head.n_logits,
+                fc_hidden=fc_hidden,
+                gru_hidden=int(mc["gru_hidden"]),
+                share=bool(mc["share_actor"]),
+                agent_heads=bool(mc["actor_agent_heads"]),  # RecurrentAgentNet refuses it unshared
+                out_hidden=fc_hidden,
+                out_gain=0.01,  # near-uniform initial policy (standard for PPO actors)
+            )
         self.critic_kind = mc["critic"]
         if not self.inference_only:  # TorchRLModule would delete it anyway (InferenceOnlyAPI)
             in_dim = int(mc["state_dim"]) if self.critic_kind == "central" else self.obs_dim
