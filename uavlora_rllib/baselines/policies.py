@@ -382,16 +382,24 @@ def evaluation_seconds(name: str, cfg: ScenarioConfig, episodes: int) -> float:
     slots = episodes * cfg.episode_len
     searched = 0
     if name == "best_fixed":
-        from uavlora_rllib.baselines.best_fixed import BEST_FIXED_EXHAUSTIVE, BEST_FIXED_RESTARTS, selection_episodes
+        from uavlora_rllib.baselines.best_fixed import (
+            BEST_FIXED_EXHAUSTIVE,
+            BEST_FIXED_RESTARTS,
+            selection_episodes,
+            selection_stride,
+        )
 
-        sel_slots = selection_episodes(cfg) * cfg.episode_len
+        episodes = selection_episodes(cfg)
+        sel_slots = episodes * cfg.episode_len // selection_stride(cfg, episodes)
         if cfg.action_mode == "per_uav":
             total = cfg.n_joint_actions**cfg.n_uavs
             cand = (
                 total if total <= BEST_FIXED_EXHAUSTIVE else 3 * BEST_FIXED_RESTARTS * cfg.n_uavs * cfg.n_joint_actions
             )
         else:
-            cand = 3 * BEST_FIXED_RESTARTS * (cfg.n_uavs * cfg.quota * cfg.n_sf * cfg.n_tp + cfg.n_uavs * cfg.n_bw)
+            cand = (
+                3 * (BEST_FIXED_RESTARTS + 1) * (cfg.n_uavs * cfg.quota * cfg.n_sf * cfg.n_tp + cfg.n_uavs * cfg.n_bw)
+            )
         return sel_slots * cfg.n_eds * cand / SEARCH_RATE + slots * cfg.n_eds * STEP_SECONDS_PER_ED
     if cfg.action_mode == "per_device" and name in REFERENCES:
         from uavlora_rllib.baselines.per_device import optimal_candidates
