@@ -67,9 +67,12 @@ def test_factory_per_device_references_and_refusal():
         make_baseline("optimal", cfg)
 
 
-@pytest.mark.parametrize("n_eds,n_uavs", [(4, 1), (4, 2), pytest.param(5, 1, marks=pytest.mark.slow)])
-def test_per_device_greedy_reaches_optimal_on_tiny_scenarios(n_eds, n_uavs):
-    cfg = tiny(n_eds, n_uavs)
+@pytest.mark.parametrize(
+    "n_eds,n_uavs,options",
+    [(4, 1, {}), (4, 2, {}), (4, 2, {"rate_model": "lora_phy"}), pytest.param(5, 1, {}, marks=pytest.mark.slow)],
+)
+def test_per_device_greedy_reaches_optimal_on_tiny_scenarios(n_eds, n_uavs, options):
+    cfg = tiny(n_eds, n_uavs, **options)
     core = BatchCore(cfg, 3)
     core.reset(EVAL_SEED_BASE)
     greedy, optimal = make_baseline("greedy", cfg), make_baseline("optimal", cfg)
