@@ -13,7 +13,9 @@ from uavlora_rllib.baselines.best_fixed import (
     BEST_FIXED_SLOTS,
     BestFixedPolicy,
     record_slots,
+    selection_episodes,
     selection_seeds,
+    selection_stride,
     singletons_constant,
 )
 from uavlora_rllib.baselines.bound import upper_bound_of_core, water_filled_log_sum
@@ -132,6 +134,12 @@ def test_selection_seeds_are_not_evaluation_episodes():
     plain = record_slots(cfg, [0, 1, 2]).g_serving
     assert not np.isin(chosen, np.concatenate([evaluated, plain])).any()
     np.testing.assert_array_equal(chosen, record_slots(cfg, selection_seeds(0, 3)).g_serving)  # reproducible
+    # long episodes: every k-th slot of each episode, the same slots as the full recording's
+    cfg = ScenarioConfig(n_eds=5, n_uavs=1, episode_len=6)
+    full = record_slots(cfg, selection_seeds(0, 2)).g_serving.reshape(6, 2, -1)  # slot-major
+    every_3rd = record_slots(cfg, selection_seeds(0, 2), stride=3).g_serving.reshape(2, 2, -1)
+    np.testing.assert_array_equal(every_3rd, full[::3])
+    assert selection_stride(ScenarioConfig(episode_len=150), selection_episodes(ScenarioConfig())) == 8
 
 
 def test_best_fixed_per_uav_is_the_best_constant():
