@@ -53,6 +53,7 @@ def test_the_readme_shows_commands():
         "uavlora_rllib.evaluate",
         "analysis.report",
         "analysis.animate",
+        "analysis.archive",
         "uavlora_rllib.bench",
         "uavlora_rllib.bench_train",
     } <= modules
@@ -69,7 +70,8 @@ def test_make_targets_exist(target):
 def test_every_flag_is_accepted(command):
     argv = _argv(command)
     module, rest = argv[0], argv[1:]
-    sub = rest[0] if module == "uavlora_rllib.bench" and rest and not rest[0].startswith("-") else None
+    with_subcommands = ("uavlora_rllib.bench", "analysis.archive")
+    sub = rest[0] if module in with_subcommands and rest and not rest[0].startswith("-") else None
     text = _help(module, sub)
     for flag in (a.split("=")[0] for a in rest if a.startswith("--")):
         assert re.search(rf"(^|[\s\[,]){re.escape(flag)}\b", text), f"{command}: {flag} is not in `{module} --help`"

@@ -1,6 +1,6 @@
 """The `uavlora` console command: the package's tools under one name (`uavlora tune GRID.yaml`).
 
-    uavlora tune|evaluate|report|animate|bench [ARGS...]    (each: --help)
+    uavlora tune|evaluate|report|archive|animate|bench [ARGS...]    (each: --help)
     uavlora --version
 
 Each subcommand is the tool's own `main` (`python -m MODULE` keeps working, same arguments,
@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "tune": ("uavlora_rllib.tune", "run a grid YAML with Ray Tune (trials, baselines, MLflow)"),
     "evaluate": ("uavlora_rllib.evaluate", "evaluate a baseline or a checkpoint on fresh episodes"),
     "report": ("analysis.report", "the paper's figures and tables from MLflow runs"),
+    "archive": ("analysis.archive", "an experiment's MLflow runs to a file that can be committed, and back"),
     "animate": ("analysis.animate", "an episode as an animated GIF"),
     "bench": ("uavlora_rllib.bench", "simulator benchmarks"),
 }
