@@ -299,6 +299,45 @@ def test_gradients_reach_every_branch_head(learner):
     assert float(stats) == 0.0  # the batch's sampled per-branch log-probabilities are the module's
 
 
+def test_per_ed_heads_get_the_gradient_of_every_branch():
+    """actor_heads (common/per_ed_actor.make_actor, as MAPPO's): COMA's per_device actor becomes
+    PerEDActor; the learner's loss reaches every slot head, the BW head and the torso, and each
+    branch's logit group."""
+    from ray.rllib.core import DEFAULT_MODULE_ID as MID
+
+    from uavlora_rllib.algorithms.common.per_ed_actor import PerEDActor
+    from uavlora_rllib.envs.team import team_action_space, team_observation_space
+
+    scenario = ScenarioConfig(n_eds=4, n_uavs=2, episode_len=5, action_mode="per_device")
+    entry = registry.get("coma")
+    overrides = {"actor_hidden": 16, "gru_hidden": 8, "critic_hidden": [32], "actor_heads": "shared"}
+    hparams = entry.hparams({**overrides, "actor_agent_heads": False})
+    config = entry.build(scenario, hparams, registry.Resources(num_envs_per_env_runner=2), 0)
+    spaces = {MID: (team_observation_space(scenario), team_action_space(scenario))}
+    learner = config.build_learner(env=None, spaces=spaces)
+    module = learner.module[MID].unwrapped()
+    assert isinstance(module.actor, PerEDActor)
+    batch = _learner_batch(module, scenario)
+    fwd = module.forward_train(batch)
+    assert fwd[LOGITS].shape[-1] == module.head.n_logits
+    loss = learner.compute_loss_for_module(module_id=MID, config=None, batch=batch, fwd_out=fwd)
+    module.zero_grad()
+    loss.backward()
+    for name, p in module.actor.named_parameters():
+        assert p.grad is not None and p.grad.abs().sum() > 0, name
+    logits = fwd[LOGITS]
+    grads = torch.autograd.grad(
+        learner.compute_loss_for_module(module_id=MID, config=None, batch=batch, fwd_out=fwd), logits
+    )[0]
+    for part in torch.split(grads.abs().sum(dim=(0, 1, 2)), module.head.nvec):
+        assert part.sum() > 0
+    with pytest.raises(ConfigError, match=r"algorithms\.coma\.actor_agent_heads: true only with actor_heads 'flat'"):
+        entry.build(scenario, entry.hparams(overrides), registry.Resources(), 0)  # COMA's default is true
+    per_uav = ScenarioConfig(n_eds=4, n_uavs=2)
+    with pytest.raises(ConfigError, match=r"algorithms\.coma\.actor_heads: 'shared' needs action_mode per_device"):
+        entry.build(per_uav, hparams, registry.Resources(), 0)
+
+
 def test_critic_steps_lower_the_td_error(learner):
     from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 

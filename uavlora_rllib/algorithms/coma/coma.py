@@ -40,7 +40,7 @@ from ray.rllib.utils.annotations import override
 
 from uavlora_rllib.algorithms.coma.coma_learner import COMATorchLearner, episode_batch
 from uavlora_rllib.algorithms.coma.coma_module import COMATorchRLModule
-from uavlora_rllib.algorithms.common.config import HParamsConfig, check_actor_heads
+from uavlora_rllib.algorithms.common.config import ActorHeads, HParamsConfig, check_actor_heads, check_per_ed_heads
 from uavlora_rllib.algorithms.common.episode_algorithm import EpisodeAlgorithm
 from uavlora_rllib.algorithms.common.registry import Resources, register_algorithm
 from uavlora_rllib.config_errors import ConfigError
@@ -95,6 +95,7 @@ class COMAHParams:
         default=True,
         description="with share_actor=true: each UAV also gets its own linear output layer, added to the shared one [bool]",
     )
+    actor_heads: ActorHeads = "flat"
     critic_hidden: tuple[int, ...] = Field(
         default=(128, 128), description="ReLU layer widths of the critic MLP [units]"
     )
@@ -136,6 +137,7 @@ class COMAHParams:
         the per_device critic (branching.BranchQCritic) needs a hidden layer; per-UAV heads need the
         shared actor they sit on."""
         check_actor_heads(self.share_actor, self.actor_agent_heads, path)
+        check_per_ed_heads(self.actor_heads, self.actor_agent_heads, scenario, path)
         if scenario.action_mode == "per_device" and not self.critic_hidden:
             raise ConfigError(
                 f"{path}.critic_hidden: per_device needs at least one critic layer (the per-branch critic "

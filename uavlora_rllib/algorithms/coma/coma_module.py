@@ -44,6 +44,7 @@ from uavlora_rllib.algorithms.coma.branching import BRANCH_LOGP, BranchLayout, B
 from uavlora_rllib.algorithms.common.actor_module import RecurrentActorForward
 from uavlora_rllib.algorithms.common.agent_net import ActionHead, RecurrentAgentNet
 from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE
+from uavlora_rllib.algorithms.common.per_ed_actor import make_actor
 from uavlora_rllib.algorithms.common.threads import set_torch_threads
 
 # Batch columns of the learner's episode batch (coma_learner.episode_batch): obs
@@ -307,10 +308,11 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
         self.use_obs = bool(mc["critic_use_obs"])
         self.head = ActionHead(nvec[0].tolist())
         self.layout = BranchLayout(self.head.nvec)
-        self.actor = RecurrentAgentNet(
+        self.actor = make_actor(
             self.obs_dim,
             self.n_agents,
-            self.head.n_logits,
+            nvec[0].tolist(),
+            heads=str(mc["actor_heads"]),
             fc_hidden=int(mc["actor_hidden"]),
             gru_hidden=int(mc["gru_hidden"]),
             share=bool(mc["share_actor"]),

@@ -23,8 +23,9 @@ from __future__ import annotations
 
 import abc
 import dataclasses
-from typing import Any, ClassVar
+from typing import Annotated, Any, ClassVar, Literal
 
+from pydantic import Field
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 from ray.rllib.utils.annotations import override
@@ -94,6 +95,30 @@ def check_actor_heads(share_actor: bool, actor_agent_heads: bool, path: str) -> 
         raise ConfigError(
             f"{path}.actor_agent_heads: true needs share_actor: true (one actor per UAV already has "
             "its own output layer); allowed: false, or share_actor: true"
+        )
+
+
+# The per_device actor's output (common/per_ed_actor.py), one field type for every actor-critic learner
+ActorHeads = Annotated[
+    Literal["flat", "per_slot", "shared"],
+    Field(
+        description="per_device actor output: 'flat' (one output layer for every branch) | 'per_slot' (a head "
+        "per ED slot reading that ED's own observation row) | 'shared' (one such head for all slots, + the "
+        "slot's one-hot) (docs/model.md#mappo-and-ippo-per-device)"
+    ),
+]
+
+
+def check_per_ed_heads(actor_heads: str, actor_agent_heads: bool, scenario: ScenarioConfig, path: str) -> None:
+    """Per-ED heads act per ED, and replace the output layer that per-UAV heads would add to."""
+    if actor_heads != "flat" and scenario.action_mode != "per_device":
+        raise ConfigError(
+            f"{path}.actor_heads: {actor_heads!r} needs action_mode per_device (per-ED heads act per ED); "
+            "allowed with per_uav: 'flat'"
+        )
+    if actor_heads != "flat" and actor_agent_heads:
+        raise ConfigError(
+            f"{path}.actor_agent_heads: true only with actor_heads 'flat'; allowed: false, or actor_heads: flat"
         )
 
 

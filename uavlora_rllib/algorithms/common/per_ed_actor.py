@@ -82,3 +82,45 @@ class PerEDActor(nn.Module):
         slot_logits = self.slot_heads(f, rows, self.quota)  # [B, T, U, K, n_sf + n_tp]
         bw_logits = self.bw_head(f).squeeze(-2)  # [B, T, U, n_bw]
         return torch.cat((slot_logits.flatten(-2), bw_logits), dim=-1), h_out
+
+
+def make_actor(
+    obs_dim: int,
+    n_agents: int,
+    row: list[int],
+    *,
+    heads: str,
+    fc_hidden: int,
+    gru_hidden: int,
+    share: bool,
+    agent_heads: bool,
+    **flat: float | int,
+) -> RecurrentAgentNet | PerEDActor:
+    """The actor an `actor_heads` value names, for one UAV's action branches `row` (per_device:
+    [n_sf, n_tp] per ED slot, then n_bw; per_uav: [n_actions]): PerEDActor for per-ED heads, else
+    RecurrentAgentNet with one output layer for all sum(row) logits (`flat`: its other keywords,
+    such as out_hidden and out_gain)."""
+    if heads == "flat":
+        return RecurrentAgentNet(
+            obs_dim,
+            n_agents,
+            sum(row),
+            fc_hidden=fc_hidden,
+            gru_hidden=gru_hidden,
+            share=share,
+            agent_heads=agent_heads,  # RecurrentAgentNet refuses it unshared
+            **flat,  # type: ignore[arg-type]
+        )
+    quota = (len(row) - 1) // 2
+    return PerEDActor(
+        obs_dim,
+        n_agents,
+        quota,
+        int(row[0]),
+        int(row[1]),
+        int(row[-1]),
+        heads=heads,
+        fc_hidden=fc_hidden,
+        gru_hidden=gru_hidden,
+        share=share,
+    )

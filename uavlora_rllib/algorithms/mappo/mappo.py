@@ -33,7 +33,7 @@ from pydantic.dataclasses import dataclass as typed_dataclass
 from ray.rllib.algorithms.ppo import PPO, PPOConfig
 from ray.rllib.utils.annotations import override
 
-from uavlora_rllib.algorithms.common.config import HParamsConfig, check_actor_heads
+from uavlora_rllib.algorithms.common.config import ActorHeads, HParamsConfig, check_actor_heads, check_per_ed_heads
 from uavlora_rllib.algorithms.common.registry import Resources, register_algorithm
 from uavlora_rllib.algorithms.mappo.mappo_learner import MAPPOTorchLearner
 from uavlora_rllib.algorithms.mappo.mappo_module import MAPPOTorchRLModule
@@ -103,12 +103,7 @@ class MAPPOHParams:
         description="with share_actor=true: each UAV also gets its own linear output layer on the shared "
         "GRU trunk, added to the shared one (as COMA's actor) [bool]",
     )
-    actor_heads: Literal["flat", "per_slot", "shared"] = Field(
-        default="flat",
-        description="per_device actor output: 'flat' (one output layer for every branch) | 'per_slot' (a head "
-        "per ED slot reading that ED's own observation row) | 'shared' (one such head for all slots, + the "
-        "slot's one-hot) (docs/model.md#mappo-and-ippo-per-device)",
-    )
+    actor_heads: ActorHeads = "flat"
     critic: Literal["central", "local"] | None = Field(
         default=None,
         description="'central' (V(s, u) on the global state, MAPPO) | 'local' (V(o_u, u), IPPO); "
@@ -125,15 +120,7 @@ class MAPPOHParams:
         """A minibatch must hold at least one GRU sequence of the scenario's episodes; per-UAV
         heads need the shared actor they sit on."""
         check_actor_heads(self.share_actor, self.actor_agent_heads, path)
-        if self.actor_heads != "flat" and scenario.action_mode != "per_device":
-            raise ConfigError(
-                f"{path}.actor_heads: {self.actor_heads!r} needs action_mode per_device (per-ED heads act per ED); "
-                "allowed with per_uav: 'flat'"
-            )
-        if self.actor_heads != "flat" and self.actor_agent_heads:
-            raise ConfigError(
-                f"{path}.actor_agent_heads: true only with actor_heads 'flat'; allowed: false, or actor_heads: flat"
-            )
+        check_per_ed_heads(self.actor_heads, self.actor_agent_heads, scenario, path)
         minibatch = self.batch_episodes * scenario.episode_len // self.num_minibatches
         if minibatch < min(self.max_seq_len, scenario.episode_len):
             raise ConfigError(

@@ -4,7 +4,7 @@ Spaces (team view, `uavlora_rllib.envs.team`): observation Box [U, obs_dim]; act
 MultiDiscrete [U] (per_uav) or [U, 2 quota + 1] (per_device).
 
 * `actor` (common `RecurrentAgentNet`, with a ReLU layer after the GRU and a near-zero last
-  layer): decentralised; reads row u of the observation only (plus the agent id one-hot when
+  layer, or `PerEDActor` for per_device `actor_heads`: common/per_ed_actor.make_actor): decentralised; reads row u of the observation only (plus the agent id one-hot when
   shared). Its GRU state [U, gru_hidden] per scenario is RLlib's `STATE_IN/STATE_OUT`
   {HIDDEN: ...}; RLlib resets it to zeros at every episode start.
 * `critic`: centralised V(s, u) on the GLOBAL state (train-batch column GLOBAL_STATE, filled by
@@ -36,9 +36,9 @@ from ray.rllib.utils.annotations import override
 from torch import nn
 
 from uavlora_rllib.algorithms.common.actor_module import RecurrentActorForward
-from uavlora_rllib.algorithms.common.agent_net import ActionHead, RecurrentAgentNet
+from uavlora_rllib.algorithms.common.agent_net import ActionHead
 from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE
-from uavlora_rllib.algorithms.common.per_ed_actor import PerEDActor
+from uavlora_rllib.algorithms.common.per_ed_actor import make_actor
 from uavlora_rllib.algorithms.common.threads import set_torch_threads
 
 
@@ -130,33 +130,18 @@ class MAPPOTorchRLModule(RecurrentActorForward, TorchRLModule, ValueFunctionAPI,
         self.per_device = nvec.ndim == 2
         self.head = ActionHead(row.tolist())
         fc_hidden = int(mc["fc_hidden"])
-        self.actor: RecurrentAgentNet | PerEDActor
-        if mc["actor_heads"] != "flat":  # per_device only (MAPPOHParams.check)
-            quota, n_bw = (len(row) - 1) // 2, int(row[-1])
-            self.actor = PerEDActor(
-                self.obs_dim,
-                self.n_agents,
-                quota,
-                int(row[0]),
-                int(row[1]),
-                n_bw,
-                heads=str(mc["actor_heads"]),
-                fc_hidden=fc_hidden,
-                gru_hidden=int(mc["gru_hidden"]),
-                share=bool(mc["share_actor"]),
-            )
-        else:
-            self.actor = RecurrentAgentNet(
-                self.obs_dim,
-                self.n_agents,
-                self.head.n_logits,
-                fc_hidden=fc_hidden,
-                gru_hidden=int(mc["gru_hidden"]),
-                share=bool(mc["share_actor"]),
-                agent_heads=bool(mc["actor_agent_heads"]),  # RecurrentAgentNet refuses it unshared
-                out_hidden=fc_hidden,
-                out_gain=0.01,  # near-uniform initial policy (standard for PPO actors)
-            )
+        self.actor = make_actor(  # actor_heads other than flat: per_device only (MAPPOHParams.check)
+            self.obs_dim,
+            self.n_agents,
+            row.tolist(),
+            heads=str(mc["actor_heads"]),
+            fc_hidden=fc_hidden,
+            gru_hidden=int(mc["gru_hidden"]),
+            share=bool(mc["share_actor"]),
+            agent_heads=bool(mc["actor_agent_heads"]),
+            out_hidden=fc_hidden,
+            out_gain=0.01,  # near-uniform initial policy (standard for PPO actors)
+        )
         self.critic_kind = mc["critic"]
         if not self.inference_only:  # TorchRLModule would delete it anyway (InferenceOnlyAPI)
             in_dim = int(mc["state_dim"]) if self.critic_kind == "central" else self.obs_dim
