@@ -35,8 +35,20 @@ def test_defaults_are_spec_md_table():
     h = c.hover
     assert (h.n_rotors, h.weight_n, h.air_density, h.solidity) == (4, 20.0, 1.168, 0.045)
     assert (h.disc_area_m2, h.thrust_coef, h.drag_coef, h.induced_factor) == (0.214, 0.001195, 0.011, 0.11)
-    assert dataclasses.astuple(c.reward) == (4e-4, 5.0, 1.0, -1e-2)
+    assert dataclasses.astuple(c.reward_weights) == (4e-4, 5.0, 1.0, -1e-2)
     assert c.n_joint_actions == 90
+
+
+def test_w1_follows_the_rate_model_unless_set():
+    """reward.w1 null: the paper's 4e-4 under the Shannon rate, 0.1 under the LoRa PHY rate (EE ~230x
+    smaller there, docs/model.md#metrics-and-reward); a set w1 wins, and a copy with another rate re-resolves."""
+    shannon = ScenarioConfig()
+    phy = shannon.replace(rate_model="lora_phy")
+    assert shannon.reward.w1 is None and shannon.reward_weights.w1 == 4e-4
+    assert phy.reward_weights.w1 == 0.1 and dataclasses.astuple(phy.reward_weights)[1:] == (5.0, 1.0, -1e-2)
+    assert phy.replace(reward={"w1": 4e-4}).reward_weights.w1 == 4e-4
+    assert ScenarioConfig.from_dict({"rate_model": "lora_phy", "reward": {"w1": 0}}).reward_weights.w1 == 0.0
+    assert ScenarioConfig.from_dict(phy.to_dict()).reward_weights.w1 == 0.1  # round trip keeps it null
 
 
 @pytest.mark.parametrize("v,u", [(10, 2), (20, 4), (40, 6), (60, 8), (100, 8), (7, 3)])

@@ -369,8 +369,8 @@ def test_reward_w4_sign_gives_the_same_penalty():
     ee, xi, beta, p = 1500.0, 0.7, -0.25, 410.0
     hand = 4e-4 * 1500.0 + 5.0 * 0.7 + 1.0 * (-0.25) - 0.01 * 410.0  # 0.6 + 3.5 - 0.25 - 4.1 = -0.25
     assert hand == pytest.approx(-0.25)
-    neg = physics.reward(ee, xi, beta, p, RewardWeights(w4=-1e-2))
-    pos = physics.reward(ee, xi, beta, p, RewardWeights(w4=1e-2))
+    neg = physics.reward(ee, xi, beta, p, RewardWeights(w1=4e-4, w4=-1e-2))
+    pos = physics.reward(ee, xi, beta, p, RewardWeights(w1=4e-4, w4=1e-2))
     assert float(neg) == pytest.approx(hand, abs=1e-12)
     assert float(pos) == pytest.approx(hand, abs=1e-12)
     # and end to end through a slot

@@ -179,7 +179,7 @@ class AllocationScorer:
         beta = physics.margin_score(physics.lin_to_db(s), thr, assoc)[:, None, None]
         beta = beta + (pts_new - pts_old) * assoc[e, movers][..., None] / n_assoc
         p_total = np.add.reduce(tx, axis=-1) + cfg.n_uavs * t.hover_w
-        r = physics.reward(ee, xi, beta, p_total, cfg.reward)
+        r = physics.reward(ee, xi, beta, p_total, cfg.reward_weights)
         return (ee, r) if self.objective == "ee" else (r, ee)
 
 

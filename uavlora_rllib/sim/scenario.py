@@ -42,6 +42,12 @@ KNOWN_BWS_KHZ = (125, 250, 500)
 
 _STRICT = pydantic.ConfigDict(extra="forbid", frozen=True)
 
+# reward.w1 when it is null, per rate model (docs/model.md#metrics-and-reward). The paper's 4e-4 puts the EE
+# term at ~95 per slot in its scenario (greedy EE ~2.4e5 bit/J under Eq. (shannon)), above the success (w2 = 5)
+# and margin (<= 1) terms; the LoRa PHY rates give ~1e3 bit/J there, where 4e-4 would leave EE 0.4 per slot and
+# learners maximise the success and margin terms instead (robust SFs at high TP). 0.1 restores the paper's balance.
+DEFAULT_W1: dict[str, float] = {"shannon": 4e-4, "lora_phy": 0.1}
+
 
 @dataclass(config=_STRICT)
 class MobilityConfig:
@@ -84,7 +90,13 @@ class RewardWeights:
     """r = w1 EE_sys + w2 Xi + w3 beta - |w4| P_total (docs/model.md#metrics-and-reward: the w4 term is always a penalty)."""
 
     # |w| <= 1e6: times the largest EE_sys of the scenario box (~1e18) still finite
-    w1: float = Field(default=4e-4, ge=-1e6, le=1e6, description="weight of EE_sys, [-1e6, 1e6]")
+    w1: float | None = Field(
+        default=None,
+        ge=-1e6,
+        le=1e6,
+        description="weight of EE_sys, [-1e6, 1e6]; null: the rate model's (DEFAULT_W1: 4e-4 Shannon, the paper's; "
+        "0.1 LoRa PHY) (docs/model.md#metrics-and-reward)",
+    )
     w2: float = Field(default=5.0, ge=-1e6, le=1e6, description="weight of the success rate Xi, [-1e6, 1e6]")
     w3: float = Field(default=1.0, ge=-1e6, le=1e6, description="weight of the SNR-margin score beta, [-1e6, 1e6]")
     w4: float = Field(
@@ -183,6 +195,13 @@ class ScenarioConfig:
     def n_joint_actions(self) -> int:
         """Size of the per_uav action: one (SF, TP, BW) triple, 90 with the paper's sets."""
         return self.n_sf * self.n_tp * self.n_bw
+
+    @property
+    def reward_weights(self) -> RewardWeights:
+        """The reward's weights as the env applies them: a null w1 is the rate model's DEFAULT_W1."""
+        if self.reward.w1 is not None:
+            return self.reward
+        return dataclasses.replace(self.reward, w1=DEFAULT_W1[self.rate_model])
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

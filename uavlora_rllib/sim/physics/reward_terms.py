@@ -104,5 +104,8 @@ def total_power_of_tx_sum(tx_sum_w: np.ndarray, hover_w: float, n_uavs: int) -> 
 
 
 def reward(ee: np.ndarray, xi: np.ndarray, beta: np.ndarray, p_total: np.ndarray, w: RewardWeights) -> np.ndarray:
-    """Eq. (reward): r = w1 EE + w2 Xi + w3 beta - |w4| P_total (w4 is a penalty whatever its sign)."""
+    """Eq. (reward): r = w1 EE + w2 Xi + w3 beta - |w4| P_total (w4 is a penalty whatever its sign);
+    `w` resolved (ScenarioConfig.reward_weights: w1 set)."""
+    if w.w1 is None:
+        raise ValueError("reward: w1 is null; pass ScenarioConfig.reward_weights (w1 resolved by rate model)")
     return w.w1 * ee + w.w2 * xi + w.w3 * beta - abs(w.w4) * p_total

@@ -133,7 +133,7 @@ def slot_metrics(
     p_total = total_power_of_tx_sum(p_total, tables.hover_w, cfg.n_uavs)
     xi = success_rate(sinr_db, thr_db, associated)
     margin_points(snr_db, thr_db, out=db[0])
-    return _slot_metrics_of(ee, xi, db, p_total, rate_sum, associated, everyone, cfg.reward)
+    return _slot_metrics_of(ee, xi, db, p_total, rate_sum, associated, everyone, cfg.reward_weights)
 
 
 def _slot_metrics_of(
@@ -261,4 +261,4 @@ def slot_metrics_shared(
     xi = success_rate(sinr_db, alloc.threshold_db.take(serving_flat), associated)
     np.add(g_db_serving, alloc.margin_offset_db.take(serving_flat), out=db[0])
     points_of_margin(db[0])
-    return _slot_metrics_of(ee, xi, db, p_total, rate_sum, associated, everyone, cfg.reward)
+    return _slot_metrics_of(ee, xi, db, p_total, rate_sum, associated, everyone, cfg.reward_weights)
