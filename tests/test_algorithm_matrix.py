@@ -204,6 +204,16 @@ def test_list_hparams_documents_every_field(name, capsys):
     assert "--list-hparams: unknown algorithm 'no_such_algo'" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("name", sorted(registry.HPARAMS_MODULES))
+def test_declared_spec_is_the_registered_one(name):
+    """A built-in's typed config and action modes, as its HPARAMS_MODULES module declares them (what grid
+    checks, --dry-run and --list-hparams read without RLlib), are those its algorithm registers."""
+    entry = registry.get(name)
+    declared = registry._SPECS[name]
+    assert (declared.hparams_cls, declared.action_modes) == (entry.hparams_cls, entry.action_modes)
+    assert registry.HPARAMS_MODULES[name].rsplit(".", 1)[0] == registry.MODULES[name].rsplit(".", 1)[0]
+
+
 @pytest.mark.parametrize("name", registry.available())
 def test_learning_rates_are_bounded(name):
     """A learning rate of 1e300 (or any > 1) is refused at config load, naming the field, instead of

@@ -38,8 +38,11 @@ def _imported(argv: list[str]) -> tuple[subprocess.CompletedProcess, set[str]]:
         ["-m", "uavlora_rllib", "--help"],
         ["-m", "uavlora_rllib", "tune", "--help"],
         ["-m", "uavlora_rllib", "--version"],
+        # issue 25: the typed configs live in modules without RLlib (registry.spec)
+        ["-m", "uavlora_rllib.tune", "--list-hparams", "coma"],
+        ["-m", "uavlora_rllib.tune", "tune_configs/learning_per_device_10x2_lora_phy.yaml", "--dry-run"],
     ],
-    ids=["tune", "uavlora", "uavlora-tune", "version"],
+    ids=["tune", "uavlora", "uavlora-tune", "version", "list-hparams", "dry-run-all-five"],
 )
 def test_help_imports_neither_ray_nor_torch(argv):
     proc, packages = _imported(argv)

@@ -151,9 +151,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = build_parser().parse_args(argv)
         args.address = cluster.job_address(args.address)
         if args.list_hparams is not None:
-            from uavlora_rllib.algorithms.common.config import describe_hparams
+            from uavlora_rllib.algorithms.common.hparams import describe_hparams
 
-            entry = registry.get(args.list_hparams, path="--list-hparams")
+            entry = registry.spec(args.list_hparams, path="--list-hparams")
             print(f"{entry.name}: hyperparameters (grid YAML `algorithms.{entry.name}:`)\n")
             print(describe_hparams(entry.hparams_cls))
             return EXIT_OK

@@ -412,7 +412,7 @@ def _validate(grid: GridConfig) -> None:
     entries = {}
     spaces = {}
     for name in grid.algorithms:
-        entry = registry.get(name, path=f"algorithms.{name}")
+        entry = registry.spec(name, path=f"algorithms.{name}")  # no RLlib import (dry runs)
         fixed, spaces[name] = algorithm_spaces(grid, entry)
         # every checked combination of sampled values (one, the fixed values, without spaces)
         hparams = [
@@ -435,11 +435,11 @@ def _validate(grid: GridConfig) -> None:
             raise ConfigError(f"{exc}{where}") from None
         for name, (entry, candidates) in entries.items():
             entry.check_scenario(scenario, prefix="scenario.action_mode")
-            # the entry's own cross-checks (hyperparameters x resources x scenario); builds
-            # only the AlgorithmConfig, not the algorithm
+            # the entry's own cross-checks (hyperparameters x resources x scenario), without RLlib
+            # for a built-in (registry.AlgorithmSpec.check_trial)
             for hparams in candidates:
                 try:
-                    entry.build(scenario, hparams, grid.resources, grid.seeds[0])
+                    entry.check_trial(scenario, hparams, grid.resources, grid.seeds[0])
                 except ConfigError as exc:
                     sampled = ", ".join(f"{k}={getattr(hparams, k)!r}" for k in spaces[name])
                     raise ConfigError(f"{exc}{where}{f' (sampled: {sampled})' if sampled else ''}") from None
@@ -493,7 +493,7 @@ def trials(grid: GridConfig) -> list[TrialSpec]:
     import_plugins(grid.plugins)
     out = []
     for name in grid.algorithms:
-        entry = registry.get(name, path=f"algorithms.{name}")
+        entry = registry.spec(name, path=f"algorithms.{name}")
         fixed, spaces = algorithm_spaces(grid, entry)
         hparams = entry.hparams(fixed, prefix=f"algorithms.{name}")
         for seed, n_eds, n_uavs in itertools.product(grid.seeds, grid.n_eds, grid.n_uavs):

@@ -4,8 +4,9 @@ The convention every algorithm follows:
 
 * ONE typed config class, a pydantic dataclass (`MAPPOHParams`, `QMIXHParams`,
   `COMAHParams`) whose every field is `Field(default=default, description="what it does [unit]")`.
-  The description is the documentation: `python -m uavlora_rllib.tune --list-hparams ALGO`
-  prints it with the default (see `describe_hparams`). Checks between its own fields: a
+  It lives in the algorithm's `hparams.py` (no Ray, no torch: common/hparams.py). The description is
+  the documentation: `python -m uavlora_rllib.tune --list-hparams ALGO` prints it with the default
+  (see `hparams.describe_hparams`). Checks between its own fields: a
   pydantic `model_validator`. Checks against the scenario and the trial's resources: its
   `check(scenario, resources, path)` method (raises ConfigError naming the field). Each
   check lives in exactly one of those two places.
@@ -23,15 +24,13 @@ from __future__ import annotations
 
 import abc
 import dataclasses
-from typing import Annotated, Any, ClassVar, Literal
+from typing import Any, ClassVar
 
-from pydantic import Field
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 from ray.rllib.utils.annotations import override
 
 from uavlora_rllib.algorithms.common.metrics import log_episode_metrics
-from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.sim.observation import obs_dim, state_dim
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
@@ -89,39 +88,6 @@ class HParamsConfig(abc.ABC):
         return {}
 
 
-def check_actor_heads(share_actor: bool, actor_agent_heads: bool, path: str) -> None:
-    """Per-UAV output heads sit on a shared actor; with one actor per UAV they have nothing to add."""
-    if actor_agent_heads and not share_actor:
-        raise ConfigError(
-            f"{path}.actor_agent_heads: true needs share_actor: true (one actor per UAV already has "
-            "its own output layer); allowed: false, or share_actor: true"
-        )
-
-
-# The per_device actor's output (common/per_ed_actor.py), one field type for every actor-critic learner
-ActorHeads = Annotated[
-    Literal["flat", "per_slot", "shared"],
-    Field(
-        description="per_device actor output: 'flat' (one output layer for every branch) | 'per_slot' (a head "
-        "per ED slot reading that ED's own observation row) | 'shared' (one such head for all slots, + the "
-        "slot's one-hot) (docs/model.md#mappo-and-ippo-per-device)"
-    ),
-]
-
-
-def check_per_ed_heads(actor_heads: str, actor_agent_heads: bool, scenario: ScenarioConfig, path: str) -> None:
-    """Per-ED heads act per ED, and replace the output layer that per-UAV heads would add to."""
-    if actor_heads != "flat" and scenario.action_mode != "per_device":
-        raise ConfigError(
-            f"{path}.actor_heads: {actor_heads!r} needs action_mode per_device (per-ED heads act per ED); "
-            "allowed with per_uav: 'flat'"
-        )
-    if actor_heads != "flat" and actor_agent_heads:
-        raise ConfigError(
-            f"{path}.actor_agent_heads: true only with actor_heads 'flat'; allowed: false, or actor_heads: flat"
-        )
-
-
 def apply_resources(config: Any, resources: Any) -> Any:
     """The learner side of a trial's `registry.Resources` (env runners: `sample_through_team_env`)."""
     return config.learners(
@@ -147,14 +113,3 @@ def hparams_model_config(hparams_cls: type, **entries: Any) -> dict[str, Any]:
     hyperparameter class's defaults, one torch thread, then `entries` (the scenario's sizes
     and the entries the algorithm's `apply_hparams` resolves)."""
     return {**dataclasses.asdict(hparams_cls()), "torch_threads": 1, **entries}
-
-
-def describe_hparams(cls: type[Any]) -> str:
-    """One block per field: name, type and default, then its description (--list-hparams)."""
-    lines = []
-    for name, info in cls.__pydantic_fields__.items():  # pydantic's FieldInfo of each field, in order
-        ann = info.annotation
-        typ = ann.__name__ if isinstance(ann, type) else str(ann).replace("typing.", "")
-        lines.append(f"{name} ({typ}, default {info.default!r})")
-        lines.append(f"    {info.description or '(no description)'}")
-    return "\n".join(lines)

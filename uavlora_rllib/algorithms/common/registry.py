@@ -10,7 +10,9 @@ common/config.py (hparams_cls, module_class, learner_class, apply_hparams,
 env_runner_settings), a team-view RLModule whose forward_inference / forward_exploration
 return Columns.ACTIONS (then the default `make_policy` runs it, greedy or sampled), one
 `register_algorithm(name, ConfigClass, action_modes)` call in its module, and a line in
-`MODULES`. tests/test_algorithm_matrix.py then trains, checkpoints, restores and evaluates it
+`MODULES`; the typed class goes in a module of its own that imports neither Ray nor torch and
+`declare`s it (a line in `HPARAMS_MODULES`), so that a grid is checked, previewed and listed
+without importing RLlib (`spec`). tests/test_algorithm_matrix.py then trains, checkpoints, restores and evaluates it
 with no new test code. A plugin with a builder of its own registers an `AlgorithmEntry`.
 """
 
@@ -39,6 +41,18 @@ MODULES: dict[str, str] = {
     "qmix": "uavlora_rllib.algorithms.qmix.qmix",
     "vdn": "uavlora_rllib.algorithms.qmix.qmix",
     "coma": "uavlora_rllib.algorithms.coma.coma",
+}
+
+
+# name -> the module that declares its typed hyperparameters and action modes (`declare`) and imports
+# neither Ray nor torch: what a grid's validation, `tune --dry-run` and `--list-hparams` read through
+# `spec`, so that they answer in about a second (MODULES' modules import RLlib: seconds).
+HPARAMS_MODULES: dict[str, str] = {
+    "mappo": "uavlora_rllib.algorithms.mappo.hparams",
+    "ippo": "uavlora_rllib.algorithms.mappo.hparams",
+    "qmix": "uavlora_rllib.algorithms.qmix.hparams",
+    "vdn": "uavlora_rllib.algorithms.qmix.hparams",
+    "coma": "uavlora_rllib.algorithms.coma.hparams",
 }
 
 
@@ -89,26 +103,16 @@ def _team_policy(algo: Algorithm, scenario: ScenarioConfig, explore: bool = Fals
 
 
 @dataclass(frozen=True)
-class AlgorithmEntry:
+class AlgorithmSpec:
+    """What a grid is checked against before anything runs: the typed hyperparameters and the
+    action modes of algorithm `name`."""
+
     name: str
     hparams_cls: type  # the algorithm's typed config (pydantic dataclass, see common/config.py)
     action_modes: tuple[str, ...]  # scenario.action_mode values it supports
-    # (scenario, hparams, resources, seed) -> an RLlib AlgorithmConfig ready for .build_algo()
-    build: Callable[[ScenarioConfig, Any, Resources, int], AlgorithmConfig]
-    # (built or restored algorithm, scenario, explore, seed) -> the decentralised policy for
-    # evaluation: greedy (explore=False, the paper's execution) or sampled (explore=True). The
-    # default runs the algorithm's own team-view RLModule (common/policy.py).
-    make_policy: Callable[..., Policy] = _team_policy
 
     def hparams(self, overrides: dict | None, prefix: str | None = None) -> Any:
         return build(self.hparams_cls, overrides or {}, prefix or f"algorithms.{self.name}")
-
-    def policy(self, algo: Algorithm, scenario: ScenarioConfig, explore: bool = False, seed: int = 0) -> Policy:
-        """Greedy (argmax per UAV) or, with explore=True, sampled execution of a trained algorithm."""
-        return self.make_policy(algo, scenario, explore=explore, seed=seed)
-
-    def greedy_policy(self, algo: Algorithm, scenario: ScenarioConfig) -> Policy:
-        return self.policy(algo, scenario, explore=False)
 
     def check_scenario(self, scenario: ScenarioConfig, prefix: str = "scenario.action_mode") -> None:
         if scenario.action_mode not in self.action_modes:
@@ -117,8 +121,55 @@ class AlgorithmEntry:
                 f"got {scenario.action_mode!r}"
             )
 
+    def check_trial(self, scenario: ScenarioConfig, hparams: Any, resources: Resources, seed: int) -> None:
+        """The cross-checks of one trial (hyperparameters x scenario x resources), ConfigError naming
+        the field: the typed config's `check`, which `team_config` runs first when it builds a trial."""
+        hparams.check(scenario, resources, f"algorithms.{self.name}")
+
+
+@dataclass(frozen=True)
+class AlgorithmEntry(AlgorithmSpec):
+    """A registered algorithm: its spec, and how to build and play it (imports RLlib)."""
+
+    # (scenario, hparams, resources, seed) -> an RLlib AlgorithmConfig ready for .build_algo()
+    build: Callable[[ScenarioConfig, Any, Resources, int], AlgorithmConfig]
+    # (built or restored algorithm, scenario, explore, seed) -> the decentralised policy for
+    # evaluation: greedy (explore=False, the paper's execution) or sampled (explore=True). The
+    # default runs the algorithm's own team-view RLModule (common/policy.py).
+    make_policy: Callable[..., Policy] = _team_policy
+
+    def policy(self, algo: Algorithm, scenario: ScenarioConfig, explore: bool = False, seed: int = 0) -> Policy:
+        """Greedy (argmax per UAV) or, with explore=True, sampled execution of a trained algorithm."""
+        return self.make_policy(algo, scenario, explore=explore, seed=seed)
+
+    def greedy_policy(self, algo: Algorithm, scenario: ScenarioConfig) -> Policy:
+        return self.policy(algo, scenario, explore=False)
+
+    def check_trial(self, scenario: ScenarioConfig, hparams: Any, resources: Resources, seed: int) -> None:
+        """Building the trial's AlgorithmConfig (not the algorithm): a plugin's own builder holds its checks."""
+        self.build(scenario, hparams, resources, seed)
+
 
 _REGISTRY: dict[str, AlgorithmEntry] = {}
+_SPECS: dict[str, AlgorithmSpec] = {}
+
+
+def declare(name: str, hparams_cls: type, action_modes: tuple[str, ...]) -> AlgorithmSpec:
+    """Declare algorithm `name`'s typed hyperparameters and action modes (from its HPARAMS_MODULES module)."""
+    _SPECS[name] = AlgorithmSpec(name=name, hparams_cls=hparams_cls, action_modes=tuple(action_modes))
+    return _SPECS[name]
+
+
+def spec(name: str, path: str = "algorithm") -> AlgorithmSpec:
+    """`name`'s hyperparameters and action modes, from its HPARAMS_MODULES module when it has one
+    (no Ray, no torch), else from its registered entry (a plugin's: `get`)."""
+    if name in _REGISTRY:
+        return _REGISTRY[name]
+    if name in HPARAMS_MODULES and name not in _SPECS:
+        importlib.import_module(HPARAMS_MODULES[name])
+    if name in _SPECS:
+        return _SPECS[name]
+    return get(name, path)
 
 
 def register(entry: AlgorithmEntry) -> None:
@@ -138,6 +189,12 @@ def register_algorithm(name: str, config_cls: type[Any], action_modes: tuple[str
             hparams = entry.hparams(hparams)
         return team_config(config_cls(), name, scenario, hparams, resources, seed)
 
+    declared = _SPECS.get(name)
+    if declared is not None and (declared.hparams_cls, declared.action_modes) != (
+        config_cls.hparams_cls,
+        tuple(action_modes),
+    ):
+        raise TypeError(f"register_algorithm({name!r}): hparams_cls or action_modes differ from its declaration")
     entry = AlgorithmEntry(name=name, hparams_cls=config_cls.hparams_cls, action_modes=tuple(action_modes), build=build)
     register(entry)
     return entry

@@ -39,11 +39,7 @@ restored run refills it (learning resumes after learning_starts_episodes new epi
 
 from __future__ import annotations
 
-from typing import Literal
-
 import numpy as np
-from pydantic import Field, model_validator
-from pydantic.dataclasses import dataclass as typed_dataclass
 from ray.rllib.algorithms.algorithm import Algorithm
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 from ray.rllib.core import DEFAULT_MODULE_ID
@@ -57,6 +53,7 @@ from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE
 from uavlora_rllib.algorithms.common.config import HParamsConfig
 from uavlora_rllib.algorithms.common.episode_algorithm import EpisodeAlgorithm
 from uavlora_rllib.algorithms.qmix.branching_module import BranchingQMixModule
+from uavlora_rllib.algorithms.qmix.hparams import ACTION_MODES, QMIXHParams, VDNHParams
 from uavlora_rllib.algorithms.qmix.qmix_learner import QMIXTorchLearner
 from uavlora_rllib.algorithms.qmix.qmix_module import QMixModule, linear_epsilon
 from uavlora_rllib.algorithms.qmix.qmix_replay import EpisodeReplay
@@ -65,132 +62,6 @@ from uavlora_rllib.sim.observation import obs_dim, state_dim
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
 MIXERS = ("qmix", "vdn")
-
-
-def _updates_per_episode(default: float):
-    """The `updates_per_episode` field: one meaning and range; QMIX and VDN each have their default."""
-    return Field(
-        default=default,
-        gt=0,
-        le=64,
-        description="gradient updates per episode added to the replay [updates/episode]: the update-to-data "
-        "ratio, independent of how many envs and env runners sample (docs/model.md#training-defaults)",
-    )
-
-
-@typed_dataclass(config={"extra": "forbid", "frozen": True})
-class QMIXHParams:
-    """QMIX/VDN hyperparameters (grid YAML `algorithms.qmix:` / `algorithms.vdn:`)."""
-
-    lr: float = Field(
-        default=1e-4, gt=0, le=1, description="Adam step size, agent network and mixer [1/update] (paper)"
-    )
-    gamma: float = Field(default=0.99, ge=0, le=1, description="discount per slot [-] (paper)")
-    gru_hidden: int = Field(default=128, ge=1, description="GRU width of the agent network [units] (paper)")
-    fc_hidden: int = Field(default=128, ge=1, description="width of the ReLU layer before the GRU [units] (decision)")
-    share_agent_net: bool = Field(
-        default=False,
-        description="one agent network for all UAVs (+ one-hot UAV id) [bool]; false: one per UAV, which breaks "
-        "the symmetry between identical UAVs from the start (docs/model.md#training-defaults)",
-    )
-    slot_head: Literal["per_slot", "shared"] = Field(
-        default="per_slot",
-        description="per_device only: each ED slot's (SF, TP) utility head has its own parameters (per_slot) or one "
-        "head serves every slot, told apart by the slot's observation row (shared) [-] "
-        "(docs/model.md#qmix-and-vdn-per-device)",
-    )
-    head_hidden: int = Field(
-        default=64,
-        ge=1,
-        description="per_device only: hidden width of every branch head (each slot's and the BW's) [units] "
-        "(docs/model.md#qmix-and-vdn-per-device)",
-    )
-    dueling: bool = Field(
-        default=True,
-        description="per_device only: the branch heads give advantages around a per-UAV state value V_u, "
-        "BDQ's dueling form [bool] (docs/model.md#qmix-and-vdn-per-device)",
-    )
-    mixing_embed_dim: int = Field(
-        default=32, ge=1, description="mixing-network width of QMIX and width of V(s) [units] (Rashid et al.)"
-    )
-    state_bias: bool = Field(
-        default=True,
-        description="Q_tot includes a state-value term V(s) (2-layer MLP on the global state) [bool]; VDN with it "
-        "is Rashid et al.'s VDN-S, without it Sunehag et al.'s plain sum; execution never reads it "
-        "(docs/model.md#training-defaults)",
-    )
-    hypernet_embed_dim: int = Field(
-        default=64, ge=1, description="hidden width of the 2-layer weight hypernetworks [units]; unused by VDN"
-    )
-    double_q: bool = Field(
-        default=True, description="double Q [bool]: the online net picks argmax at t+1, the target net evaluates it"
-    )
-    n_step: int = Field(
-        default=1, ge=1, description="n of the n-step TD targets [slots] (truncated at the episode end)"
-    )
-    tau: float = Field(
-        default=0.01, gt=0, le=1, description="soft target update weight after every gradient update [-] (paper)"
-    )
-    grad_clip: float = Field(default=10.0, gt=0, description="global gradient-norm clip [-] (decision)")
-    batch_size_episodes: int = Field(
-        default=16, ge=1, description="whole episodes per gradient update [episodes] (paper)"
-    )
-    buffer_size_episodes: int = Field(default=32, ge=1, description="replay capacity |D| [episodes] (paper)")
-    learning_starts_episodes: int = Field(
-        default=16, ge=1, description="episodes in the replay before the first update [episodes]"
-    )
-    updates_per_episode: float = _updates_per_episode(0.25)
-    updates_per_iteration: int | None = Field(
-        default=None,
-        ge=1,
-        description="gradient updates per training iteration [updates], overriding updates_per_episode; "
-        "null: updates_per_episode x the episodes the iteration added",
-    )
-    epsilon_start: float = Field(default=1.0, ge=0, le=1, description="exploration epsilon at t = 0 [probability]")
-    epsilon_end: float = Field(
-        default=0.05,
-        ge=0,
-        le=1,
-        description="exploration epsilon after the anneal, also the sampled execution's [probability]",
-    )
-    epsilon_anneal_fraction: float = Field(
-        default=0.05, ge=0, le=1, description="share of t_max_env_steps over which epsilon anneals linearly [-] (paper)"
-    )
-    t_max_env_steps: int = Field(
-        default=2_000_000,
-        ge=1,
-        description="the paper's training budget T_max [env steps]: the epsilon schedule is a share of it; "
-        "independent of a grid's stop.env_steps, so a short run explores as the paper's first env steps do",
-    )
-
-    @model_validator(mode="after")
-    def _check(self) -> QMIXHParams:
-        if self.epsilon_end > self.epsilon_start:
-            raise ValueError(f"epsilon_end ({self.epsilon_end}) must be <= epsilon_start ({self.epsilon_start})")
-        if self.batch_size_episodes > self.buffer_size_episodes:
-            raise ValueError(
-                f"batch_size_episodes ({self.batch_size_episodes}) must be <= buffer_size_episodes ({self.buffer_size_episodes})"
-            )
-        if self.learning_starts_episodes > self.buffer_size_episodes:  # else the replay never fills enough to learn
-            raise ValueError(
-                f"learning_starts_episodes ({self.learning_starts_episodes}) must be <= buffer_size_episodes "
-                f"({self.buffer_size_episodes})"
-            )
-        return self
-
-    def check(self, scenario: ScenarioConfig, resources: registry.Resources, path: str) -> None:
-        """Nothing depends on the scenario or the resources (whole episodes are replayed)."""
-
-    @property
-    def epsilon_anneal_env_steps(self) -> int:
-        return int(round(self.epsilon_anneal_fraction * self.t_max_env_steps))
-
-
-@typed_dataclass(config={"extra": "forbid", "frozen": True})
-class VDNHParams(QMIXHParams):
-    """VDN hyperparameters (grid YAML `algorithms.vdn:`): QMIX's fields; one default differs."""
-
-    updates_per_episode: float = _updates_per_episode(1.0)
 
 
 class QMIXConfig(HParamsConfig, AlgorithmConfig):
@@ -340,5 +211,5 @@ class VDN(QMIX):
         return VDNConfig()
 
 
-registry.register_algorithm("qmix", QMIXConfig, ("per_uav", "per_device"))
-registry.register_algorithm("vdn", VDNConfig, ("per_uav", "per_device"))
+registry.register_algorithm("qmix", QMIXConfig, ACTION_MODES)
+registry.register_algorithm("vdn", VDNConfig, ACTION_MODES)

@@ -1,0 +1,57 @@
+"""The part of the hyperparameter convention (common/config.py) that needs neither Ray nor torch:
+the field types and checks the algorithms' typed configs share, and their listing. The typed configs
+themselves live in each algorithm's `hparams.py`, so that a grid's validation, `tune --dry-run` and
+`--list-hparams` read them without importing RLlib (registry.spec)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import Field
+
+from uavlora_rllib.config_errors import ConfigError
+from uavlora_rllib.sim.scenario import ScenarioConfig
+
+
+def check_actor_heads(share_actor: bool, actor_agent_heads: bool, path: str) -> None:
+    """Per-UAV output heads sit on a shared actor; with one actor per UAV they have nothing to add."""
+    if actor_agent_heads and not share_actor:
+        raise ConfigError(
+            f"{path}.actor_agent_heads: true needs share_actor: true (one actor per UAV already has "
+            "its own output layer); allowed: false, or share_actor: true"
+        )
+
+
+# The per_device actor's output (common/per_ed_actor.py), one field type for every actor-critic learner
+ActorHeads = Annotated[
+    Literal["flat", "per_slot", "shared"],
+    Field(
+        description="per_device actor output: 'flat' (one output layer for every branch) | 'per_slot' (a head "
+        "per ED slot reading that ED's own observation row) | 'shared' (one such head for all slots, + the "
+        "slot's one-hot) (docs/model.md#mappo-and-ippo-per-device)"
+    ),
+]
+
+
+def check_per_ed_heads(actor_heads: str, actor_agent_heads: bool, scenario: ScenarioConfig, path: str) -> None:
+    """Per-ED heads act per ED, and replace the output layer that per-UAV heads would add to."""
+    if actor_heads != "flat" and scenario.action_mode != "per_device":
+        raise ConfigError(
+            f"{path}.actor_heads: {actor_heads!r} needs action_mode per_device (per-ED heads act per ED); "
+            "allowed with per_uav: 'flat'"
+        )
+    if actor_heads != "flat" and actor_agent_heads:
+        raise ConfigError(
+            f"{path}.actor_agent_heads: true only with actor_heads 'flat'; allowed: false, or actor_heads: flat"
+        )
+
+
+def describe_hparams(cls: type[Any]) -> str:
+    """One block per field: name, type and default, then its description (--list-hparams)."""
+    lines = []
+    for name, info in cls.__pydantic_fields__.items():  # pydantic's FieldInfo of each field, in order
+        ann = info.annotation
+        typ = ann.__name__ if isinstance(ann, type) else str(ann).replace("typing.", "")
+        lines.append(f"{name} ({typ}, default {info.default!r})")
+        lines.append(f"    {info.description or '(no description)'}")
+    return "\n".join(lines)
