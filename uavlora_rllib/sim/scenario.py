@@ -18,6 +18,7 @@ or the CLI (`from_dict`) takes numbers strictly: no bool or string for a number,
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Mapping
 from typing import Any, Literal
@@ -196,9 +197,10 @@ class ScenarioConfig:
         """Size of the per_uav action: one (SF, TP, BW) triple, 90 with the paper's sets."""
         return self.n_sf * self.n_tp * self.n_bw
 
-    @property
+    @functools.cached_property
     def reward_weights(self) -> RewardWeights:
-        """The reward's weights as the env applies them: a null w1 is the rate model's DEFAULT_W1."""
+        """The reward's weights as the env applies them: a null w1 is the rate model's DEFAULT_W1
+        (resolved once per config: every slot's reward reads it)."""
         if self.reward.w1 is not None:
             return self.reward
         return dataclasses.replace(self.reward, w1=DEFAULT_W1[self.rate_model])

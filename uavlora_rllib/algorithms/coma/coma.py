@@ -38,7 +38,7 @@ from ray.rllib.utils.annotations import override
 
 from uavlora_rllib.algorithms.coma.coma_learner import COMATorchLearner, episode_batch
 from uavlora_rllib.algorithms.coma.coma_module import COMATorchRLModule
-from uavlora_rllib.algorithms.coma.hparams import ACTION_MODES, NAME, COMAHParams
+from uavlora_rllib.algorithms.coma.hparams import NAME, COMAHParams
 from uavlora_rllib.algorithms.common.config import HParamsConfig
 from uavlora_rllib.algorithms.common.episode_algorithm import EpisodeAlgorithm
 from uavlora_rllib.algorithms.common.registry import register_algorithm
@@ -114,4 +114,4 @@ class COMA(EpisodeAlgorithm):
         return super().update_learners(batch, timesteps)
 
 
-register_algorithm(NAME, COMAConfig, ACTION_MODES)
+register_algorithm(NAME, COMAConfig)

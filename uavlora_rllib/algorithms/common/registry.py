@@ -9,7 +9,7 @@ Adding an algorithm: a typed hyperparameter class and an AlgorithmConfig that fo
 common/config.py (hparams_cls, module_class, learner_class, apply_hparams,
 env_runner_settings), a team-view RLModule whose forward_inference / forward_exploration
 return Columns.ACTIONS (then the default `make_policy` runs it, greedy or sampled), one
-`register_algorithm(name, ConfigClass, action_modes)` call in its module, and a line in
+`register_algorithm(name, ConfigClass)` call in its module, and a line in
 `MODULES`; the typed class goes in a module of its own that imports neither Ray nor torch and
 `declare`s it (a line in `HPARAMS_MODULES`), so that a grid is checked, previewed and listed
 without importing RLlib (`spec`). tests/test_algorithm_matrix.py then trains, checkpoints, restores and evaluates it
@@ -176,9 +176,10 @@ def register(entry: AlgorithmEntry) -> None:
     _REGISTRY[entry.name] = entry
 
 
-def register_algorithm(name: str, config_cls: type[Any], action_modes: tuple[str, ...]) -> AlgorithmEntry:
+def register_algorithm(name: str, config_cls: type[Any], action_modes: tuple[str, ...] | None = None) -> AlgorithmEntry:
     """Register algorithm `name`, whose trials are `config_cls` (an `HParamsConfig`
-    AlgorithmConfig) set up by `config.team_config`; returns its entry."""
+    AlgorithmConfig) set up by `config.team_config`; returns its entry. Its action modes are
+    those its HPARAMS_MODULES module declared (`declare`), or `action_modes` for a plugin without one."""
 
     def build(scenario: ScenarioConfig, hparams: Any, resources: Resources, seed: int) -> AlgorithmConfig:
         from uavlora_rllib.algorithms.common.config import team_config
@@ -190,11 +191,12 @@ def register_algorithm(name: str, config_cls: type[Any], action_modes: tuple[str
         return team_config(config_cls(), name, scenario, hparams, resources, seed)
 
     declared = _SPECS.get(name)
-    if declared is not None and (declared.hparams_cls, declared.action_modes) != (
-        config_cls.hparams_cls,
-        tuple(action_modes),
-    ):
-        raise TypeError(f"register_algorithm({name!r}): hparams_cls or action_modes differ from its declaration")
+    if declared is not None:
+        if declared.hparams_cls is not config_cls.hparams_cls or action_modes is not None:
+            raise TypeError(f"register_algorithm({name!r}): its hparams_cls and action modes are its declaration's")
+        action_modes = declared.action_modes
+    if action_modes is None:
+        raise TypeError(f"register_algorithm({name!r}): action_modes needed (no declaration)")
     entry = AlgorithmEntry(name=name, hparams_cls=config_cls.hparams_cls, action_modes=tuple(action_modes), build=build)
     register(entry)
     return entry

@@ -31,7 +31,7 @@ from ray.rllib.utils.annotations import override
 
 from uavlora_rllib.algorithms.common.config import HParamsConfig
 from uavlora_rllib.algorithms.common.registry import register_algorithm
-from uavlora_rllib.algorithms.mappo.hparams import ACTION_MODES, MAPPOHParams
+from uavlora_rllib.algorithms.mappo.hparams import MAPPOHParams
 from uavlora_rllib.algorithms.mappo.mappo_learner import MAPPOTorchLearner
 from uavlora_rllib.algorithms.mappo.mappo_module import MAPPOTorchRLModule
 from uavlora_rllib.config_errors import ConfigError
@@ -112,7 +112,7 @@ class MAPPO(PPO):
         return MAPPOConfig()
 
 
-register_algorithm("mappo", MAPPOConfig, ACTION_MODES)
-register_algorithm("ippo", IPPOConfig, ACTION_MODES)
+register_algorithm("mappo", MAPPOConfig)
+register_algorithm("ippo", IPPOConfig)
 
 __all__ = ["MAPPO", "MAPPOConfig", "IPPOConfig", "MAPPOHParams"]

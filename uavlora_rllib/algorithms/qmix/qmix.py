@@ -53,7 +53,7 @@ from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE
 from uavlora_rllib.algorithms.common.config import HParamsConfig
 from uavlora_rllib.algorithms.common.episode_algorithm import EpisodeAlgorithm
 from uavlora_rllib.algorithms.qmix.branching_module import BranchingQMixModule
-from uavlora_rllib.algorithms.qmix.hparams import ACTION_MODES, QMIXHParams, VDNHParams
+from uavlora_rllib.algorithms.qmix.hparams import QMIXHParams, VDNHParams
 from uavlora_rllib.algorithms.qmix.qmix_learner import QMIXTorchLearner
 from uavlora_rllib.algorithms.qmix.qmix_module import QMixModule, linear_epsilon
 from uavlora_rllib.algorithms.qmix.qmix_replay import EpisodeReplay
@@ -211,5 +211,5 @@ class VDN(QMIX):
         return VDNConfig()
 
 
-registry.register_algorithm("qmix", QMIXConfig, ACTION_MODES)
-registry.register_algorithm("vdn", VDNConfig, ACTION_MODES)
+registry.register_algorithm("qmix", QMIXConfig)
+registry.register_algorithm("vdn", VDNConfig)
