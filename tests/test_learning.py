@@ -76,11 +76,11 @@ PER_DEVICE_LEARNERS = [n for n in LEARNERS if "per_device" in registry.get(n).ac
 # optimal policy, and at 0 the critic regresses the slot's reward alone (docs/model.md#training-defaults).
 # A learner gets a budget here once a CI-sized run beats best_fixed on this scenario.
 PER_DEVICE_CI: dict[str, tuple[dict, int]] = {
-    # per-ED heads (docs/model.md#mappo-and-ippo-per-device): each ED's (SF, TP) must follow its own gain here;
-    # 100 x 8 episodes x 20 slots = 16,000 env steps. Probes (w1 = 0.1, BENCHMARKS.md): 1.20-1.27x best_fixed
-    # from 60 to 160 iterations for both
-    "mappo": ({**_PPO_CI, "gamma": 0.0, "actor_heads": "shared"}, 100),
-    "ippo": ({**_PPO_CI, "gamma": 0.0, "actor_heads": "shared"}, 100),
+    # per-ED heads, their per_device default (docs/model.md#mappo-and-ippo-per-device): each ED's (SF, TP)
+    # must follow its own gain here; 100 x 8 episodes x 20 slots = 16,000 env steps. Probes (w1 = 0.1,
+    # BENCHMARKS.md): 1.20-1.27x best_fixed from 60 to 160 iterations for both
+    "mappo": ({**_PPO_CI, "gamma": 0.0}, 100),
+    "ippo": ({**_PPO_CI, "gamma": 0.0}, 100),
 }
 # per_device learners whose CI-sized training does not yet beat best_fixed here, and why; they keep
 # the other learning tests, and the issue that asks for it stays open (results: BENCHMARKS.md#per_device-learning-benchmark)

@@ -335,6 +335,34 @@ def test_per_ed_heads_refused_where_they_do_not_apply(overrides, scenario, messa
         entry.build(scenario, entry.hparams(overrides), RES, 0)
 
 
+@pytest.mark.parametrize("name", ["mappo", "ippo"])
+@pytest.mark.parametrize(
+    "scenario, overrides, heads",
+    [
+        (PER_DEVICE, {}, "shared"),  # the default by action mode: per-ED heads in per_device
+        (SMALL, {}, "flat"),  # and the flat actor in per_uav
+        (PER_DEVICE, {"actor_heads": "flat"}, "flat"),  # a value set is kept
+        (PER_DEVICE, {"actor_heads": "per_slot"}, "per_slot"),
+    ],
+)
+def test_actor_heads_default_follows_the_action_mode(name, scenario, overrides, heads):
+    """A null `actor_heads` resolves by action mode (common/hparams.py DEFAULT_ACTOR_HEADS) in the built
+    config and in the module's actor: per-ED heads have slot heads, the flat actor has none."""
+    entry = registry.get(name)
+    config = entry.build(scenario, entry.hparams(overrides), RES, 0)
+    assert config.model_config["actor_heads"] == heads
+    module = config.get_default_rl_module_spec()
+    module.observation_space, module.action_space = team_observation_space(scenario), team_action_space(scenario)
+    module.model_config = config.model_config
+    assert hasattr(module.build().actor, "slot_heads") == (heads != "flat")
+
+
+def test_actor_heads_default_refuses_per_uav_heads_in_per_device():
+    entry = registry.get("mappo")
+    with pytest.raises(ConfigError, match=r"algorithms\.mappo\.actor_agent_heads: true needs actor_heads: flat"):
+        entry.build(PER_DEVICE, entry.hparams({"share_actor": True, "actor_agent_heads": True}), RES, 0)
+
+
 # ---------------------------------------------------------------- GRU state
 def test_module_carries_gru_state():
     m = _module(SMALL)

@@ -33,8 +33,30 @@ ActorHeads = Annotated[
 ]
 
 
-def check_per_ed_heads(actor_heads: str, actor_agent_heads: bool, scenario: ScenarioConfig, path: str) -> None:
-    """Per-ED heads act per ED, and replace the output layer that per-UAV heads would add to."""
+# MAPPO's and IPPO's `actor_heads` when the grid leaves it null: per-ED heads in per_device mode, where
+# the flat actor stalls near the best constant (0.90-0.97x best_fixed against 1.20-1.27x with heads on the
+# CI scenario, BENCHMARKS.md), and the flat actor in per_uav mode, which has no per-ED rows to read.
+DEFAULT_ACTOR_HEADS = {"per_device": "shared", "per_uav": "flat"}
+
+
+def resolve_actor_heads(actor_heads: str | None, per_device: bool) -> str:
+    """`actor_heads` as set, or its action mode's default (DEFAULT_ACTOR_HEADS) when null."""
+    if actor_heads is not None:
+        return actor_heads
+    return DEFAULT_ACTOR_HEADS["per_device" if per_device else "per_uav"]
+
+
+def check_per_ed_heads(actor_heads: str | None, actor_agent_heads: bool, scenario: ScenarioConfig, path: str) -> None:
+    """Per-ED heads act per ED, and replace the output layer that per-UAV heads would add to.
+    A null `actor_heads` takes its action mode's default, so it passes here unless per-UAV heads
+    are asked for in per_device mode."""
+    if actor_heads is None:
+        if actor_agent_heads and scenario.action_mode == "per_device":
+            raise ConfigError(
+                f"{path}.actor_agent_heads: true needs actor_heads: flat in per_device mode (the default there is "
+                "'shared', per-ED heads); allowed: false, or actor_heads: flat"
+            )
+        return
     if actor_heads != "flat" and scenario.action_mode != "per_device":
         raise ConfigError(
             f"{path}.actor_heads: {actor_heads!r} needs action_mode per_device (per-ED heads act per ED); "

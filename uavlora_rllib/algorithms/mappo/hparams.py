@@ -78,7 +78,12 @@ class MAPPOHParams:
         description="with share_actor=true: each UAV also gets its own linear output layer on the shared "
         "GRU trunk, added to the shared one (as COMA's actor) [bool]",
     )
-    actor_heads: ActorHeads = "flat"
+    actor_heads: ActorHeads | None = Field(
+        default=None,
+        description="per_device actor output: 'flat' | 'per_slot' | 'shared' (common/hparams.py ActorHeads); null: "
+        "'shared' in per_device mode, 'flat' in per_uav (common/hparams.py DEFAULT_ACTOR_HEADS, "
+        "docs/model.md#mappo-and-ippo-per-device)",
+    )
     critic: Literal["central", "local"] | None = Field(
         default=None,
         description="'central' (V(s, u) on the global state, MAPPO) | 'local' (V(o_u, u), IPPO); "

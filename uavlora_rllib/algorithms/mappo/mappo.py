@@ -30,6 +30,7 @@ from ray.rllib.algorithms.ppo import PPO, PPOConfig
 from ray.rllib.utils.annotations import override
 
 from uavlora_rllib.algorithms.common.config import HParamsConfig
+from uavlora_rllib.algorithms.common.hparams import resolve_actor_heads
 from uavlora_rllib.algorithms.common.registry import register_algorithm
 from uavlora_rllib.algorithms.mappo.hparams import MAPPOHParams
 from uavlora_rllib.algorithms.mappo.mappo_learner import MAPPOTorchLearner
@@ -70,7 +71,10 @@ class MAPPOConfig(HParamsConfig, PPOConfig):
             grad_clip=h.grad_clip,
             grad_clip_by="global_norm",
         )
-        return {"critic": h.critic or self.default_critic}
+        return {
+            "critic": h.critic or self.default_critic,
+            "actor_heads": resolve_actor_heads(h.actor_heads, scenario.action_mode == "per_device"),
+        }
 
     @override(HParamsConfig)
     def env_runner_settings(self, scenario: ScenarioConfig) -> dict:

@@ -38,6 +38,7 @@ from torch import nn
 from uavlora_rllib.algorithms.common.actor_module import RecurrentActorForward
 from uavlora_rllib.algorithms.common.agent_net import ActionHead
 from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE
+from uavlora_rllib.algorithms.common.hparams import resolve_actor_heads
 from uavlora_rllib.algorithms.common.per_ed_actor import make_actor
 from uavlora_rllib.algorithms.common.threads import set_torch_threads
 
@@ -134,7 +135,7 @@ class MAPPOTorchRLModule(RecurrentActorForward, TorchRLModule, ValueFunctionAPI,
             self.obs_dim,
             self.n_agents,
             row.tolist(),
-            heads=str(mc["actor_heads"]),
+            heads=resolve_actor_heads(mc["actor_heads"], self.per_device),  # (null: by action mode)
             fc_hidden=fc_hidden,
             gru_hidden=int(mc["gru_hidden"]),
             share=bool(mc["share_actor"]),
