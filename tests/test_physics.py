@@ -15,6 +15,7 @@ import pytest
 
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.sim import physics
+from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.sim.scenario import RewardWeights, ScenarioConfig
 
 CFG = ScenarioConfig()
@@ -526,3 +527,20 @@ def test_slot_metrics_shared_refuses_other_models():
     for change in ({"interference": "cross_gain"}, {"rate_model": "lora_phy"}):
         with pytest.raises(ValueError, match="slot_metrics_shared"):
             _shared_vs_generic(1, 2, 4, 0, CFG.replace(n_eds=4, **change))
+
+
+@pytest.mark.parametrize("rate_model", ["shannon", "lora_phy"])
+def test_db_threshold_lin_decides_the_db_comparison_exactly(rate_model):
+    """x >= db_threshold_lin(thr) is lin_to_db(x) >= thr for every x: at the rho_thr table (each entry
+    and its float neighbours), over a sweep of SINRs around every threshold, and at the floor."""
+    cfg = ScenarioConfig(rate_model=rate_model)
+    thr = np.concatenate([BatchCore(cfg, 1).tables.threshold_db.ravel(), [-7.5, 0.0, 3.1, physics.DB_FLOOR, -250.0]])
+    lin = physics.db_threshold_lin(thr)
+    for t, x_thr in zip(thr, lin):
+        if t <= physics.DB_FLOOR:
+            assert x_thr == -np.inf and physics.lin_to_db(0.0) >= t
+            continue
+        assert physics.lin_to_db(x_thr) >= t > physics.lin_to_db(np.nextafter(x_thr, 0.0))
+        x = 10.0 ** (t / 10.0) * np.linspace(0.999, 1.001, 20_001)
+        x = np.concatenate([x, np.nextafter(x, np.inf), [0.0, -1.0, np.inf]])
+        assert np.array_equal(x >= x_thr, physics.lin_to_db(x.copy()) >= t)

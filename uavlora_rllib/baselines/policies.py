@@ -369,14 +369,20 @@ def _max_uavs(n_actions: int, max_candidates: int) -> int:
 SEARCH_RATE = 2e6
 # Everything else per scenario-slot (simulator step, observations, a cheap policy), per ED.
 STEP_SECONDS_PER_ED = 1e-6
+# per_device greedy's single-move scoring (AllocationScorer.score_ed_moves): ED-SINR evaluations per
+# second [1/s], and the fixed cost of one move over the evaluation batch [s]; fitted at V=10/U=2 and
+# V=60/U=8 (batch of 10 scenarios, one idle core: 0.075 s and 3.3 s per slot, 26 and 130 moves per start).
+MOVE_SCORING_RATE = 9.5e7
+MOVE_OVERHEAD_S = 1.3e-3
 
 
 def evaluation_seconds(name: str, cfg: ScenarioConfig, episodes: int) -> float:
     """Rough single-core wall-clock estimate of `episodes` episodes of baseline `name` on `cfg`.
 
     per_uav: optimal searches A^U joint actions per slot; greedy at least 2 rounds of U x A (one
-    sweep that moves and one that confirms; up to GREEDY_MAX_ROUNDS). per_device: greedy about
-    V / 2 + 2 sweeps of V x n_sf n_tp single moves (its second start); optimal every candidate.
+    sweep that moves and one that confirms; up to GREEDY_MAX_ROUNDS). per_device: greedy two starts
+    of ~2 (V + U) steepest moves (measured 1.9-2.4), each scoring V x n_sf n_tp single moves over V
+    EDs; optimal every candidate.
     best_fixed: its one-off selection (exhaustive or ~3 rounds x 3 starts of coordinate ascent on
     the selection episodes' slots), then constant actions."""
     slots = episodes * cfg.episode_len
@@ -407,8 +413,9 @@ def evaluation_seconds(name: str, cfg: ScenarioConfig, episodes: int) -> float:
         if name == "optimal":
             searched = optimal_candidates(cfg)
         else:
-            # (its single-move scoring evaluates candidate-EDs ~10x faster than slot_metrics)
-            searched = (cfg.n_eds // 2 + 2) * cfg.n_eds * cfg.n_sf * cfg.n_tp // 10
+            moves = 2 * 2 * (cfg.n_eds + cfg.n_uavs)
+            per_move = cfg.n_eds**2 * cfg.n_sf * cfg.n_tp / MOVE_SCORING_RATE + MOVE_OVERHEAD_S / min(episodes, 32)
+            return slots * (moves * per_move + cfg.n_eds * STEP_SECONDS_PER_ED)
     elif name == "optimal":
         searched = cfg.n_joint_actions**cfg.n_uavs
     elif name == "greedy":

@@ -56,6 +56,8 @@ class AllocationScorer:
         self.n_set = cfg.n_sf * cfg.n_tp  # (SF, TP) settings of one ED, index sf * n_tp + tp
         c = np.arange(self.n_set)
         self.set_sf, self.set_tp = c // cfg.n_tp, c % cfg.n_tp
+        # rho_thr [n_sf, n_bw] as the least linear SINR that passes it (score_ed_moves compares without dB)
+        self.threshold_lin = physics.db_threshold_lin(tables.threshold_db)
 
     # ---------------------------------------------------------------- the constraint (h)
     def allowed(self, slots: Slots) -> tuple[np.ndarray, np.ndarray]:
@@ -142,34 +144,51 @@ class AllocationScorer:
         k = np.arange(cfg.n_sf)
         sums = (group[:, None, None, :] - (mv_sf[..., None] == k)[:, :, None, :] * mv_s[..., None, None]
                 + (self.set_sf[:, None] == k)[None, None] * new_s[..., None])  # fmt: skip
-        # every ED's SINR (Eq. sinr) after the move [N, M, C, V]; the mover's entry replaced below
-        interf = np.take_along_axis(sums, np.broadcast_to(sf[:, None, None, :], (n, m_, self.n_set, v)), axis=-1)
-        with np.errstate(invalid="ignore", divide="ignore"):  # the mover's own entry, replaced below
-            sinr = s[:, None, None, :] / (interf - s[:, None, None, :] + 1.0)
+        # every ED's SINR (Eq. sinr) after the move [N, M, C, V]; the mover's own entry is left out below. Its
+        # denominator, interference + 1 = (own group's sum - own SNR + 1) - the mover's old SNR where it
+        # shared the ED's SF + its new SNR where it joins it: broadcast sums, no [N, M, C, V] gather.
+        base = np.take_along_axis(group, sf, axis=1) - s + 1.0  # [N, V]
+        left = base[:, None, :] - (mv_sf[..., None] == sf[:, None, :]) * mv_s[..., None]  # [N, M, V]
+        joins = self.set_sf[None, :, None] == sf[:, None, :]  # [N, C, V]
+        denom = np.multiply(joins[:, None], new_s[..., None])
+        denom += left[:, :, None, :]
+        with np.errstate(invalid="ignore", divide="ignore"):  # the mover's own entry (left out below)
+            sinr = np.divide(s[:, None, None, :], denom, out=denom)
         mover_interf = np.take_along_axis(sums, self.set_sf[None, None, :, None], axis=-1)[..., 0]
         mover_sinr = new_s / (mover_interf - new_s + 1.0)  # [N, M, C]
         mover_thr = t.threshold_db[self.set_sf[None, None, :], bw_ed[e, movers][..., None]]
-        sfv = t.sf[sf][:, None, None, :]
-        with np.errstate(invalid="ignore"):
-            rate = physics.rate_bps(
-                sinr, w_hz[:, None, None, :], sfv, thr[:, None, None, :], cfg.rate_model, cfg.lora_coding_rate
-            )
         mover_rate = physics.rate_bps(mover_sinr, w_hz[e, movers][..., None], t.sf[self.set_sf][None, None], mover_thr,
                                       cfg.rate_model, cfg.lora_coding_rate)  # fmt: skip
         mi, ci = np.arange(m_)[:, None], np.arange(self.n_set)[None, :]
-        rate[e[:, :, None], mi[None], ci[None], movers[:, :, None]] = mover_rate
-        onehot = (sidx[..., None] == np.arange(cfg.n_uavs)).astype(np.float64)  # [N, V, U]
-        bits = np.matmul(rate.reshape(n, m_ * self.n_set, v), onehot).reshape(n, m_, self.n_set, cfg.n_uavs)
+        mover_at = (e[:, :, None], mi[None], ci[None], movers[:, :, None])  # the mover's own entries
+        # decoded (Eq. success) [N, M, C, V], the mover's entry counted below with its new setting
+        ok = np.greater_equal(sinr, self.threshold_lin[sf, bw_ed][:, None, None, :], out=np.empty(sinr.shape))
+        ok[mover_at] = 0.0
+        # each UAV's bits/s and the associated decoded count, one product over the EDs [N, M, C, U + 1]:
+        # under the LoRa PHY rate a decoded ED delivers its PHY bit rate, so ok weighs it; the Shannon
+        # rate is delivered whatever the threshold (Eq. shannon), so its rates are summed, the count apart
+        on_uav = (sidx[..., None] == np.arange(cfg.n_uavs)) & assoc[..., None]  # [N, V, U]
+        rows_mc = (n, m_ * self.n_set, v)
+        if cfg.rate_model == "lora_phy":
+            phy = physics.lora_phy_bit_rate(t.sf[sf], w_hz, cfg.lora_coding_rate)  # [N, V]
+            weights = np.concatenate([on_uav * phy[..., None], assoc[..., None]], axis=-1, dtype=np.float64)
+            per_uav = np.matmul(ok.reshape(rows_mc), weights)
+            bits, count = per_uav[..., :-1], per_uav[..., -1]
+        else:
+            with np.errstate(invalid="ignore"):
+                rate = physics.rate_bps(sinr, w_hz[:, None, None, :], None, thr[:, None, None, :], "shannon")
+            rate[mover_at] = 0.0
+            bits = np.matmul(rate.reshape(rows_mc), on_uav.astype(np.float64))
+            count = np.matmul(ok.reshape(rows_mc), assoc[..., None].astype(np.float64))[..., 0]
         mv_u = sidx[e, movers]
+        on_mv_u = (mv_u[..., None] == np.arange(cfg.n_uavs))[:, :, None, :]  # [N, M, 1, U]
+        bits = bits.reshape(n, m_, self.n_set, cfg.n_uavs) + on_mv_u * mover_rate[..., None]
         d_tx = (t.tp_w[self.set_tp][None, None] - t.tp_w[tp[e, movers]][..., None]) * assoc[e, movers][..., None]
-        tx = tx_u[:, None, None, :] + (mv_u[..., None] == np.arange(cfg.n_uavs))[:, :, None, :] * d_tx[..., None]
+        tx = tx_u[:, None, None, :] + on_mv_u * d_tx[..., None]
         ee = np.add.reduce(bits / (tx + t.hover_w), axis=-1)  # Eq. (sys_ee) [N, M, C]
         # the reward's other terms: Xi counts every ED, beta changes by the mover's margin points
-        ok = physics.lin_to_db(sinr) >= thr[:, None, None, :]
-        ok &= assoc[:, None, None, :]
-        old_ok = ok[e[:, :, None], mi[None], ci[None], movers[:, :, None]]
         mover_ok = (physics.lin_to_db(mover_sinr) >= mover_thr) & assoc[e, movers][..., None]
-        xi = (np.add.reduce(ok, axis=-1, dtype=np.float64) - old_ok + mover_ok) / v
+        xi = (count.reshape(n, m_, self.n_set) + mover_ok) / v
         n_assoc = np.maximum(assoc.sum(axis=1), 1)[:, None, None]
         ones = np.ones(new_s.shape + (1,), bool)
         pts_new = physics.margin_score(physics.lin_to_db(new_s)[..., None], mover_thr[..., None], ones)

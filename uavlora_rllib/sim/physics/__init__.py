@@ -24,6 +24,7 @@ from uavlora_rllib.sim.physics.arrays import (
     at_least,
     at_serving,
     clip,
+    db_threshold_lin,
     db_to_lin,
     dbm_to_w,
     group_count,
@@ -41,7 +42,14 @@ from uavlora_rllib.sim.physics.channel import (
     path_loss_db,
     uav_positions,
 )
-from uavlora_rllib.sim.physics.radio import rate_bps, sinr_cross_gain, sinr_paper, snr, snr_threshold_db
+from uavlora_rllib.sim.physics.radio import (
+    lora_phy_bit_rate,
+    rate_bps,
+    sinr_cross_gain,
+    sinr_paper,
+    snr,
+    snr_threshold_db,
+)
 from uavlora_rllib.sim.physics.reward_terms import (
     energy_efficiency,
     hover_power_w,
@@ -84,10 +92,12 @@ __all__ = [
     "horizontal_distance_sq",
     "horizontal_distance_sq_to",
     "hover_power_w",
+    "db_threshold_lin",
     "lin_to_db",
     "los_probability",
     "margin_score",
     "path_loss_db",
+    "lora_phy_bit_rate",
     "rate_bps",
     "reward",
     "shared_allocation",

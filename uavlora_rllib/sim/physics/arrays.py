@@ -90,6 +90,28 @@ def clip(x: np.ndarray, low: float, high: float, out: np.ndarray | None = None) 
     return np.minimum(y, high, out=y)
 
 
+def db_threshold_lin(threshold_db: np.ndarray) -> np.ndarray:
+    """The smallest float64 x with lin_to_db(x) >= threshold_db, elementwise, so that `x >= it` decides
+    `lin_to_db(x) >= threshold_db` without a logarithm per element (lin_to_db is non-decreasing). For a
+    small table of thresholds (e.g. rho_thr per SF and BW): each entry is 10^(thr/10) moved by ulps."""
+    thr = np.asarray(threshold_db, dtype=np.float64)
+    out = np.empty_like(thr)
+    for i, t in np.ndenumerate(thr):
+        if t <= DB_FLOOR:  # every x passes, zero and below included
+            out[i] = -np.inf
+            continue
+        x = 10.0 ** (t / 10.0)
+        while lin_to_db(x) >= t:  # down while the one below still passes
+            below = np.nextafter(x, -np.inf)
+            if lin_to_db(below) < t:
+                break
+            x = below
+        while lin_to_db(x) < t:  # up until it passes
+            x = np.nextafter(x, np.inf)
+        out[i] = x
+    return out
+
+
 def lin_to_db(x: np.ndarray | float, out: np.ndarray | None = None) -> np.ndarray:
     """10 log10(x), floored at DB_FLOOR for x <= 0 (`out`: an array to write it into).
 

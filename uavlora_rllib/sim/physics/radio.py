@@ -106,6 +106,11 @@ def sinr_cross_gain(
     return np.where(associated, (own / noise_w) / (interference + 1.0), 0.0)
 
 
+def lora_phy_bit_rate(sf: np.ndarray, bw_hz: np.ndarray, coding_rate: int) -> np.ndarray:
+    """The LoRa PHY bit rate of a decoded frame, SF W / 2^SF * 4 / (4 + CR) [bit/s] (docs/model.md#rate)."""
+    return sf * bw_hz / np.power(2.0, sf) * 4.0 / (4.0 + coding_rate)
+
+
 def rate_bps(
     sinr: np.ndarray,
     bw_hz: np.ndarray,
@@ -125,8 +130,7 @@ def rate_bps(
         np.log2(out, out=out)
         return np.multiply(bw_hz, out, out=out)
     assert sf is not None, "rate_bps: the LoRa PHY rate needs sf"
-    phy = sf * bw_hz / np.power(2.0, sf) * 4.0 / (4.0 + coding_rate)
-    r = np.where(lin_to_db(sinr) >= threshold_db, phy, 0.0)
+    r = np.where(lin_to_db(sinr) >= threshold_db, lora_phy_bit_rate(sf, bw_hz, coding_rate), 0.0)
     if out is not None:
         out[...] = r
         return out
