@@ -465,3 +465,31 @@ def test_agent_net_shapes_without_sharing():
     q, h = net(torch.randn(2, 9, 3, 5), torch.zeros(2, 3, 4))
     assert q.shape == (2, 9, 3, 7) and h.shape == (2, 3, 4)
     assert net.stacked_inp_weight.shape[0] == 3  # one stacked network per UAV
+
+
+def test_reward_norm_fits_standardised_rewards_with_the_same_argmax():
+    """reward_norm: the TD targets are the rewards standardised by a running mean/std that the module keeps
+    as buffers (so a checkpoint keeps them). Rewards scaled and shifted (r -> 100 r + 250) then train the
+    same networks, so every argmax is the same, and the stats follow the map."""
+    runs = {}
+    for scale, shift in ((1.0, 0.0), (100.0, 250.0)):
+        torch.manual_seed(0)
+        cfg, spaces = _matrix_config(QMIXConfig, lr=1e-2, gru_hidden=8, fc_hidden=8, reward_norm=True)
+        learner = cfg.build_learner(spaces=spaces)
+        mod = learner.module[DEFAULT_MODULE_ID]
+        batch = _matrix_batch(np.arange(9.0).reshape(3, 3) * scale + shift)
+        for _ in range(3):
+            learner.update(batch=batch, timesteps={"num_env_steps_sampled_lifetime": 0})
+        assert {"reward_norm.mean", "reward_norm.mean_sq", "reward_norm.debias"} <= set(mod.state_dict())
+        runs[scale] = (
+            [float(x) for x in mod.reward_norm.stats()],
+            {k: v.clone() for k, v in mod.agent.state_dict().items()},
+        )
+    (m1, s1), agent1 = runs[1.0]
+    (m100, s100), agent100 = runs[100.0]
+    assert m100 == pytest.approx(100.0 * m1 + 250.0, rel=1e-5) and s100 == pytest.approx(100.0 * s1, rel=1e-5)
+    for k, v in agent1.items():
+        torch.testing.assert_close(agent100[k], v, rtol=1e-4, atol=1e-5)
+    # off: the rewards enter as they are, and there is no normaliser
+    cfg, spaces = _matrix_config(QMIXConfig, gru_hidden=8, fc_hidden=8)
+    assert cfg.build_learner(spaces=spaces).module[DEFAULT_MODULE_ID].reward_norm is None

@@ -66,6 +66,12 @@ class QMIXHParams:
         "is Rashid et al.'s VDN-S, without it Sunehag et al.'s plain sum; execution never reads it "
         "(docs/model.md#training-defaults)",
     )
+    reward_norm: bool = Field(
+        default=False,
+        description="standardise the team reward in the TD targets by its running mean and std (EPyMARL's "
+        "standardise_rewards; common/value_norm.py) [bool]: the Q-values are then in those units, the argmax "
+        "is unchanged (docs/model.md#qmix-and-vdn-per-device)",
+    )
     hypernet_embed_dim: int = Field(
         default=64, ge=1, description="hidden width of the 2-layer weight hypernetworks [units]; unused by VDN"
     )

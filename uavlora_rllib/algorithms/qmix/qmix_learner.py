@@ -3,7 +3,8 @@
 Loss (per update, over B whole episodes of T steps):
   y_t = sum_{k<m} gamma^k r_{t+k} + gamma^m (1 - d) Q_tot^target(s_{t+m}, argmax_a Q^online(o_{t+m}))
   with m = min(n_step, T - t); d = 1 only when the episode TERMINATED at t+m = T. A truncation
-  (this project's only episode end) bootstraps from the final observation/state.
+  (this project's only episode end) bootstraps from the final observation/state. With `reward_norm`
+  r is the reward standardised by its running mean and std (updated with each batch first).
   L = mean_{b,t} (Q_tot(s_t, a_t) - y_t)^2
 After every gradient update: target <- (1 - tau) target + tau online (agent network and mixer).
 """
@@ -61,6 +62,10 @@ class QMIXTorchLearner(TargetNetworkLearner):
     @override(TorchLearner)
     def compute_loss_for_module(self, *, module_id, config, batch: dict[str, Any], fwd_out: dict[str, Any]):
         rewards = batch[Columns.REWARDS].float()
+        norm = self.module[module_id].unwrapped().reward_norm
+        if norm is not None:  # `reward_norm`: targets in standardised reward units
+            norm.update(rewards)
+            rewards = norm.normalize(rewards)
         q_tot = fwd_out[Q_TOT]
         y = nstep_targets(
             rewards, fwd_out[TARGET_Q_TOT_NEXT].detach(), batch[TERMINATED], config.gamma, config.hparams.n_step

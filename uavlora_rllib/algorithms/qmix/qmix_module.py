@@ -44,6 +44,7 @@ from torch import nn
 from uavlora_rllib.algorithms.common.agent_net import RecurrentAgentNet
 from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE, HIDDEN
 from uavlora_rllib.algorithms.common.threads import set_torch_threads
+from uavlora_rllib.algorithms.common.value_norm import ValueNorm
 
 Q_ALL = "q_all"  # [B, T+1, U, A] online Qs over the whole sequence
 Q_TAKEN = "q_taken"  # [B, T, U] online Q of the action taken
@@ -143,6 +144,8 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
             int(mc["hypernet_embed_dim"]),
             state_bias=bool(mc["state_bias"]),
         )
+        # The running reward standardiser of the TD targets (`reward_norm`; learner only, like the mixer).
+        self.reward_norm = ValueNorm() if bool(mc["reward_norm"]) else None
         self._eps = (float(mc["epsilon_start"]), float(mc["epsilon_end"]), float(mc["epsilon_anneal_env_steps"]))
 
     def _make_agent(self) -> nn.Module:
