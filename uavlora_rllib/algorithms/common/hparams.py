@@ -23,8 +23,9 @@ def check_actor_heads(share_actor: bool, actor_agent_heads: bool, path: str) -> 
 
 
 # The per_device actor's output (common/per_ed_actor.py), one field type for every actor-critic learner
+ActorHeadsName = Literal["flat", "per_slot", "shared"]
 ActorHeads = Annotated[
-    Literal["flat", "per_slot", "shared"],
+    ActorHeadsName,
     Field(
         description="per_device actor output: 'flat' (one output layer for every branch) | 'per_slot' (a head "
         "per ED slot reading that ED's own observation row) | 'shared' (one such head for all slots, + the "

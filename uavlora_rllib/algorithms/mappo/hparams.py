@@ -8,7 +8,7 @@ from typing import Literal
 from pydantic import ConfigDict, Field
 from pydantic.dataclasses import dataclass as typed_dataclass
 
-from uavlora_rllib.algorithms.common.hparams import ActorHeads, check_actor_heads, check_per_ed_heads
+from uavlora_rllib.algorithms.common.hparams import ActorHeadsName, check_actor_heads, check_per_ed_heads
 from uavlora_rllib.algorithms.common.registry import Resources, declare
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.sim.scenario import ScenarioConfig
@@ -78,7 +78,7 @@ class MAPPOHParams:
         description="with share_actor=true: each UAV also gets its own linear output layer on the shared "
         "GRU trunk, added to the shared one (as COMA's actor) [bool]",
     )
-    actor_heads: ActorHeads | None = Field(
+    actor_heads: ActorHeadsName | None = Field(
         default=None,
         description="per_device actor output: 'flat' | 'per_slot' | 'shared' (common/hparams.py ActorHeads); null: "
         "'shared' in per_device mode, 'flat' in per_uav (common/hparams.py DEFAULT_ACTOR_HEADS, "
