@@ -10,6 +10,7 @@ from __future__ import annotations
 import glob
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -217,10 +218,21 @@ def test_interrupted_grid_resumes_with_one_run_per_trial(ray_address, tmp_path, 
     assert len(first) == 1 and first[0].info.status == "KILLED", "interrupt came too late to test resume"
     interrupted_run_id = first[0].info.run_id
 
+    # resumed from a copy (another checkout, a shared disk): experiment and store moved together, and the
+    # grid names the new store, which the resumed trials log to (not the path pickled with the experiment)
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    shutil.copytree(tmp_path / "ray_results", moved / "ray_results")
+    shutil.copy(tmp_path / "mlflow.db", moved / "mlflow.db")
+    grid_file = make_grid(moved, "resume", budget, max_concurrent=1)
     rc = tune_cli.main([grid_file, "--resume"])
     out, err = capsys.readouterr()
     assert rc == 0, err[-3000:]
     assert "2/2 trials finished" in out
+    _, left = mlflow_runs(tmp_path, "resume")  # the original store is as the interrupt left it
+    assert next(r for r in left if r.info.run_id == interrupted_run_id).info.status == "KILLED"
+    created_in = {"0": str(tmp_path / "resume.yaml"), "1": grid_file}  # seed 1's run is created after the move
+    tmp_path = moved
 
     client, runs = mlflow_runs(tmp_path, "resume")
     train = [r for r in runs if r.data.tags.get("kind") == "train"]
@@ -228,7 +240,7 @@ def test_interrupted_grid_resumes_with_one_run_per_trial(ray_address, tmp_path, 
     assert len({r.data.tags["trial_id"] for r in train}) == 2
     assert not [r for r in runs if r.info.status != "FINISHED"]
     for r in train:
-        check_train_run(client, r, grid_file, budget)
+        check_train_run(client, r, created_in[r.data.tags["seed"]], budget)
     resumed = next(r for r in train if r.data.tags["seed"] == "0")
     assert resumed.info.run_id == interrupted_run_id  # the same MLflow run continued
     check_baseline_runs(runs, budget)  # not redone on resume

@@ -18,12 +18,20 @@ local or shared filesystem and small enough (``mlflow.checkpoint_artifact_max_mb
 (``--resume`` after a crash) replaces instead of duplicating, and a checkpoint already uploaded
 (tag ``checkpoint_artifact_source``) is not uploaded again.
 The runs' fields: `run_schema`; the retrying writer: `mlflow_client.Tracker`.
+
+The store is the one the resuming driver names: Tune pickles this callback, tracking URI and grid
+file included, into the experiment state, and `--resume` unpickles it inside `resuming_into(uri,
+grid_file)`, which puts the grid's current (absolute) URI and file in place of the pickled ones.
+Without it an experiment copied or moved with its store (another checkout, a cluster's shared disk)
+would go on logging into the old path while the driver's banner names the new one. A run created
+before the move keeps its `grid_file` tag.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from typing import Any
 
 from ray.tune import Callback
@@ -47,6 +55,18 @@ from uavlora_rllib.experiment.run_schema import (
 )
 
 DEFAULT_CHECKPOINT_ARTIFACT_MAX_MB = 50.0  # grid mlflow.checkpoint_artifact_max_mb
+_RESUMING: dict[str, str] = {}  # set by `resuming_into` while Tune unpickles the experiment
+
+
+@contextlib.contextmanager
+def resuming_into(tracking_uri: str, grid_file: str) -> Iterator[None]:
+    """Callbacks unpickled inside (Tuner.restore) log to `tracking_uri`, the resuming grid's store,
+    and tag the runs they create with `grid_file`."""
+    _RESUMING.update(tracking_uri=tracking_uri, grid_file=grid_file)
+    try:
+        yield
+    finally:
+        _RESUMING.clear()
 
 
 def checkpoint_uri(checkpoint) -> str:
@@ -110,6 +130,7 @@ class MlflowTrialCallback(Callback):
         state.setdefault("retry_timeout_s", DEFAULT_RETRY_TIMEOUT_S)
         state.setdefault("_reconciled", False)
         state.setdefault("checkpoint_artifact_max_mb", DEFAULT_CHECKPOINT_ARTIFACT_MAX_MB)
+        state.update(_RESUMING)
         self.__dict__.update(state)
 
     @property

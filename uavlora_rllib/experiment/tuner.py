@@ -152,6 +152,9 @@ def tuner_for(
     from uavlora_rllib.experiment.trainable import UavLoraTrainable
 
     if restore:
+        from uavlora_rllib.experiment.mlflow_callback import resuming_into
+
         trainable = tune.with_resources(UavLoraTrainable, trial_resources(grid))
-        return tune.Tuner.restore(exp_path, trainable, resume_unfinished=True, resume_errored=True)
+        with resuming_into(uri, grid_file):  # the grid's store and file now, not those pickled with it
+            return tune.Tuner.restore(exp_path, trainable, resume_unfinished=True, resume_errored=True)
     return make_tuner(grid, specs, storage, uri, grid_file, commit)
