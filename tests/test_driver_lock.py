@@ -74,11 +74,17 @@ def test_heartbeat_advances_and_a_lost_lock_is_noticed(tmp_path, monkeypatch):
         while driver_lock._read(lock.path).heartbeat == first:
             assert time.monotonic() < deadline, "no heartbeat"
             time.sleep(0.05)
-        # someone took the lock over (we looked dead to them): the owner notices, and does not
-        # delete the new owner's lock on release
+        # someone took the lock over (we looked dead to them): the owner notices at its next beat, writes
+        # no more beats, and does not delete the new owner's lock on release. (The heartbeat thread is
+        # stopped first, so that the takeover is not raced by a beat that read the file just before it.)
+        lock._stop.set()
+        lock._thread.join()
         write_lock(lock.path, "h2", 1, time.time())
         lock._beat()
         assert lock.lost
+        before = driver_lock._read(lock.path)
+        lock._beat()
+        assert driver_lock._read(lock.path) == before  # lost: no further beat
     assert driver_lock._read(lock_path(str(tmp_path), "exp")).host == "h2"
 
 

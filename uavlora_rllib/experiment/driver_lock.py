@@ -123,6 +123,8 @@ class DriverLock:
         return True
 
     def _beat(self) -> None:
+        if self.lost:  # once taken over, never write again: a later write would clobber the new owner's lock
+            return
         current = _read(self.path)
         if current is None or current.token != self.token:
             self.lost = True
@@ -172,7 +174,7 @@ class DriverLock:
         if self._thread is not None:
             self._thread.join(timeout=HEARTBEAT_S + 1)
         info = _read(self.path)
-        if info is not None and info.token == self.token:
+        if not self.lost and info is not None and info.token == self.token:
             try:
                 os.unlink(self.path)
             except FileNotFoundError:
