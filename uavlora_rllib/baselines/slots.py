@@ -187,7 +187,8 @@ class AllocationScorer:
         tx = tx_u[:, None, None, :] + on_mv_u * d_tx[..., None]
         ee = np.add.reduce(bits / (tx + t.hover_w), axis=-1)  # Eq. (sys_ee) [N, M, C]
         # the reward's other terms: Xi counts every ED, beta changes by the mover's margin points
-        mover_ok = (physics.lin_to_db(mover_sinr) >= mover_thr) & assoc[e, movers][..., None]
+        mover_thr_lin = self.threshold_lin[self.set_sf[None, None, :], bw_ed[e, movers][..., None]]
+        mover_ok = (mover_sinr >= mover_thr_lin) & assoc[e, movers][..., None]  # decoded, as `ok` above
         xi = (count.reshape(n, m_, self.n_set) + mover_ok) / v
         n_assoc = np.maximum(assoc.sum(axis=1), 1)[:, None, None]
         ones = np.ones(new_s.shape + (1,), bool)

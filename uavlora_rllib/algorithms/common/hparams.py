@@ -34,9 +34,9 @@ ActorHeads = Annotated[
 ]
 
 
-# MAPPO's and IPPO's `actor_heads` when the grid leaves it null: per-ED heads in per_device mode, where
-# the flat actor stalls near the best constant (0.90-0.97x best_fixed against 1.20-1.27x with heads on the
-# CI scenario, BENCHMARKS.md), and the flat actor in per_uav mode, which has no per-ED rows to read.
+# MAPPO's and IPPO's `actor_heads` when the grid leaves it null: per-ED heads in per_device mode, where an
+# ED's (SF, TP) must follow its own row and the flat actor stays near the best constant
+# (docs/model.md#mappo-and-ippo-per-device), and the flat actor in per_uav mode, which has no per-ED actions.
 DEFAULT_ACTOR_HEADS = {"per_device": "shared", "per_uav": "flat"}
 
 

@@ -100,12 +100,9 @@ def db_threshold_lin(threshold_db: np.ndarray) -> np.ndarray:
         if t <= DB_FLOOR:  # every x passes, zero and below included
             out[i] = -np.inf
             continue
-        x = 10.0 ** (t / 10.0)
-        while lin_to_db(x) >= t:  # down while the one below still passes
-            below = np.nextafter(x, -np.inf)
-            if lin_to_db(below) < t:
-                break
-            x = below
+        x = float(db_to_lin(t))
+        while lin_to_db(np.nextafter(x, -np.inf)) >= t:  # down while the float below still passes
+            x = np.nextafter(x, -np.inf)
         while lin_to_db(x) < t:  # up until it passes
             x = np.nextafter(x, np.inf)
         out[i] = x
