@@ -72,6 +72,14 @@ class QMIXHParams:
         "standardise_rewards; common/value_norm.py) [bool]: the Q-values are then in those units, the argmax "
         "is unchanged (docs/model.md#qmix-and-vdn-per-device)",
     )
+    negative_td_weight: float = Field(
+        default=1.0,
+        gt=0,
+        le=1,
+        description="weight of the squared TD error where the target is below Q_tot (1: plain QMIX/VDN) [-]: "
+        "below 1 the value follows the better outcomes of a joint action more than the worse ones that other "
+        "agents' exploration causes (hysteretic Q-learning; OW-QMIX's weighting) (docs/model.md#qmix-and-vdn-per-device)",
+    )
     hypernet_embed_dim: int = Field(
         default=64, ge=1, description="hidden width of the 2-layer weight hypernetworks [units]; unused by VDN"
     )

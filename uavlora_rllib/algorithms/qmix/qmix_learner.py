@@ -5,7 +5,8 @@ Loss (per update, over B whole episodes of T steps):
   with m = min(n_step, T - t); d = 1 only when the episode TERMINATED at t+m = T. A truncation
   (this project's only episode end) bootstraps from the final observation/state. With `reward_norm`
   r is the reward standardised by its running mean and std (updated with each batch first).
-  L = mean_{b,t} (Q_tot(s_t, a_t) - y_t)^2
+  L = mean_{b,t} w_t (Q_tot(s_t, a_t) - y_t)^2, w_t = 1 where y_t >= Q_tot, else `negative_td_weight`
+  (1 by default: plain QMIX/VDN; below 1 the optimistic weighting of hysteretic Q-learning and OW-QMIX)
 After every gradient update: target <- (1 - tau) target + tau online (agent network and mixer).
 """
 
@@ -71,7 +72,11 @@ class QMIXTorchLearner(TargetNetworkLearner):
             rewards, fwd_out[TARGET_Q_TOT_NEXT].detach(), batch[TERMINATED], config.gamma, config.hparams.n_step
         )
         td = q_tot - y
-        loss = (td**2).mean()
+        weight = config.hparams.negative_td_weight
+        if weight < 1.0:  # optimistic: a target below Q_tot (over-estimate) moves it less
+            loss = (torch.where(td > 0, weight, 1.0) * td**2).mean()
+        else:
+            loss = (td**2).mean()
         self.metrics.log_dict(
             {
                 TD_LOSS: loss.detach(),
