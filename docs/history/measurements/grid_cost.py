@@ -30,7 +30,7 @@ for run in runs:
     seconds = (info.end_time - info.start_time) / 1000
     if "trial_id" in tags:
         per_algo[tags["algorithm"]].append(seconds)
-    elif "mlflow.parentRunId" not in tags and "kind" not in tags:
+    elif info.run_name == experiment:  # the grid's parent run
         wall = seconds
 for algo, secs in sorted(per_algo.items()):
     print(f"{algo:6s} {len(secs)} trials, {min(secs):.0f}-{max(secs):.0f} s each, {sum(secs) / 3600:.3f} CPU-h")
