@@ -95,6 +95,23 @@ def test_shapes_and_head_parameters(slot_head, share):
 
 
 @pytest.mark.parametrize("dueling", [True, False])
+def test_additive_slot_utility_is_sf_value_plus_tp_value(dueling):
+    """slot_utility additive: the slot head gives n_sf + n_tp values and each pair's utility is Q(sf) + Q(tp)
+    (around V_u when dueling), so the greedy pair is the SF argmax with the TP argmax."""
+    torch.manual_seed(3)
+    mod = _module(slot_utility="additive", dueling=dueling)
+    assert mod.agent.slot_heads.w2.shape[-1] == N_SF + N_TP
+    q = mod.compute_q_values({Columns.OBS: _obs(2, 3)})[Q_SLOTS].unflatten(-1, (N_SF, N_TP))  # [.., sf, tp]
+    assert q.shape == (2, 3, U, K, N_SF, N_TP)
+    # additive: every 2x2 minor of the pair table has zero interaction, q[a,c] + q[b,d] = q[a,d] + q[b,c]
+    torch.testing.assert_close(q[..., 1:, 1:] + q[..., :1, :1], q[..., 1:, :1] + q[..., :1, 1:], rtol=0, atol=1e-5)
+    best = q.flatten(-2).argmax(-1)
+    torch.testing.assert_close(best // N_TP, q.amax(-1).argmax(-1))
+    torch.testing.assert_close(best % N_TP, q.amax(-2).argmax(-1))
+    assert _module().agent.slot_heads.w2.shape[-1] == P  # joint, the default: one value per pair
+
+
+@pytest.mark.parametrize("dueling", [True, False])
 def test_dueling_branches_share_the_uav_state_value(dueling):
     torch.manual_seed(7)
     mod = _module(dueling=dueling)

@@ -9,6 +9,7 @@ action branch (docs/model.md#qmix-and-vdn-per-device):
 
     o_u -> RecurrentAgentNet (the per_uav trunk: Linear -> ReLU -> GRU -> Linear) -> ReLU -> f_u
     slot k:  Q_k(o_u, .) = head_k([f_u ; row_k(o_u)])  over the n_sf n_tp (SF, TP) pairs
+             (`slot_utility: additive`: the head gives n_sf + n_tp values and Q_k(sf, tp) = Q_k^SF(sf) + Q_k^TP(tp))
     BW:      Q_bw(o_u, .) = head_bw(f_u)                over the n_bw bandwidths
 
 Each head is Linear -> ReLU -> Linear (BDQ's per-branch hidden layer). With `dueling` (BDQ's
@@ -42,6 +43,7 @@ from uavlora_rllib.algorithms.common.branch_heads import BranchHeads, slot_rows
 from uavlora_rllib.sim.observation import OBS_EXTRA, OBS_ROW
 
 SLOT_HEADS = ("per_slot", "shared")
+SLOT_UTILITIES = ("joint", "additive")
 
 
 def action_dims(nvec_row) -> tuple[int, int, int, int]:
@@ -114,6 +116,8 @@ class BranchingAgentNet(nn.Module):
         n_pairs: int,
         n_bw: int,
         *,
+        n_tp: int | None = None,
+        slot_utility: str = "joint",
         fc_hidden: int,
         gru_hidden: int,
         head_hidden: int,
@@ -124,6 +128,10 @@ class BranchingAgentNet(nn.Module):
         super().__init__()
         if slot_head not in SLOT_HEADS:
             raise ValueError(f"slot_head: expected one of {SLOT_HEADS}, got {slot_head!r}")
+        if slot_utility not in SLOT_UTILITIES:
+            raise ValueError(f"slot_utility: expected one of {SLOT_UTILITIES}, got {slot_utility!r}")
+        if slot_utility == "additive" and (n_tp is None or n_pairs % n_tp):
+            raise ValueError(f"slot_utility additive: n_tp must divide n_pairs ({n_pairs}), got {n_tp}")
         if obs_dim != quota * OBS_ROW + OBS_EXTRA:
             raise ValueError(f"obs_dim: expected {quota * OBS_ROW + OBS_EXTRA} for quota {quota}, got {obs_dim}")
         self.quota, self.n_pairs, self.n_bw = quota, n_pairs, n_bw
@@ -132,8 +140,11 @@ class BranchingAgentNet(nn.Module):
             obs_dim, n_agents, fc_hidden, fc_hidden=fc_hidden, gru_hidden=gru_hidden, share=share
         )
         groups = 1 if share else n_agents
+        # additive: SF values then TP values, combined into the pair utilities in forward
+        self.n_tp = n_tp if slot_utility == "additive" else None
+        n_slot_out = n_pairs // n_tp + n_tp if self.n_tp else n_pairs
         self.slot_heads = BranchHeads(
-            groups, quota if slot_head == "per_slot" else 1, fc_hidden, OBS_ROW, head_hidden, n_pairs
+            groups, quota if slot_head == "per_slot" else 1, fc_hidden, OBS_ROW, head_hidden, n_slot_out
         )
         self.bw_head = BranchHeads(groups, 1, fc_hidden, 0, head_hidden, n_bw)
         self.value_head = BranchHeads(groups, 1, fc_hidden, 0, head_hidden, 1) if dueling else None
@@ -142,6 +153,9 @@ class BranchingAgentNet(nn.Module):
         f, h_out = self.torso(obs, h)
         f = torch.relu(f)
         slot_q = self.slot_heads(f, slot_rows(obs, self.quota), self.quota)
+        if self.n_tp:  # Q(sf, tp) = Q^SF(sf) + Q^TP(tp), pair index sf n_tp + tp
+            q_sf, q_tp = slot_q[..., : -self.n_tp], slot_q[..., -self.n_tp :]
+            slot_q = (q_sf.unsqueeze(-1) + q_tp.unsqueeze(-2)).flatten(-2)
         bw_q = self.bw_head(f).squeeze(-2)
         if self.value_head is not None:  # dueling: Q_d(a) = V_u + A_d(a) - mean_a' A_d(a')
             v = self.value_head(f)  # [B, T, U, 1, 1]

@@ -55,6 +55,8 @@ class BranchingQMixModule(QMixModule):
             head_hidden=int(mc["head_hidden"]),
             share=bool(mc["share_agent_net"]),
             slot_head=str(mc["slot_head"]),
+            n_tp=self.n_tp,
+            slot_utility=str(mc.get("slot_utility", "joint")),  # a checkpoint from before the field: joint
             dueling=bool(mc["dueling"]),
         )
 

@@ -46,6 +46,12 @@ class QMIXHParams:
         "head serves every slot, told apart by the slot's observation row (shared) [-] "
         "(docs/model.md#qmix-and-vdn-per-device)",
     )
+    slot_utility: Literal["joint", "additive"] = Field(
+        default="joint",
+        description="per_device only: a slot's utility has one value per (SF, TP) pair (joint, n_sf n_tp outputs) "
+        "or is Q(SF) + Q(TP) (additive, n_sf + n_tp outputs: each SF value learns from every TP tried with it, "
+        "as the actor-critic learners' separate SF and TP categoricals) [-] (docs/model.md#qmix-and-vdn-per-device)",
+    )
     head_hidden: int = Field(
         default=64,
         ge=1,
