@@ -20,6 +20,7 @@ from analysis.aggregate import (
     profile_rows,
     score_sets,
 )
+from analysis.cost import TABLE_COST_COLUMNS, cost_md, cost_table
 from analysis.data import (
     CURVE_METRICS,
     EVAL_CURVE,
@@ -70,6 +71,8 @@ OUTPUT_FILES = tuple(
         "table_aggregate.md",
         "table_improvement_probability.csv",
         "table_improvement_probability.md",
+        "table_cost.csv",
+        "table_cost.md",
         "fig_profile.csv",
         "results_marl_eval.json",
         "report.md",
@@ -126,6 +129,7 @@ def _build_report(sources: list[Source], out_dir: str, args) -> dict[str, Any]:
     bar = progress(2 * sum(1 for r in records if r.kind == "train") + 4, "report")
     tables = write_tables(org, reference, args.reference, out_dir)
     tables.update(write_learning_table(org, history, out_dir))
+    tables.update(write_cost_table(records, out_dir))
     bar.update(1)
 
     def counted(record, key):
@@ -166,6 +170,7 @@ def _build_report(sources: list[Source], out_dir: str, args) -> dict[str, Any]:
         "learning": tables["learning"],
         "aggregate": tables["aggregate"],
         "improvement_probability": tables["improvement_probability"],
+        "cost": tables["cost"],
         "n_runs": len(records),
     }
 
@@ -198,6 +203,16 @@ def write_learning_table(org, history, out_dir: str) -> dict[str, Any]:
     with open(os.path.join(out_dir, "table_learning.md"), "w") as fh:
         fh.write(md + "\n")
     return {"learning": rows, "md_learning": md}
+
+
+def write_cost_table(records, out_dir: str) -> dict[str, Any]:
+    """table_cost (CSV and Markdown): what the runs took, measured (analysis/cost.py)."""
+    rows = cost_table(records)
+    write_csv(os.path.join(out_dir, "table_cost.csv"), TABLE_COST_COLUMNS, rows)
+    md = cost_md(rows)
+    with open(os.path.join(out_dir, "table_cost.md"), "w") as fh:
+        fh.write(md + "\n")
+    return {"cost": rows, "md_cost": md}
 
 
 def write_aggregates(org, reference: str | None, out_dir: str) -> dict[str, Any]:

@@ -188,6 +188,13 @@ def report_markdown(sources, records, org, notes, figures, captions, tables, ref
         "",
         md["table_paper.md"],
         "",
+        "## What the runs cost",
+        "",
+        "Measured from the runs themselves (analysis/cost.py), beside `tune --dry-run`'s estimate. "
+        "CSV: [table_cost.csv](table_cost.csv).",
+        "",
+        tables["md_cost"],
+        "",
         "## Machine-readable results",
         "",
         f"[{MARL_EVAL_FILE}]({MARL_EVAL_FILE}): marl-eval's raw-data JSON (environment `uavlora`, task `v<V>_u<U>`, "

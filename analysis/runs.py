@@ -53,6 +53,7 @@ class RunRecord:
     metrics: dict[str, float] = field(default_factory=dict)
     experiment: str = ""  # the MLflow experiment it was read from
     source: int = 0  # index of its Source (experiment + tracking URI) in the report's list
+    end_time: int | None = None  # ms since the epoch; None while the run is unfinished
 
     @property
     def label(self) -> str:
@@ -199,6 +200,7 @@ def _record(run) -> RunRecord:
         run_name=run.info.run_name or tags.get("mlflow.runName", ""),
         status=str(run.info.status),
         start_time=int(run.info.start_time or 0),
+        end_time=int(run.info.end_time) if run.info.end_time else None,
         kind=tags.get("kind", "train"),
         algorithm=algorithm.strip() if algorithm else None,
         seed=tags.get("seed"),

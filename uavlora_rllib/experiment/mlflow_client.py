@@ -36,6 +36,7 @@ from collections.abc import Iterable, Mapping
 from typing import Any
 
 from uavlora_rllib.experiment.run_schema import (
+    EVAL_WALL_METRIC,
     GRID_ARTIFACT,
     IDENTITY_PARAMS,
     KIND_BASELINE,
@@ -480,6 +481,8 @@ class Tracker:
         metrics = eval_metrics(summary)
         for step in reference_steps(budget):  # a flat reference line across the training range
             self.log_metrics(run_id, metrics, step=step)
+        if "_wall_s" in summary:  # the evaluation's own time on its one CPU (analysis/cost.py: the grid's cost)
+            self.log_metrics(run_id, {EVAL_WALL_METRIC: float(summary["_wall_s"])}, step=0)
         self.end(run_id, "FINISHED")
         return run_id
 

@@ -63,6 +63,7 @@ ENV_STEPS = "env_steps"  # key of the env-step counter in the trainable's result
 LEARNER_PREFIX = "learner/"
 EVAL_PREFIX = "eval/"
 HPARAM_PREFIX = "hparam/"  # a sampled hyperparameter's current value (experiment/sweep.py)
+EVAL_WALL_METRIC = "cost/eval_wall_s"  # a baseline run's evaluation time on its one CPU [s] (analysis/cost.py)
 
 KIND_TRAIN = "train"
 KIND_BASELINE = "baseline"

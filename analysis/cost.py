@@ -1,0 +1,101 @@
+"""What the runs of a report cost, measured from MLflow: `table_cost` (docs/cluster.md#what-a-grid-costs).
+
+`tune --dry-run` estimates a grid's CPU-hours from a calibration; this table states what the grid took.
+- A trial: its run's start to end (the run is created when Tune starts the trial and ended when it stops,
+  so build, training, periodic and final evaluations and checkpoints are in it) x the CPUs its resources
+  reserve (`calibration.trial_cpus`, as the estimate counts them). A trial interrupted and resumed
+  (`--resume`) counts the pause too: its row says so through a longest run far above the median.
+- A baseline: its evaluation's own time on its one CPU (metric `cost/eval_wall_s`); runs logged before
+  that metric existed have none and are counted as unmeasured.
+Unfinished runs are left out. Rows: one per scenario and algorithm or baseline.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from typing import Any
+
+from analysis.runs import RunRecord
+from analysis.tables import fmt, md_table
+from uavlora_rllib.algorithms.common.registry import Resources
+from uavlora_rllib.experiment.baseline_tasks import BASELINE_CPUS
+from uavlora_rllib.experiment.calibration import trial_cpus
+from uavlora_rllib.experiment.run_schema import EVAL_WALL_METRIC
+
+TABLE_COST_COLUMNS = (
+    "n_eds", "n_uavs", "name", "kind", "runs", "cpus_per_run",
+    "minutes_min", "minutes_median", "minutes_max", "cpu_hours", "unmeasured",
+)  # fmt: skip
+
+
+def run_cpus(record: RunRecord) -> float:
+    """CPUs one run reserved: a trial's from its resources.* params, a baseline's one."""
+    if record.kind != "train":
+        return BASELINE_CPUS
+    fields = {k.split(".", 1)[1]: v for k, v in record.params.items() if k.startswith("resources.")}
+    known = {f: fields[f] for f in Resources.__dataclass_fields__ if f in fields}
+    return trial_cpus(Resources(**known))  # pydantic parses the logged strings
+
+
+def run_seconds(record: RunRecord) -> float:
+    """A finished run's measured seconds (module docstring); nan where there is no measurement."""
+    if record.kind == "train":
+        if record.status != "FINISHED" or record.end_time is None:
+            return math.nan
+        return (record.end_time - record.start_time) / 1000.0
+    return float(record.metrics.get(EVAL_WALL_METRIC, math.nan))
+
+
+def cost_table(records: list[RunRecord]) -> list[dict[str, Any]]:
+    """One row per (V, U, algorithm or baseline) over the FINISHED runs."""
+    groups: dict[tuple[int, int, str, str], list[RunRecord]] = {}
+    for r in records:
+        if r.status == "FINISHED" and r.scenario_key is not None and r.algorithm and r.kind in ("train", "baseline"):
+            groups.setdefault((*r.scenario_key, r.algorithm, r.kind), []).append(r)
+    rows = []
+    for (v, u, name, kind), runs in sorted(groups.items(), key=lambda kv: (kv[0][:2], kv[0][3] != "train", kv[0][2])):
+        measured = [(run_seconds(r), run_cpus(r)) for r in runs]
+        measured = [(s, c) for s, c in measured if math.isfinite(s)]
+        minutes = [s / 60.0 for s, _ in measured]
+        rows.append({
+            "n_eds": v, "n_uavs": u, "name": name, "kind": kind, "runs": len(runs),
+            "cpus_per_run": max((c for _, c in measured), default=math.nan),
+            "minutes_min": min(minutes, default=math.nan),
+            "minutes_median": statistics.median(minutes) if minutes else math.nan,
+            "minutes_max": max(minutes, default=math.nan),
+            "cpu_hours": sum(s * c for s, c in measured) / 3600.0,
+            "unmeasured": len(runs) - len(measured),
+        })  # fmt: skip
+    return rows
+
+
+def cost_totals(rows: list[dict[str, Any]]) -> dict[str, float]:
+    """CPU-hours of the trials, of the baselines, and both."""
+    trials = sum(r["cpu_hours"] for r in rows if r["kind"] == "train")
+    baselines = sum(r["cpu_hours"] for r in rows if r["kind"] == "baseline")
+    return {"trials": trials, "baselines": baselines, "total": trials + baselines}
+
+
+def cost_md(rows: list[dict[str, Any]]) -> str:
+    if not rows:
+        return "No finished runs: nothing to cost."
+    body = [
+        [
+            str(r["n_eds"]), str(r["n_uavs"]), r["name"], r["kind"], str(r["runs"]), fmt(r["cpus_per_run"], "g"),
+            f"{fmt(r['minutes_median'], '.1f')} ({fmt(r['minutes_min'], '.1f')}-{fmt(r['minutes_max'], '.1f')})"
+            if math.isfinite(r["minutes_median"])
+            else "n/a",
+            fmt(r["cpu_hours"], ".3f"), str(r["unmeasured"]) if r["unmeasured"] else "-",
+        ]
+        for r in rows
+    ]  # fmt: skip
+    t = cost_totals(rows)
+    header = ["V", "U", "algorithm / baseline", "kind", "runs", "CPUs per run", "minutes per run: median (range)",
+              "CPU-hours", "unmeasured runs"]  # fmt: skip
+    return (
+        md_table(header, body)
+        + f"\n\nIn all: {t['total']:.2f} CPU-hours = trials {t['trials']:.2f} + baselines {t['baselines']:.3f}. "
+        "A trial is its MLflow run's start to end x the CPUs it reserves (a resumed trial counts its pause); "
+        "a baseline is its evaluation's time on one CPU."
+    )
