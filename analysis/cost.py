@@ -16,7 +16,7 @@ import math
 import statistics
 from typing import Any
 
-from analysis.runs import RunRecord
+from analysis.runs import RunRecord, section_dict
 from analysis.tables import fmt, md_table
 from uavlora_rllib.algorithms.common.registry import Resources
 from uavlora_rllib.experiment.baseline_tasks import BASELINE_CPUS
@@ -33,9 +33,8 @@ def run_cpus(record: RunRecord) -> float:
     """CPUs one run reserved: a trial's from its resources.* params, a baseline's one."""
     if record.kind != "train":
         return BASELINE_CPUS
-    fields = {k.split(".", 1)[1]: v for k, v in record.params.items() if k.startswith("resources.")}
-    known = {f: fields[f] for f in Resources.__dataclass_fields__ if f in fields}
-    return trial_cpus(Resources(**known))  # pydantic parses the logged strings
+    logged = section_dict(record.params, "resources")
+    return trial_cpus(Resources(**{f: logged[f] for f in Resources.__dataclass_fields__ if f in logged}))
 
 
 def run_seconds(record: RunRecord) -> float:

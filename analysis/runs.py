@@ -266,14 +266,15 @@ def _parse_param(text: str) -> Any:
         return text
 
 
-def scenario_dict(params: dict[str, str]) -> dict[str, Any]:
-    """Nested scenario fields from "scenario.<field>[.<sub>]" params (derived 'quota' dropped)."""
+def section_dict(params: dict[str, str], section: str, derived: tuple[str, ...] = ()) -> dict[str, Any]:
+    """Nested fields of one config section from its "<section>.<field>[.<sub>]" params, values parsed
+    back from their logged text; top-level fields named in `derived` (computed, not settable) dropped."""
     out: dict[str, Any] = {}
     for key, text in params.items():
-        if not key.startswith("scenario."):
+        if not key.startswith(f"{section}."):
             continue
         parts = key.split(".")[1:]
-        if parts == ["quota"]:
+        if len(parts) == 1 and parts[0] in derived:
             continue
         node = out
         for p in parts[:-1]:
@@ -283,3 +284,8 @@ def scenario_dict(params: dict[str, str]) -> dict[str, Any]:
         else:
             node[parts[-1]] = _parse_param(text)
     return out
+
+
+def scenario_dict(params: dict[str, str]) -> dict[str, Any]:
+    """The scenario's fields from its "scenario.*" params (the derived 'quota' dropped)."""
+    return section_dict(params, "scenario", derived=("quota",))

@@ -433,7 +433,11 @@ def test_shipped_grids_are_valid():
     # the same figures at the converged budget, split so that no scenario runs twice (3b's V=10 is 3a's
     # scenario, 3c's U=2 is one of 3b's; 3b is one experiment per V, to fit a session): together they cover
     # every scenario of the full grids once, with no experiment name twice
-    names = ["paper_fig3a_3seeds.yaml", *(f"paper_fig3b_v{v}.yaml" for v in (20, 40, 60, 80, 100)), "paper_fig3c_3seeds.yaml"]
+    names = [
+        "paper_fig3a_3seeds.yaml",
+        *(f"paper_fig3b_v{v}.yaml" for v in (20, 40, 60, 80, 100)),
+        "paper_fig3c_3seeds.yaml",
+    ]
     fits = {f: load_grid(os.path.join(folder, f)) for f in names}
     assert len({g.experiment for g in fits.values()}) == len(fits)
     cover = [(v, u) for g in fits.values() for v in g.n_eds for u in g.n_uavs]

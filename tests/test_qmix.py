@@ -344,7 +344,9 @@ def test_optimistic_td_weighting_finds_the_coordinated_optimum():
         batch = _matrix_batch(nonmono)
         for _ in range(updates):
             learner.update(batch=batch, timesteps={"num_env_steps_sampled_lifetime": 0})
-        one = {k: torch.as_tensor(v) for k, v in _matrix_batch(nonmono, reps=1).policy_batches[DEFAULT_MODULE_ID].items()}
+        one = {
+            k: torch.as_tensor(v) for k, v in _matrix_batch(nonmono, reps=1).policy_batches[DEFAULT_MODULE_ID].items()
+        }
         with torch.no_grad():
             out = learner.module[DEFAULT_MODULE_ID].forward_train(one)
         assert tuple(out[Q_ALL][0, 0].argmax(-1).tolist()) == (0, 0), cls.__name__

@@ -142,7 +142,7 @@ class BranchingAgentNet(nn.Module):
         groups = 1 if share else n_agents
         # additive: SF values then TP values, combined into the pair utilities in forward
         self.n_tp = n_tp if slot_utility == "additive" else None
-        n_slot_out = n_pairs // n_tp + n_tp if self.n_tp else n_pairs
+        n_slot_out = n_pairs if self.n_tp is None else n_pairs // self.n_tp + self.n_tp
         self.slot_heads = BranchHeads(
             groups, quota if slot_head == "per_slot" else 1, fc_hidden, OBS_ROW, head_hidden, n_slot_out
         )
@@ -153,7 +153,7 @@ class BranchingAgentNet(nn.Module):
         f, h_out = self.torso(obs, h)
         f = torch.relu(f)
         slot_q = self.slot_heads(f, slot_rows(obs, self.quota), self.quota)
-        if self.n_tp:  # Q(sf, tp) = Q^SF(sf) + Q^TP(tp), pair index sf n_tp + tp
+        if self.n_tp is not None:  # Q(sf, tp) = Q^SF(sf) + Q^TP(tp), pair index sf n_tp + tp
             q_sf, q_tp = slot_q[..., : -self.n_tp], slot_q[..., -self.n_tp :]
             slot_q = (q_sf.unsqueeze(-1) + q_tp.unsqueeze(-2)).flatten(-2)
         bw_q = self.bw_head(f).squeeze(-2)

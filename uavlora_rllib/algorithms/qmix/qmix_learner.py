@@ -72,11 +72,8 @@ class QMIXTorchLearner(TargetNetworkLearner):
             rewards, fwd_out[TARGET_Q_TOT_NEXT].detach(), batch[TERMINATED], config.gamma, config.hparams.n_step
         )
         td = q_tot - y
-        weight = config.hparams.negative_td_weight
-        if weight < 1.0:  # optimistic: a target below Q_tot (over-estimate) moves it less
-            loss = (torch.where(td > 0, weight, 1.0) * td**2).mean()
-        else:
-            loss = (td**2).mean()
+        # optimistic weighting: an over-estimate (target below Q_tot) counts negative_td_weight (1: plain TD)
+        loss = (torch.where(td > 0, config.hparams.negative_td_weight, 1.0) * td**2).mean()
         self.metrics.log_dict(
             {
                 TD_LOSS: loss.detach(),
