@@ -86,6 +86,8 @@ PER_DEVICE_CI: dict[str, tuple[dict, int]] = {
 # the other learning tests, and the issue that asks for it stays open (results: BENCHMARKS.md#per_device-learning-benchmark)
 _NOT_YET_PHY = "not yet above the best constant with the LoRa PHY rate at a CI budget"
 PER_DEVICE_NOT_YET: dict[str, str] = {
+    # why (BENCHMARKS.md "Function class or learning?"): the regression extrapolates the utilities of the (SF, TP)
+    # pairs the replay holds few of, and the per-branch argmax picks them; a CQL term fixes that offline only
     "qmix": f"{_NOT_YET_PHY}: 0.83-0.95x best_fixed over 20-140 iterations of 16 updates (this scenario, w1 = 0.1)",
     "vdn": f"{_NOT_YET_PHY}: QMIX's agent network, which reaches 0.83-0.95x here, and 0.95x at V=10, U=2 in 200k",
     "coma": f"{_NOT_YET_PHY}: with per-ED heads 0.97-1.03x best_fixed from 100 to 200 iterations, and ~8 min "
