@@ -432,7 +432,7 @@ def test_shipped_grids_are_valid():
     assert fig3a.stop.env_steps == 2_000_000 and fig3a.n_eds == [10] and fig3a.n_uavs == [2]
     # the same figures at the converged budget, split so that no scenario runs twice (3b's V=10 is 3a's
     # scenario, 3c's U=2 is one of 3b's; 3b and 3c are one experiment per V or U, to fit a session): together they cover
-    # every scenario of the full grids once, with no experiment name twice (3c is one experiment per U)
+    # every scenario of the full grids once, with no experiment name twice
     names = [
         "paper_fig3a_3seeds.yaml",
         *(f"paper_fig3b_v{v}.yaml" for v in (20, 40, 60, 80, 100)),

@@ -49,10 +49,8 @@ class Probe:
         actions = np.asarray(self.policy.act(core))
         cfg, slots = self.cfg, Slots.of_core(core)
         n, v = slots.g_serving.shape
-        e, d = np.nonzero(slots.associated)
-        u, k = slots.serving_idx[e, d], slots.slot_of_ed[e, d]
-        setting = np.zeros((n, v), dtype=np.int64)
-        setting[e, d] = actions[e, u, 2 * k] * cfg.n_tp + actions[e, u, 2 * k + 1]
+        sf, tp, _ = core.decoder.allocations(actions, core.links)  # the simulator's own decoding, per ED
+        setting = np.where(slots.associated, sf * cfg.n_tp + tp, 0).astype(np.int64)
         bw = actions[:, :, -1].astype(np.int64)
         scorer = AllocationScorer(cfg, core.tables, "reward")
         setting_ok, bw_ok = scorer.allowed(slots)  # everything, under "reward"

@@ -51,15 +51,15 @@ def collect(behaviour: str, eps: float, episodes: int, rng: np.random.Generator)
     obs, state, acts, rew = [], [], [], []
     n_pairs = CFG.n_sf * CFG.n_tp
     for _ in range(CFG.episode_len):
-        a = np.asarray(policy.act(core)).copy()
+        a = np.asarray(policy.act(core))
         obs.append(np.asarray(core.obs, dtype=np.float32).copy())
         state.append(np.asarray(core.state(), dtype=np.float32).copy())
-        slot, bw = a[..., 0:-1:2] * CFG.n_tp + a[..., 1:-1:2], a[..., -1]
+        slot, bw = (x.numpy() for x in branching.branch_indices(torch.as_tensor(a), CFG.n_tp))
         flip = rng.random(slot.shape) < eps
         slot = np.where(flip, rng.integers(0, n_pairs, slot.shape), slot)
         flip = rng.random(bw.shape) < eps
         bw = np.where(flip, rng.integers(0, CFG.n_bw, bw.shape), bw)
-        a[..., 0:-1:2], a[..., 1:-1:2], a[..., -1] = slot // CFG.n_tp, slot % CFG.n_tp, bw
+        a = branching.env_actions(torch.as_tensor(slot), torch.as_tensor(bw), CFG.n_tp).numpy()
         res = core.step(a)
         acts.append(a)
         rew.append(np.asarray(res.reward, dtype=np.float32))
@@ -84,7 +84,7 @@ class Greedy:
         self.net, self.h = net, None
 
     def reset(self, core):
-        self.h = torch.zeros(core.n, CFG.n_uavs, 128)
+        self.h = torch.zeros(core.n, CFG.n_uavs, self.net.gru_hidden)
 
     def act(self, core):
         with torch.no_grad():
@@ -116,7 +116,7 @@ def main():
     for step in range(1, updates + 1):
         idx = torch.as_tensor(rng.integers(0, episodes, 16))
         o, s, a, r = obs[idx], state[idx], acts[idx], rew[idx]
-        slot_q, bw_q, _ = net(o, torch.zeros(len(idx), CFG.n_uavs, 128))
+        slot_q, bw_q, _ = net(o, torch.zeros(len(idx), CFG.n_uavs, net.gru_hidden))
         si, bi = branching.branch_indices(a, CFG.n_tp)
         sv, bv = branching.taken(slot_q, bw_q, si, bi)
         q_tot = mixer(branching.aggregate(sv, bv, branching.active_slots(o, quota)), s)
