@@ -243,6 +243,67 @@ def test_other_versions_are_not_used(tmp_path, calib_file, capsys):
     assert "not calibrated: none of the grid's" in capsys.readouterr().out
 
 
+def record_with_hparams(cell, machine, hparams, measured_at, rate) -> dict:
+    """A record of `cell`'s content with other hyperparameters (so another cell key)."""
+    other = calibration.Cell("train", {**cell.content, "hparams": hparams}, cell.label)
+    return {**train_record(other, machine, **{**HAND, "env_steps_per_s": rate}), "measured_at": measured_at}
+
+
+def test_a_record_with_other_hyperparameters_is_used_and_named(tmp_path, calib_file, capsys):
+    # what adding a hyperparameter does to every earlier record: its cell key changes
+    machine = calibration.this_machine()
+    grid = load_grid(write_grid(tmp_path, grid_data(tmp_path)))
+    specs = trials(grid)
+    [(tcell, _)] = calibration.grid_train_cells(grid, specs).values()
+    [(bcell, _)] = calibration.grid_baseline_cells(grid).values()
+    hp = dict(tcell.content["hparams"])
+    lr, clip = hp["lr"], hp.pop("grad_clip")  # the record predates grad_clip and used another lr
+    store = calibration.Store(str(calib_file))
+    store.put(record_with_hparams(tcell, machine, {**hp, "lr": lr * 2}, "2026-01-01T00:00:00+00:00", 100.0))
+    store.put(record_with_hparams(tcell, machine, {**hp, "lr": lr * 3}, "2026-02-01T00:00:00+00:00", 50.0))
+    # closer in hyperparameters, but another scenario: never used
+    far = calibration.Cell("train", {**tcell.content, "scenario": {**tcell.content["scenario"], "n_eds": 5}}, "far")
+    store.put(train_record(far, machine, **{**HAND, "env_steps_per_s": 1.0}))
+    store.put(baseline_record(bcell, machine, 30.0, 4))
+
+    est = cost.estimate(grid, specs, calibration.Store.load(str(calib_file)), machine, VERSION)
+    assert est.complete and len(est.approximate) == 2
+    assert [r.record["env_steps_per_s"] for r in est.rows] == [50.0, 50.0]  # the newest of the two equally near
+    assert est.rows[0].differs == {"grad_clip": ("unset", clip), "lr": (lr * 3, lr)}
+    assert tune_cli.main([str(tmp_path / "grid.yaml"), "--dry-run", "--num-cpus", "3"]) == 0
+    out = capsys.readouterr().out
+    assert (
+        f"note: approximate for trials 1-2 (mappo): measured with other hyperparameters, grad_clip unset "
+        f"(now {json.dumps(clip)}), lr {json.dumps(lr * 3)} (now {json.dumps(lr)})" in out
+    )
+    assert [ln.split()[-1] for ln in out.splitlines() if "mappo-V4-U2-s" in ln] == ["~", "~"]
+    assert "approximate: 2 trial(s) (marked ~)" in out and "--calibrate" in out
+    assert "\ngrid:" in out and "not calibrated" not in out
+
+    # the exact cell, once measured, replaces the approximation; --calibrate would still measure it
+    assert not store.has(tcell.key, machine, VERSION)
+    store.put(train_record(tcell, machine, **HAND))
+    est = cost.estimate(grid, specs, calibration.Store.load(str(calib_file)), machine, VERSION)
+    assert est.approximate == [] and [r.wall_s for r in est.rows] == [290.0, 290.0] and est.notes == []
+
+
+def test_the_nearest_record_has_the_fewest_differences_then_this_machine():
+    machine, other = calibration.this_machine(), {"cpu_model": "Other", "cpus": 64}
+    cell = calibration.Cell("train", {"algorithm": "a", "hparams": {"x": 1, "y": 2}, "scenario": {}}, "c")
+    store = calibration.Store("unused.json")
+    for name, hp, where in [
+        ("two", {"x": 0, "y": 0}, machine),
+        ("one-other", {"x": 1}, other),
+        ("one", {"y": 2}, machine),
+    ]:
+        rec = record_with_hparams(cell, where, hp, "2026-01-01T00:00:00+00:00", 1.0)
+        store.records[name] = {**rec, "label": name}
+    record, diff = store.nearest(cell, machine, VERSION)
+    assert record["label"] == "one" and diff == {"x": ("unset", 1)}
+    assert store.nearest(cell, machine, "9.9") is None
+    assert store.nearest(calibration.Cell("baseline", {}, "b"), machine, VERSION) is None
+
+
 # --------------------------------------------------------------------------- the file
 def test_store_writes_atomically_and_keeps_other_records(tmp_path):
     path = tmp_path / "sub" / "calibration.json"

@@ -5,7 +5,9 @@ A *cell* is what decides the cost, without the seed: for a trial the algorithm, 
 hyperparameters, the whole scenario and the resources that change speed (SPEED_RESOURCES); for a
 baseline run the baseline, the scenario and the number of evaluation episodes. Its key is a hash
 of that content, so a grid that differs in anything that matters gets new cells, and two grids
-that share a cell share its measurement.
+that share a cell share its measurement. A trial cell with no record of its own falls back, for
+the estimate only, to the record that differs from it in hyperparameters alone (`Store.nearest`),
+so adding a hyperparameter does not throw the earlier measurements away.
 
 The file lives in the user's cache directory (`default_path`; $UAVLORA_CALIBRATION names
 another), not in the grid's storage: the numbers describe a machine, not an experiment, one file
@@ -204,6 +206,30 @@ class Store:
         own = [r for r in found if r.get("machine") == dict(machine)]
         return max(own or found, key=lambda r: str(r.get("measured_at", ""))) if found else None
 
+    def nearest(self, cell: Cell, machine: Mapping[str, Any], version: str) -> tuple[dict[str, Any], dict] | None:
+        """For a trial cell with no record of its own: the record for `version` whose cell differs
+        from `cell` in hyperparameters only (fewest differing fields, this machine's first, then the
+        newest), and those differences (`hparam_differences`); None if there is none. Adding a
+        hyperparameter changes every cell's key, and this keeps the earlier measurements usable,
+        named as approximate, until `--calibrate` measures the exact cell."""
+        if cell.kind != "train":
+            return None
+        rest = {k: v for k, v in cell.content.items() if k != "hparams"}
+        found = []
+        for r in self.records.values():
+            content = r.get("cell", {})
+            if r.get("kind") != "train" or r.get("version") != version or not isinstance(content, dict):
+                continue
+            if {k: v for k, v in content.items() if k != "hparams"} != rest:
+                continue
+            diff = hparam_differences(content.get("hparams", {}), cell.content.get("hparams", {}))
+            found.append(((len(diff), r.get("machine") != dict(machine)), r, diff))
+        if not found:
+            return None
+        best = min(rank for rank, _, _ in found)
+        _, record, diff = max((f for f in found if f[0] == best), key=lambda f: str(f[1].get("measured_at", "")))
+        return record, diff
+
     def has(self, key: str, machine: Mapping[str, Any], version: str) -> bool:
         """Whether cell `key` is measured on `machine` for `version`."""
         found = self.find(key, machine, version)
@@ -228,6 +254,20 @@ class Store:
                     os.unlink(tmp)
                 raise
         self.records = current
+
+
+UNSET = "unset"  # a hyperparameter one side of a comparison does not have (added or removed since)
+
+
+def hparam_differences(recorded: Mapping[str, Any], wanted: Mapping[str, Any]) -> dict[str, tuple[Any, Any]]:
+    """name -> (the record's value, the grid's value) for every hyperparameter that differs,
+    UNSET where one side lacks it; sorted by name."""
+    names = sorted(set(recorded) | set(wanted))
+    return {
+        n: (recorded.get(n, UNSET), wanted.get(n, UNSET))
+        for n in names
+        if n not in recorded or n not in wanted or recorded[n] != wanted[n]
+    }
 
 
 @contextlib.contextmanager

@@ -5,12 +5,15 @@ Per trial: wall = build + budget / rate + periodic evaluations x one evaluation 
 evaluation, all as measured for its cell; CPU-hours = wall x the CPUs the trial reserves (its
 learner process and env runners). Baseline runs add their own time on one CPU each. The
 wall-clock time packs the trials, in the grid's order, onto as many slots as the CPUs (and
-max_concurrent_trials) allow. A cell without a measurement is listed, never guessed.
+max_concurrent_trials) allow. A trial cell without a record of its own is estimated from the
+record that differs from it in hyperparameters only (calibration.Store.nearest), marked approximate
+with the differing fields named; a cell with neither is listed, never guessed.
 """
 
 from __future__ import annotations
 
 import heapq
+import json
 import math
 import os
 from collections.abc import Mapping
@@ -33,6 +36,8 @@ class TrialCost:
     cell: calibration.Cell
     record: dict[str, Any] | None  # None: not calibrated
     wall_s: float = math.nan  # one trial
+    # hyperparameters in which `record` differs from the trial (calibration.nearest); empty: its own cell
+    differs: dict[str, tuple[Any, Any]] = field(default_factory=dict)
 
 
 @dataclass
@@ -48,6 +53,11 @@ class GridCost:
     @property
     def complete(self) -> bool:
         return all(r.record is not None for r in self.rows) and all(rec is not None for _, _, rec in self.baselines)
+
+    @property
+    def approximate(self) -> list[TrialCost]:
+        """The rows estimated from a record measured with other hyperparameters."""
+        return [r for r in self.rows if r.record is not None and r.differs]
 
     def trial_cpu_s(self) -> float:
         return sum(r.wall_s * r.trials * self.cpus_per_trial for r in self.rows if r.record is not None)
@@ -96,8 +106,10 @@ def estimate(grid, specs, store: calibration.Store, machine: Mapping[str, Any], 
         if n == 0:
             continue
         cell = calibration.train_cell(spec, grid.resources)
-        record = store.find(cell.key, machine, version)
-        row = TrialCost(i, spec.name, n, cell, record)
+        record, differs = store.find(cell.key, machine, version), {}
+        if record is None:
+            record, differs = store.nearest(cell, machine, version) or (None, {})
+        row = TrialCost(i, spec.name, n, cell, record, differs=differs)
         if record is not None:
             row.wall_s = trial_seconds(record, budget, interval, episodes)
         rows.append(row)
@@ -120,11 +132,30 @@ def estimate(grid, specs, store: calibration.Store, machine: Mapping[str, Any], 
         cost.notes.append(
             f"note: {len(early)} trial(s) calibrated before their learner updated; their rate is too high"
         )
+    cost.notes += _approximate_notes(cost)
     if grid.scheduler is not None:
         cost.notes.append(f"note: the {grid.scheduler.type} scheduler stops some trials early: an upper bound")
     if any(s.spaces for s in specs):
         cost.notes.append("note: sampled hyperparameters are calibrated at their defaults")
     return cost
+
+
+def _show(value: Any) -> str:
+    return value if value == calibration.UNSET else json.dumps(value)
+
+
+def _approximate_notes(cost: GridCost) -> list[str]:
+    """One note per group of trials estimated from a record with other hyperparameters, naming the
+    fields, both values and the trials."""
+    groups: dict[tuple, list[int]] = {}
+    for r in cost.approximate:
+        what = (str(r.cell.content["algorithm"]), tuple((k, _show(a), _show(b)) for k, (a, b) in r.differs.items()))
+        groups.setdefault(what, []).append(r.index)
+    return [
+        f"note: approximate for trials {_ranges(ix)} ({algo}): measured with other hyperparameters, "
+        + ", ".join(f"{k} {a} (now {b})" for k, a, b in fields)
+        for (algo, fields), ix in groups.items()
+    ]
 
 
 def wall_clock_s(cost: GridCost, cpus: float, max_concurrent: int | None) -> tuple[float, int]:
@@ -181,6 +212,12 @@ def report_lines(cost: GridCost, grid, grid_file: str, cpus: float, cpus_given: 
         f"grid: {trial_h + base_h:.2f} CPU-hours = {sum(r.trials for r in cost.rows)} trials {trial_h:.2f} "
         f"(wall x {cost.cpus_per_trial:g} CPUs each) + baselines {base_h:.2f}"
     )
+    if cost.approximate:
+        n = sum(r.trials for r in cost.approximate)
+        lines.append(
+            f"approximate: {n} trial(s) (marked ~) from records measured with other hyperparameters (notes above); "
+            f"measure them exactly with: python -m uavlora_rllib.tune {grid_file} --calibrate"
+        )
     where = f"{cpus:g} CPUs (--num-cpus)" if cpus_given else f"this machine's {cpus:g} CPUs"
     wall, slots = wall_clock_s(cost, cpus, grid.max_concurrent_trials)
     if slots == 0:
@@ -212,6 +249,7 @@ def _trial_lines(cost: GridCost) -> list[str]:
             lines.append(
                 f"{r.index:>4}  {r.name:<24} {r.record['env_steps_per_s']:>12,.0f} {r.wall_s / 3600:>8.2f} "
                 f"{cost.cpus_per_trial:>5g} {r.wall_s * cost.cpus_per_trial / 3600:>8.2f}{count}"
+                + ("  ~" if r.differs else "")
             )
     return lines
 
