@@ -1,10 +1,11 @@
 """What the runs of a report cost, measured from MLflow: `table_cost` (docs/cluster.md#what-a-grid-costs).
 
 `tune --dry-run` estimates a grid's CPU-hours from a calibration; this table states what the grid took.
-- A trial: its run's start to end (the run is created when Tune starts the trial and ended when it stops,
-  so build, training, periodic and final evaluations and checkpoints are in it) x the CPUs its resources
-  reserve (`calibration.trial_cpus`, as the estimate counts them). A trial interrupted and resumed
-  (`--resume`) counts the pause too: its row says so through a longest run far above the median.
+- A trial: its own working time (metric `cost/trial_wall_s`, experiment/trial_clock.py: build, training,
+  evaluations and checkpoints of every actor that ran it, a pause between SIGINT and `--resume` left out)
+  x the CPUs its resources reserve (`calibration.trial_cpus`, as the estimate counts them). Runs logged
+  before that metric existed count their run's start to end instead, a pause included: their row says so
+  through a longest run far above the median.
 - A baseline: its evaluation's own time on its one CPU (metric `cost/eval_wall_s`); runs logged before
   that metric existed have none and are counted as unmeasured.
 Unfinished runs are left out. Rows: one per scenario and algorithm or baseline.
@@ -21,7 +22,7 @@ from analysis.tables import fmt, md_table
 from uavlora_rllib.algorithms.common.registry import Resources
 from uavlora_rllib.experiment.baseline_tasks import BASELINE_CPUS
 from uavlora_rllib.experiment.calibration import trial_cpus
-from uavlora_rllib.experiment.run_schema import EVAL_WALL_METRIC
+from uavlora_rllib.experiment.run_schema import EVAL_WALL_METRIC, TRIAL_WALL_METRIC
 
 TABLE_COST_COLUMNS = (
     "n_eds", "n_uavs", "name", "kind", "runs", "cpus_per_run",
@@ -42,6 +43,8 @@ def run_seconds(record: RunRecord) -> float:
     if record.kind == "train":
         if record.status != "FINISHED" or record.end_time is None:
             return math.nan
+        if TRIAL_WALL_METRIC in record.metrics:
+            return float(record.metrics[TRIAL_WALL_METRIC])
         return (record.end_time - record.start_time) / 1000.0
     return float(record.metrics.get(EVAL_WALL_METRIC, math.nan))
 
@@ -95,6 +98,7 @@ def cost_md(rows: list[dict[str, Any]]) -> str:
     return (
         md_table(header, body)
         + f"\n\nIn all: {t['total']:.2f} CPU-hours = trials {t['trials']:.2f} + baselines {t['baselines']:.3f}. "
-        "A trial is its MLflow run's start to end x the CPUs it reserves (a resumed trial counts its pause); "
+        "A trial is its own working time (metric cost/trial_wall_s, a pause before --resume left out; runs "
+        "logged before that metric: their MLflow run's start to end, a pause included) x the CPUs it reserves; "
         "a baseline is its evaluation's time on one CPU."
     )

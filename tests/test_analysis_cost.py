@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
 
 from analysis.cost import cost_md, cost_table, cost_totals
 from analysis.runs import RunRecord, load_runs
-from uavlora_rllib.experiment import run_schema
+from uavlora_rllib.experiment import run_schema, trial_clock
 from uavlora_rllib.experiment.mlflow_client import Tracker
+from uavlora_rllib.experiment.trial_clock import TrialClock
 
 
 def _trial(seed: int, minutes: float, runners: int = 0, status: str = "FINISHED") -> RunRecord:
@@ -49,6 +51,32 @@ def test_trials_cost_their_run_time_times_reserved_cpus_and_baselines_their_eval
     md = cost_md(list(rows.values()))
     assert "In all: 0.60 CPU-hours = trials 0.50 + baselines 0.100" in md and "| greedy | baseline | 2 |" in md
     assert cost_md([]).startswith("No finished runs")
+
+
+def test_a_trial_with_its_working_time_is_costed_by_it_and_older_runs_by_their_span():
+    paused = _trial(0, 30.0)  # resumed after a 20-minute pause: its run spans 30 min
+    paused.metrics[run_schema.TRIAL_WALL_METRIC] = 600.0  # 10 min of its own work
+    row = cost_table([paused, _trial(1, 12.0)])[0]  # seed 1 logged before the metric existed
+    assert (row["minutes_min"], row["minutes_max"]) == (10.0, 12.0)
+    assert row["cpu_hours"] == pytest.approx(22.0 / 60.0)
+
+
+def test_the_trial_clock_sums_actors_and_leaves_out_the_pause(tmp_path):
+    now = [100.0]
+    first = TrialClock(lambda: now[0])
+    now[0] += 50.0  # setup and training
+    first.save(str(tmp_path))  # the last checkpoint
+    now[0] += 7.0  # work after it, lost when the driver is interrupted
+    now[0] += 1200.0  # the pause before --resume
+    second = TrialClock(lambda: now[0])
+    now[0] += 5.0  # the new actor builds the algorithm, then restores the checkpoint
+    second.load(str(tmp_path))
+    now[0] += 30.0
+    assert second.seconds() == pytest.approx(85.0)
+    (tmp_path / "old").mkdir()  # a checkpoint from before the clock: no earlier time
+    second.load(str(tmp_path / "old"))
+    assert second.seconds() == pytest.approx(35.0)
+    assert json.loads((tmp_path / trial_clock.FILE).read_text()) == {trial_clock.KEY: 50.0}
 
 
 def test_a_baseline_run_records_its_evaluation_time(tmp_path):

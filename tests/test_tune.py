@@ -20,6 +20,7 @@ import pytest
 from conftest import TINY_MAPPO, write_tiny_grid
 
 from uavlora_rllib import tune as tune_cli
+from uavlora_rllib.experiment import run_schema
 from uavlora_rllib.experiment.evaluation import EPISODE_METRICS
 from uavlora_rllib.experiment.mlflow_client import git_commit
 
@@ -220,6 +221,7 @@ def test_interrupted_grid_resumes_with_one_run_per_trial(ray_address, tmp_path, 
 
     # resumed from a copy (another checkout, a shared disk): experiment and store moved together, and the
     # grid names the new store, which the resumed trials log to (not the path pickled with the experiment)
+    time.sleep(10)  # a pause before --resume, which the trial's working time leaves out
     moved = tmp_path / "moved"
     moved.mkdir()
     shutil.copytree(tmp_path / "ray_results", moved / "ray_results")
@@ -243,6 +245,8 @@ def test_interrupted_grid_resumes_with_one_run_per_trial(ray_address, tmp_path, 
         check_train_run(client, r, created_in[r.data.tags["seed"]], budget)
     resumed = next(r for r in train if r.data.tags["seed"] == "0")
     assert resumed.info.run_id == interrupted_run_id  # the same MLflow run continued
+    span_s = (resumed.info.end_time - resumed.info.start_time) / 1000.0
+    assert 0 < resumed.data.metrics[run_schema.TRIAL_WALL_METRIC] < span_s - 10  # the pause is not counted
     check_baseline_runs(runs, budget)  # not redone on resume
 
     # the interrupted trial continued from its checkpoint instead of starting again

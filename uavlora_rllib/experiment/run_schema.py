@@ -58,7 +58,8 @@ except ImportError:  # pragma: no cover
     MAX_PARAM_VAL_LENGTH, MAX_ENTITY_KEY_LENGTH = 6000, 250
 
 MAX_TAG_VAL_LENGTH = 5000
-TRAIN_METRICS = ("episode_return_mean", "ee_sys_mean", "success_rate", "env_steps_per_s")
+TRIAL_WALL_METRIC = "cost/trial_wall_s"  # a trial's own working time so far [s] (experiment/trial_clock.py)
+TRAIN_METRICS = ("episode_return_mean", "ee_sys_mean", "success_rate", "env_steps_per_s", TRIAL_WALL_METRIC)
 ENV_STEPS = "env_steps"  # key of the env-step counter in the trainable's results
 LEARNER_PREFIX = "learner/"
 EVAL_PREFIX = "eval/"

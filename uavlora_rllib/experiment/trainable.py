@@ -16,6 +16,7 @@ from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.algorithms.common.threads import set_torch_threads
 from uavlora_rllib.experiment import cluster
 from uavlora_rllib.experiment.grid import import_plugins
+from uavlora_rllib.experiment.trial_clock import TrialClock
 
 
 class UavLoraTrainable(tune.Trainable):
@@ -27,6 +28,7 @@ class UavLoraTrainable(tune.Trainable):
         from uavlora_rllib.experiment.quiet import quiet_known_warnings
         from uavlora_rllib.sim.scenario import ScenarioConfig
 
+        self.clock = TrialClock()  # from here: building the algorithm counts
         quiet_known_warnings()
         cfg = config.get("trial", config)
         self.cfg = cfg
@@ -50,7 +52,7 @@ class UavLoraTrainable(tune.Trainable):
 
     def step(self) -> dict:
         from uavlora_rllib.experiment import periodic_eval
-        from uavlora_rllib.experiment.run_schema import ENV_STEPS, lookup, number, training_summary
+        from uavlora_rllib.experiment.run_schema import ENV_STEPS, TRIAL_WALL_METRIC, lookup, number, training_summary
 
         t0 = time.perf_counter()
         result = self.algo.train()
@@ -69,6 +71,7 @@ class UavLoraTrainable(tune.Trainable):
             out.update(self.evaluate())
             out["done"] = True
         out.update(self._sweep_metrics(out))
+        out[TRIAL_WALL_METRIC] = self.clock.seconds()
         return out
 
     def _sweep_metrics(self, out: dict) -> dict:
@@ -104,10 +107,12 @@ class UavLoraTrainable(tune.Trainable):
 
     def save_checkpoint(self, checkpoint_dir: str) -> None:
         self.algo.save_to_path(checkpoint_dir)
+        self.clock.save(checkpoint_dir)
 
     def load_checkpoint(self, checkpoint: Any) -> None:
         path = checkpoint if isinstance(checkpoint, (str, os.PathLike)) else checkpoint.get("checkpoint_dir")
         self.algo.restore_from_path(os.fspath(path))
+        self.clock.load(os.fspath(path))
         self._last_steps = None
         # The optimizers' state in the checkpoint carries the learning rate they ran with; a
         # trial restored with another config (PBT's exploit: another trial's checkpoint, this
