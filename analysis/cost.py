@@ -26,7 +26,7 @@ from uavlora_rllib.experiment.run_schema import EVAL_WALL_METRIC, TRIAL_WALL_MET
 
 TABLE_COST_COLUMNS = (
     "n_eds", "n_uavs", "name", "kind", "runs", "cpus_per_run",
-    "minutes_min", "minutes_median", "minutes_max", "cpu_hours", "unmeasured",
+    "minutes_min", "minutes_median", "minutes_max", "cpu_hours", "unmeasured", "by_span",
 )  # fmt: skip
 
 
@@ -49,6 +49,11 @@ def run_seconds(record: RunRecord) -> float:
     return float(record.metrics.get(EVAL_WALL_METRIC, math.nan))
 
 
+def timed_by_span(record: RunRecord) -> bool:
+    """Whether a trial's seconds are its run's start to end (logged before `cost/trial_wall_s`)."""
+    return record.kind == "train" and TRIAL_WALL_METRIC not in record.metrics
+
+
 def cost_table(records: list[RunRecord]) -> list[dict[str, Any]]:
     """One row per (V, U, algorithm or baseline) over the FINISHED runs."""
     groups: dict[tuple[int, int, str, str], list[RunRecord]] = {}
@@ -68,6 +73,7 @@ def cost_table(records: list[RunRecord]) -> list[dict[str, Any]]:
             "minutes_max": max(minutes, default=math.nan),
             "cpu_hours": sum(s * c for s, c in measured) / 3600.0,
             "unmeasured": len(runs) - len(measured),
+            "by_span": sum(1 for r in runs if timed_by_span(r) and math.isfinite(run_seconds(r))),
         })  # fmt: skip
     return rows
 
@@ -89,16 +95,18 @@ def cost_md(rows: list[dict[str, Any]]) -> str:
             if math.isfinite(r["minutes_median"])
             else "n/a",
             fmt(r["cpu_hours"], ".3f"), str(r["unmeasured"]) if r["unmeasured"] else "-",
+            str(r["by_span"]) if r["by_span"] else "-",
         ]
         for r in rows
     ]  # fmt: skip
     t = cost_totals(rows)
     header = ["V", "U", "algorithm / baseline", "kind", "runs", "CPUs per run", "minutes per run: median (range)",
-              "CPU-hours", "unmeasured runs"]  # fmt: skip
+              "CPU-hours", "unmeasured runs", "runs timed by their span"]  # fmt: skip
     return (
         md_table(header, body)
         + f"\n\nIn all: {t['total']:.2f} CPU-hours = trials {t['trials']:.2f} + baselines {t['baselines']:.3f}. "
         "A trial is its own working time (metric cost/trial_wall_s, a pause before --resume left out; runs "
-        "logged before that metric: their MLflow run's start to end, a pause included) x the CPUs it reserves; "
+        "logged before that metric are timed by their span, their MLflow run's start to end, a pause included) "
+        "x the CPUs it reserves; "
         "a baseline is its evaluation's time on one CPU."
     )

@@ -58,6 +58,8 @@ def test_a_trial_with_its_working_time_is_costed_by_it_and_older_runs_by_their_s
     paused.metrics[run_schema.TRIAL_WALL_METRIC] = 600.0  # 10 min of its own work
     row = cost_table([paused, _trial(1, 12.0)])[0]  # seed 1 logged before the metric existed
     assert (row["minutes_min"], row["minutes_max"]) == (10.0, 12.0)
+    assert row["by_span"] == 1
+    assert "| 11.0 (10.0-12.0) | 0.367 | - | 1 |" in cost_md([row])
     assert row["cpu_hours"] == pytest.approx(22.0 / 60.0)
 
 
