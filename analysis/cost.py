@@ -62,18 +62,17 @@ def cost_table(records: list[RunRecord]) -> list[dict[str, Any]]:
             groups.setdefault((*r.scenario_key, r.algorithm, r.kind), []).append(r)
     rows = []
     for (v, u, name, kind), runs in sorted(groups.items(), key=lambda kv: (kv[0][:2], kv[0][3] != "train", kv[0][2])):
-        measured = [(run_seconds(r), run_cpus(r)) for r in runs]
-        measured = [(s, c) for s, c in measured if math.isfinite(s)]
-        minutes = [s / 60.0 for s, _ in measured]
+        measured = [(s, run_cpus(r), timed_by_span(r)) for r in runs if math.isfinite(s := run_seconds(r))]
+        minutes = [s / 60.0 for s, _, _ in measured]
         rows.append({
             "n_eds": v, "n_uavs": u, "name": name, "kind": kind, "runs": len(runs),
-            "cpus_per_run": max((c for _, c in measured), default=math.nan),
+            "cpus_per_run": max((c for _, c, _ in measured), default=math.nan),
             "minutes_min": min(minutes, default=math.nan),
             "minutes_median": statistics.median(minutes) if minutes else math.nan,
             "minutes_max": max(minutes, default=math.nan),
-            "cpu_hours": sum(s * c for s, c in measured) / 3600.0,
+            "cpu_hours": sum(s * c for s, c, _ in measured) / 3600.0,
             "unmeasured": len(runs) - len(measured),
-            "by_span": sum(1 for r in runs if timed_by_span(r) and math.isfinite(run_seconds(r))),
+            "by_span": sum(span for _, _, span in measured),
         })  # fmt: skip
     return rows
 

@@ -203,32 +203,29 @@ class Store:
         """The record of cell `key` for `version`: this machine's, else the newest of another
         machine (its "machine" field tells which); records of other versions are not used."""
         found = [r for r in self.records.values() if r.get("cell_key") == key and r.get("version") == version]
-        own = [r for r in found if r.get("machine") == dict(machine)]
-        return max(own or found, key=lambda r: str(r.get("measured_at", ""))) if found else None
+        return _own_then_newest(found, machine) if found else None
 
     def nearest(self, cell: Cell, machine: Mapping[str, Any], version: str) -> tuple[dict[str, Any], dict] | None:
-        """For a trial cell with no record of its own: the record for `version` whose cell differs
-        from `cell` in hyperparameters only (fewest differing fields, this machine's first, then the
-        newest), and those differences (`hparam_differences`); None if there is none. Adding a
-        hyperparameter changes every cell's key, and this keeps the earlier measurements usable,
-        named as approximate, until `--calibrate` measures the exact cell."""
+        """The record for `version` of a trial cell whose content differs from `cell`'s in
+        hyperparameters only, with the fewest differing fields (none: the cell's own record, as
+        `find` gives it), this machine's first, then the newest; and those differences
+        (`hparam_differences`). None if there is none. Adding a hyperparameter changes every
+        cell's key, and this keeps the earlier measurements usable, named as approximate, until
+        `--calibrate` measures the exact cell."""
         if cell.kind != "train":
             return None
         rest = {k: v for k, v in cell.content.items() if k != "hparams"}
         found = []
         for r in self.records.values():
             content = r.get("cell", {})
-            if r.get("kind") != "train" or r.get("version") != version or not isinstance(content, dict):
-                continue
-            if {k: v for k, v in content.items() if k != "hparams"} != rest:
-                continue
-            diff = hparam_differences(content.get("hparams", {}), cell.content.get("hparams", {}))
-            found.append(((len(diff), r.get("machine") != dict(machine)), r, diff))
+            if r.get("kind") == "train" and r.get("version") == version:
+                if {k: v for k, v in content.items() if k != "hparams"} == rest:
+                    found.append((r, hparam_differences(content.get("hparams", {}), cell.content["hparams"])))
         if not found:
             return None
-        best = min(rank for rank, _, _ in found)
-        _, record, diff = max((f for f in found if f[0] == best), key=lambda f: str(f[1].get("measured_at", "")))
-        return record, diff
+        fewest = min(len(diff) for _, diff in found)
+        record = _own_then_newest([r for r, diff in found if len(diff) == fewest], machine)
+        return record, next(diff for r, diff in found if r is record)
 
     def has(self, key: str, machine: Mapping[str, Any], version: str) -> bool:
         """Whether cell `key` is measured on `machine` for `version`."""
@@ -254,6 +251,12 @@ class Store:
                     os.unlink(tmp)
                 raise
         self.records = current
+
+
+def _own_then_newest(found: list[dict[str, Any]], machine: Mapping[str, Any]) -> dict[str, Any]:
+    """This machine's newest record of `found` (not empty), else the newest of another machine's."""
+    own = [r for r in found if r.get("machine") == dict(machine)]
+    return max(own or found, key=lambda r: str(r.get("measured_at", "")))
 
 
 UNSET = "unset"  # a hyperparameter one side of a comparison does not have (added or removed since)

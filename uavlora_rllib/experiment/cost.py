@@ -106,9 +106,7 @@ def estimate(grid, specs, store: calibration.Store, machine: Mapping[str, Any], 
         if n == 0:
             continue
         cell = calibration.train_cell(spec, grid.resources)
-        record, differs = store.find(cell.key, machine, version), {}
-        if record is None:
-            record, differs = store.nearest(cell, machine, version) or (None, {})
+        record, differs = store.nearest(cell, machine, version) or (None, {})  # its own record first
         row = TrialCost(i, spec.name, n, cell, record, differs=differs)
         if record is not None:
             row.wall_s = trial_seconds(record, budget, interval, episodes)
