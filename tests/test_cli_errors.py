@@ -49,6 +49,15 @@ def test_bench_train_bad_input(capsys, argv, message):
     assert not ray.is_initialized()
 
 
+def test_bench_train_set_reads_values_as_the_grid_does():
+    """--set's own help example, lr=3e-4, is a number (PyYAML alone would read it as text)."""
+    assert bench_train._parse_set(["lr=3e-4", "share_actor=true", "actor_heads=shared"]) == {
+        "lr": 3e-4,
+        "share_actor": True,
+        "actor_heads": "shared",
+    }
+
+
 @pytest.mark.parametrize(
     "argv, message",
     [

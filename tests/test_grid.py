@@ -51,6 +51,14 @@ def run_cli(argv, capsys):
 
 
 # --------------------------------------------------------------------------- valid grids
+def test_exponent_without_a_dot_is_a_number(tmp_path):
+    """`lr: 3e-4` is a number, as in YAML 1.2 and Python (PyYAML alone reads it as text)."""
+    text = yaml.safe_dump(base_grid(tmp_path), sort_keys=False).replace("lr: 0.001", "lr: 3e-4")
+    assert "lr: 3e-4" in text
+    grid = load_grid(write(tmp_path, text))
+    assert {s.algorithm: getattr(s.hparams, "lr", None) for s in trials(grid)}["stock_ppo"] == pytest.approx(3e-4)
+
+
 def test_valid_grid_and_trial_product(tmp_path):
     grid = load_grid(write(tmp_path, base_grid(tmp_path)))
     specs = trials(grid)

@@ -24,13 +24,14 @@ import sys
 import yaml
 
 from uavlora_rllib.cli_args import SEED_MAX, Parser, UsageError, fail, int_in
+from uavlora_rllib.experiment.grid import UniqueKeyLoader
 
 T_MAX = 2_000_000
 
 
 def _parse_set(items: list[str]) -> dict:
-    """KEY=VALUE overrides, each VALUE read as YAML (so 1e-3 is a number, true a bool: the
-    hyperparameter class then refuses a bool for a number)."""
+    """KEY=VALUE overrides, each VALUE read as the grid YAML reads it (so 1e-3 is a number, true a
+    bool: the hyperparameter class then refuses a bool for a number)."""
     out = {}
     for item in items:
         key, sep, value = item.partition("=")
@@ -39,7 +40,7 @@ def _parse_set(items: list[str]) -> dict:
         if key in out:
             raise UsageError(f"--set: {key!r} given twice")
         try:
-            out[key] = yaml.safe_load(value)
+            out[key] = yaml.load(value, Loader=UniqueKeyLoader)  # noqa: S506 (SafeLoader)
         except yaml.YAMLError as exc:
             raise UsageError(f"--set: {key}: cannot read the value {value!r}: {str(exc).splitlines()[0]}") from None
     return out

@@ -322,6 +322,13 @@ class UniqueKeyLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep)
 
 
+# YAML 1.1 (PyYAML) reads `3e-4` as the text '3e-4' because its floats need a dot; YAML 1.2 and
+# Python read it as a number, and so does every reader of this project's YAML (grids, --set).
+UniqueKeyLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9][0-9_]*[eE][-+]?[0-9]+$"), list("-+0123456789")
+)
+
+
 def read_yaml_text(path: str, what: str) -> str:
     """The text of a YAML file as UTF-8; ConfigError '<path>: ...' if unreadable or not UTF-8."""
     try:
