@@ -16,12 +16,14 @@ from ray.rllib.core.columns import Columns
 
 from uavlora_rllib.algorithms.coma.branching import BRANCH_LOGP, BranchLayout, taken
 from uavlora_rllib.algorithms.coma.coma import COMAHParams
-from uavlora_rllib.algorithms.coma.coma_learner import SAMPLED_LOGP
+from uavlora_rllib.algorithms.coma.coma_learner import SAMPLED_LOGP, lambda_returns
 from uavlora_rllib.algorithms.coma.coma_module import (
     ACTIONS,
     BOOTSTRAP,
+    CRITIC_ROWS,
     LOGITS,
     OBS,
+    Q_ROWS,
     Q_TARGET,
     Q_VALUES,
     REWARDS,
@@ -167,6 +169,56 @@ def test_branch_critic_gradients_are_the_concatenated_mlps(hidden):
         grads.append({k: p.grad.clone() for k, p in c.named_parameters()})
     for k in grads[0]:
         torch.testing.assert_close(grads[0][k], grads[1][k], atol=1e-6, rtol=1e-5, msg=k)
+
+
+def test_critic_on_a_subset_of_rows_is_those_rows_of_the_whole_critic():
+    """critic(..., rows) gives the rows u L + l of the full [U, L, W] output, and a loss on them
+    the gradient of the same loss taken on the full output's rows, for every parameter."""
+    m = _module(critic_hidden=[32, 16])
+    c = m.critic
+    state, obs, actions = torch.randn(3, 4, STATE_DIM), torch.rand(3, 4, U, OBS_DIM), _actions(3, 4)
+    rows = torch.tensor([0, 3, L + 1, 2 * L + L - 1])  # (0, 0), (0, 3), (1, 1), (2, L - 1)
+    target = torch.randn(3, 4, len(rows), W)
+    grads = []
+    for q in (c(state, obs, actions, rows), m.row_values(c(state, obs, actions), rows, 2)):
+        assert q.shape == (3, 4, len(rows), W)
+        c.zero_grad()
+        ((q - target) ** 2).mean().backward()
+        grads.append({k: p.grad.clone() for k, p in c.named_parameters()})
+    torch.testing.assert_close(
+        c(state, obs, actions, rows), c(state, obs, actions)[:, :, [0, 0, 1, 2], [0, 3, 1, L - 1]]
+    )
+    for k in grads[0]:
+        torch.testing.assert_close(grads[0][k], grads[1][k], atol=1e-6, rtol=1e-5, msg=k)
+    assert grads[0]["out_weight"][2].abs().sum() == 0  # branch 2 is in none of the rows: no gradient
+
+
+def test_critic_branch_fraction_trains_a_random_subset_and_advises_from_all():
+    """critic_branch_fraction < 1: each draw is round(f U L) distinct sorted rows, different draws
+    differ; forward_train's Q_ROWS and targets are those rows of the full critic's, and Q_VALUES
+    (the advantage's) is every row without gradient. At 1 nothing is drawn and Q_ROWS is Q_VALUES."""
+    m = _module(critic_branch_fraction=0.25)
+    draws = [m.draw_critic_rows() for _ in range(20)]
+    k = round(0.25 * U * L)
+    for rows in draws:
+        assert rows.shape == (k,) and (rows.diff() > 0).all() and 0 <= rows.min() and rows.max() < U * L
+    assert len({tuple(r.tolist()) for r in draws}) > 1
+    batch = _batch()
+    torch.manual_seed(5)
+    out = m.forward_train(batch)
+    rows = out[CRITIC_ROWS]
+    assert out[Q_ROWS].shape == out[Q_TARGET].shape == (2, 4, k, W) and out[BOOTSTRAP].shape == (2, k)
+    assert out[Q_ROWS].requires_grad and not out[Q_VALUES].requires_grad
+    assert out[Q_VALUES].shape == (2, 4, U, L, W)
+    torch.testing.assert_close(out[Q_ROWS], m.row_values(out[Q_VALUES], rows, 2))
+    full = _module()  # the same seed, so the same parameters; every row
+    assert full.draw_critic_rows() is None
+    torch.manual_seed(5)
+    out_full = full.forward_train(batch)
+    assert out_full[CRITIC_ROWS] is None and out_full[Q_ROWS] is out_full[Q_VALUES]
+    torch.testing.assert_close(out[Q_VALUES], out_full[Q_VALUES].detach())
+    torch.testing.assert_close(out[Q_TARGET], m.row_values(out_full[Q_TARGET], rows, 2))
+    assert _module(critic_branch_fraction=1e-6).draw_critic_rows().shape == (1,)  # at least one row
 
 
 def test_counterfactual_baseline_equals_a_loop_over_branch_values():
@@ -338,18 +390,39 @@ def test_per_ed_heads_get_the_gradient_of_every_branch():
         entry.build(per_uav, hparams, registry.Resources(), 0)
 
 
-def test_critic_steps_lower_the_td_error(learner):
+@pytest.mark.parametrize("fraction", [1.0, 0.3])
+def test_critic_steps_lower_the_td_error(learner, fraction):
     from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 
     learner, scenario = learner
     module = learner.module[DEFAULT_MODULE_ID].unwrapped()
+    module.branch_fraction = fraction  # (the module's copy of critic_branch_fraction)
     batch = _learner_batch(module, scenario)
     multi = MultiAgentBatch({DEFAULT_MODULE_ID: SampleBatch({k: v.numpy() for k, v in batch.items()})}, env_steps=10)
-    learner.train_critic(multi)
-    first = float(learner.metrics.peek((DEFAULT_MODULE_ID, "critic_loss_before_joint_step")))
-    for _ in range(5):
+    hp, steps = learner.config.hparams, scenario.episode_len
+
+    def td_error() -> float:
+        """Over every row, whatever rows the steps train, against the TD(lambda) targets of the
+        target critic (which critic-only steps leave as it is; its bootstrap sample seeded)."""
+        torch.manual_seed(0)
+        with torch.no_grad():
+            fwd = module.forward_target({**batch, LOGITS: module.episode_logits(batch[OBS])})
+            targets = lambda_returns(
+                batch[REWARDS] * hp.reward_scale,
+                taken(fwd[Q_TARGET], batch[ACTIONS]),
+                fwd[BOOTSTRAP],
+                hp.gamma,
+                hp.td_lambda,
+            )
+            q = module.critic_q(module.critic, batch[GLOBAL_STATE][:, :steps], batch[OBS][:, :steps], batch[ACTIONS])
+            return float(((taken(q, batch[ACTIONS]) - targets) ** 2).mean())
+
+    before = td_error()
+    module.branch_fraction = fraction
+    for _ in range(6):
         learner.train_critic(multi)
-    assert float(learner.metrics.peek((DEFAULT_MODULE_ID, "critic_loss_before_joint_step"))) < first
+    module.branch_fraction = 1.0
+    assert td_error() < before
 
 
 # ------------------------------------------------------------------ registry and config

@@ -87,6 +87,8 @@ class BranchQCritic(nn.Module):
     offsets: torch.Tensor
     columns: torch.Tensor
     table_rows: torch.Tensor
+    row_agent: torch.Tensor
+    row_branch: torch.Tensor
 
     def __init__(
         self,
@@ -126,6 +128,9 @@ class BranchQCritic(nn.Module):
         # row of (u, l, c) in the flattened [U L W, H] table of `forward`: (u L + l) W + c
         table_rows = torch.arange(self.n_ids).reshape(self.n_agents, layout.n_branches) * layout.width
         self.register_buffer("table_rows", table_rows, persistent=False)  # [U, L]
+        # UAV and branch of each flat row u L + l
+        self.register_buffer("row_agent", torch.arange(self.n_ids) // layout.n_branches, persistent=False)
+        self.register_buffer("row_branch", torch.arange(self.n_ids) % layout.n_branches, persistent=False)
 
     def inputs(self, state: torch.Tensor, obs: torch.Tensor | None, actions: torch.Tensor) -> torch.Tensor:
         """The concatenated rows x_{u,l} [..., U, L, in_dim] (what `forward` computes without
@@ -148,15 +153,19 @@ class BranchQCritic(nn.Module):
             parts.append(obs[..., :, None, :].expand(*lead, u_n, l_n, self.obs_dim))
         return torch.cat(parts, dim=-1)
 
-    def forward(self, state: torch.Tensor, obs: torch.Tensor | None, actions: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self, state: torch.Tensor, obs: torch.Tensor | None, actions: torch.Tensor, rows: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """state [..., S], obs [..., U, obs_dim] (None without obs_dim), actions [..., U, L] ->
-        Q [..., U, L, W] (padding entries 0).
+        Q [..., U, L, W] (padding entries 0); with `rows` (flat indices u L + l, [K]) only those
+        rows, [..., K, W] (what a critic step on a subset of the rows needs, `COMAHParams.critic_branch_fraction`).
 
         The first layer as in the class docstring, in one gather: the joint term (state and the
         whole joint action, a [..., H] per step) plus table[u, l, a_{u,l}], where
         table[u, l, c] = W[:, (u, l)] - W[:, (u, l, c)] is what row (u, l) differs by when a_{u,l} = c.
-        The U L rows are laid out branch-major ([L, ..., U, H]) so the per-branch output layers are one
-        batched matrix product, and the hidden layers run in place on one [rows, H] buffer."""
+        The rows lead the layout ([U, L, ..., H], or [K, ..., H]) so that the per-branch output
+        layers are one batched matrix product (each row's branch picks its layer) and the hidden
+        layers run in place on one [rows, H] buffer."""
         w, s_dim, n_act = self.first.weight, self.state_dim, self.n_onehot
         u_n, l_n, hid = self.n_agents, self.layout.n_branches, w.shape[0]
         lead = actions.shape[:-2]
@@ -167,19 +176,28 @@ class BranchQCritic(nn.Module):
         onehot = torch.zeros(*lead, n_act, device=actions.device, dtype=w.dtype)
         onehot.scatter_(-1, (actions + self.offsets).flatten(-2), 1.0)
         joint = nn.functional.linear(state, w[:, :s_dim], self.first.bias) + onehot @ w_act  # [..., H]
-        z = nn.functional.embedding((self.table_rows + actions).movedim(-1, 0), table)  # [L, ..., U, H]
-        z += joint.unsqueeze(-2)
+        index = self.table_rows + actions  # [..., U, L]: row (u, l)'s table entry
+        if rows is None:  # all rows, as [U, L, ..., H]: u's own term broadcasts over its branches
+            branch = self.row_branch
+            z = nn.functional.embedding(index.movedim(-2, 0).movedim(-1, 1), table)
+        else:
+            branch = self.row_branch[rows]
+            z = nn.functional.embedding(index.flatten(-2)[..., rows].movedim(-1, 0), table)  # [K, ..., H]
+        z += joint
         if self.obs_dim:
             assert obs is not None  # (obs_dim > 0)
-            z += nn.functional.linear(obs, w[:, s_dim + n_act + self.n_ids :])
+            own = nn.functional.linear(obs, w[:, s_dim + n_act + self.n_ids :]).movedim(-2, 0)  # [U, ..., H]
+            z += own.unsqueeze(1) if rows is None else own[self.row_agent[rows]]
         h = z.relu_().view(-1, hid)  # the body's first module (its ReLU), in place
         for layer in list(self.body)[1:]:
             h = layer(h) if isinstance(layer, nn.Linear) else h.relu_()
-        y = torch.baddbmm(self.out_bias[:, None, :], h.view(l_n, -1, h.shape[-1]), self.out_weight)
-        y = y.view(l_n, *lead, u_n, -1).movedim(0, -2)  # [..., U, L, n_out]
-        valid = self.layout.valid
-        if not self.dueling:
-            return y.masked_fill(~valid, 0.0)
-        value, diff = y[..., :1], y[..., 1:].masked_fill(~valid, 0.0)
-        mean = diff.sum(-1, keepdim=True) / self.layout.sizes[:, None]
-        return (value + diff - mean).masked_fill(~valid, 0.0)
+        k = branch.shape[0]
+        y = torch.baddbmm(self.out_bias[branch, None, :], h.view(k, -1, h.shape[-1]), self.out_weight[branch])
+        y = y.view(k, *lead, -1).movedim(0, -2)  # [..., K, n_out]
+        valid = self.layout.valid[branch]  # [K, W]
+        if self.dueling:
+            value, diff = y[..., :1], y[..., 1:].masked_fill(~valid, 0.0)
+            mean = diff.sum(-1, keepdim=True) / self.layout.sizes[branch, None]
+            y = value + diff - mean
+        y = y.masked_fill(~valid, 0.0)
+        return y if rows is not None else y.view(*lead, u_n, l_n, -1)

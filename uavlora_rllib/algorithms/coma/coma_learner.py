@@ -23,7 +23,8 @@ the batch is off-policy, so the actor term becomes PPO's clipped surrogate
 min(r A, clip(r, 1 -+ ratio_clip) A) with r = pi_u / pi_u,sampling per UAV and step (gradient
 A grad log pi at r = 1, as COMA's); the critic's targets are recomputed each update.
 per_device (branching.py, docs/model.md#coma-per-device): every branch l of every UAV u is a row
-of its own: the critic loss over all rows (u, l), A_t,u,l with the baseline over pi_u,l, the
+of its own: the critic loss over all rows (u, l) (with critic_branch_fraction < 1 over a random
+subset of them, drawn per update), A_t,u,l with the baseline over pi_u,l, the
 actor loss -mean_{b,t,u} sum_l A_t,u,l log pi_u,l(a_t,u,l), the entropy of the product policy
 (summed over a UAV's branches) and, when the batch is reused, one clipped ratio per branch.
 Counters (`updates`: warm-up, hard-update period) restart at 0 after a checkpoint restore.
@@ -44,8 +45,10 @@ from uavlora_rllib.algorithms.coma.branching import BRANCH_LOGP, taken
 from uavlora_rllib.algorithms.coma.coma_module import (
     ACTIONS,
     BOOTSTRAP,
+    CRITIC_ROWS,
     LOGITS,
     OBS,
+    Q_ROWS,
     Q_TARGET,
     Q_VALUES,
     REWARDS,
@@ -115,16 +118,18 @@ class COMATorchLearner(TargetNetworkLearner):
             module = self.module[module_id].unwrapped()
             cols = {k: torch.as_tensor(np.asarray(v)).to(self.device) for k, v in columns.items()}
             actions = cols[ACTIONS].long()
+            rows = module.draw_critic_rows()  # this update's critic rows (None: all)
+            row_actions = module.row_values(actions, rows)
             with torch.no_grad():  # the target critic's side only: the critic itself is evaluated per step below
-                fwd = module.forward_target({**cols, LOGITS: module.episode_logits(cols[OBS])})
-                q_target_taken = taken(fwd[Q_TARGET], actions)
+                fwd = module.forward_target({**cols, LOGITS: module.episode_logits(cols[OBS]), CRITIC_ROWS: rows})
+                q_target_taken = taken(fwd[Q_TARGET], row_actions)
                 targets = lambda_returns(
                     cols[REWARDS] * hp.reward_scale, q_target_taken, fwd[BOOTSTRAP], hp.gamma, hp.td_lambda
                 )
             obs, state = cols[OBS][:, : actions.shape[1]], cols[GLOBAL_STATE][:, : actions.shape[1]]
             for _ in range(hp.critic_steps):
-                q = module.critic_q(module.critic, state, obs, actions)
-                loss = ((taken(q, actions) - targets) ** 2).mean()
+                q = module.critic_q(module.critic, state, obs, actions, rows)
+                loss = ((taken(q, row_actions) - targets) ** 2).mean()
                 grads = self.compute_gradients({module_id: loss})
                 self.apply_gradients(self.postprocess_gradients({k: g for k, g in grads.items() if g is not None}))
             self.metrics.log_value((module_id, "critic_loss_before_joint_step"), loss.detach(), window=1)
@@ -150,11 +155,13 @@ class COMATorchLearner(TargetNetworkLearner):
         steps = actions.shape[1]
         module = self.module[module_id].unwrapped()
         # [B, T, U, A] (per_uav) or [B, T, U, L, W] (per_device: one row per branch of a UAV)
-        q, q_target = fwd_out[Q_VALUES], fwd_out[Q_TARGET]
-        # Critic: TD(lambda) targets from the target critic.
-        q_target_taken = taken(q_target, actions)  # [B, T, U] or [B, T, U, L]
+        q = fwd_out[Q_VALUES]
+        # Critic: TD(lambda) targets from the target critic, on the rows it trains (all, or per_device
+        # the update's random subset: Q_ROWS, Q_TARGET [B, T, K, W])
+        row_actions = module.row_values(actions, fwd_out[CRITIC_ROWS])
+        q_target_taken = taken(fwd_out[Q_TARGET], row_actions)  # [B, T, U], [B, T, U, L] or [B, T, K]
         targets = lambda_returns(rewards, q_target_taken, fwd_out[BOOTSTRAP], hp.gamma, hp.td_lambda).detach()
-        q_taken = taken(q, actions)
+        q_taken = taken(fwd_out[Q_ROWS], row_actions)
         critic_loss = ((q_taken - targets) ** 2).mean()
         # Actor: counterfactual advantage with the (detached) critic, per UAV (per branch).
         logits = fwd_out[LOGITS][:, :steps]  # [B, T, U, n_logits]

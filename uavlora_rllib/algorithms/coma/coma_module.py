@@ -57,6 +57,11 @@ LOGITS = "coma_logits"  # [B, T + 1, U, A] actor logits (the last step only for 
 Q_VALUES = "coma_q"  # [B, T, U, A] critic: Q_u(s_t, a_t,-u, .)
 Q_TARGET = "coma_q_target"  # [B, T, U, A] target critic, same inputs
 BOOTSTRAP = "coma_bootstrap"  # [B, U] target-critic value of the final state, expectation under pi_u
+# The critic rows whose TD loss a step trains (per_device with critic_branch_fraction < 1): their flat
+# indices u L + l [K], and the critic's Q on them with gradient [B, T, K, W]. Q_TARGET and BOOTSTRAP are
+# then on these rows only ([B, T, K, W], [B, K]), Q_VALUES on all rows without gradient (the advantage).
+CRITIC_ROWS = "coma_critic_rows"
+Q_ROWS = "coma_q_rows"
 
 
 # ------------------------------------------------------------------ pure maths (tested by hand)
@@ -306,6 +311,7 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
             )
         self.state_dim = int(mc["state_dim"])
         self.use_obs = bool(mc["critic_use_obs"])
+        self.branch_fraction = float(mc["critic_branch_fraction"])
         self.head = ActionHead(nvec[0].tolist())
         self.layout = BranchLayout(self.head.nvec)
         self.actor = make_actor(
@@ -351,13 +357,13 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
         per_device: the same per branch, Q [B, T, U, L, W] and the bootstrap [B, U, L], every
         branch of every UAV sampled at o_T and branch l of u averaged over pi_{u,l}."""
         obs, actions, state = batch[OBS], batch[ACTIONS].long(), batch[GLOBAL_STATE]
-        steps = actions.shape[1]
-        q_target = self.critic_q(self.target_critic, state[:, :steps], obs[:, :steps], actions)
+        steps, rows = actions.shape[1], batch.get(CRITIC_ROWS)
+        q_target = self.critic_q(self.target_critic, state[:, :steps], obs[:, :steps], actions, rows)
         if self.per_device:
             logits_last = batch[LOGITS][:, steps]  # [B, U, sum(row)]
             a_last, _ = self.head.sample(logits_last)  # [B, U, L]
-            pi_last = self.layout.log_probs(logits_last).exp()  # [B, U, L, W]
-            q_last = self.critic_q(self.target_critic, state[:, steps], obs[:, steps], a_last)
+            pi_last = self.row_values(self.layout.log_probs(logits_last).exp(), rows, 2)  # [B, U, L, W] or [B, K, W]
+            q_last = self.critic_q(self.target_critic, state[:, steps], obs[:, steps], a_last, rows)
             return {Q_TARGET: q_target, BOOTSTRAP: (pi_last * q_last).sum(-1)}
         pi_last = torch.softmax(batch[LOGITS][:, steps], dim=-1)  # [B, U, A]
         a_last = torch.distributions.Categorical(probs=pi_last).sample()  # [B, U]
@@ -365,16 +371,43 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
         return {Q_TARGET: q_target, BOOTSTRAP: (pi_last * q_last).sum(-1)}
 
     # -- learner
-    def critic_q(self, net: nn.Module, state: torch.Tensor, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """Q [..., U, A] (per_uav) or [..., U, L, W] (per_device) of the critic `net` (or its target)."""
+    def critic_q(
+        self,
+        net: nn.Module,
+        state: torch.Tensor,
+        obs: torch.Tensor,
+        actions: torch.Tensor,
+        rows: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Q [..., U, A] (per_uav) or [..., U, L, W] (per_device) of the critic `net` (or its target);
+        per_device with `rows` (flat u L + l, [K]): those rows only, [..., K, W]."""
         if self.per_device:
-            return net(state, obs if self.use_obs else None, actions)
+            return net(state, obs if self.use_obs else None, actions, rows)
+        assert rows is None, "per_uav critics evaluate every UAV's row"
         obs_in = obs if self.use_obs else None
         assert isinstance(net, QHead)
         if net.first is None or self.n_agents == 1:
             return net(critic_inputs(state, obs_in, actions, self.n_actions, self.factors))
         factor_map = net.factor_map if self.factors else None
         return net.after_first(first_layer_of_rows(net.first, state, obs_in, actions, self.n_actions, factor_map))
+
+    def draw_critic_rows(self) -> torch.Tensor | None:
+        """The (UAV, branch) rows, flat u L + l sorted, [K], whose TD loss the next update trains:
+        round(critic_branch_fraction U L) of them drawn without replacement (at least one); None
+        (every row) at fraction 1 or per_uav. Every row is the same Q(s, a) at its taken value,
+        so a random subset is an unbiased minibatch of the critic's loss over the rows."""
+        if not self.per_device or self.branch_fraction >= 1.0:
+            return None
+        n_rows = self.n_agents * self.layout.n_branches
+        k = max(1, round(self.branch_fraction * n_rows))
+        return torch.randperm(n_rows)[:k].sort().values.to(self.layout.valid.device)
+
+    def row_values(self, x: torch.Tensor, rows: torch.Tensor | None, trailing: int = 1) -> torch.Tensor:
+        """x [..., U, L, *tail] (tail of `trailing` - 1 axes) at the critic rows: [..., K, *tail];
+        x itself when rows is None."""
+        if rows is None:
+            return x
+        return x.flatten(-1 - trailing, -trailing)[(..., rows) + (slice(None),) * (trailing - 1)]
 
     def policy_terms(
         self, logits: torch.Tensor, actions: torch.Tensor
@@ -417,7 +450,14 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
         obs, actions, state = batch[OBS], batch[ACTIONS].long(), batch[GLOBAL_STATE]
         steps = actions.shape[1]
         logits = self.episode_logits(obs)
-        q = self.critic_q(self.critic, state[:, :steps], obs[:, :steps], actions)
+        state, obs_t = state[:, :steps], obs[:, :steps]
+        rows = self.draw_critic_rows()
+        if rows is None:  # every row: one pass serves the critic's loss and (detached) the advantage
+            q = q_rows = self.critic_q(self.critic, state, obs_t, actions)
+        else:
+            with torch.no_grad():
+                q = self.critic_q(self.critic, state, obs_t, actions)
+            q_rows = self.critic_q(self.critic, state, obs_t, actions, rows)
         with torch.no_grad():
-            target = self.forward_target({**batch, LOGITS: logits})
-        return {LOGITS: logits, Q_VALUES: q, **target}
+            target = self.forward_target({**batch, LOGITS: logits, CRITIC_ROWS: rows})
+        return {LOGITS: logits, Q_VALUES: q, Q_ROWS: q_rows, CRITIC_ROWS: rows, **target}

@@ -75,6 +75,13 @@ class COMAHParams:
     critic_dueling: bool = Field(
         default=True, description="Q = V + (D - mean D) head: untried actions start at the state's value [bool]"
     )
+    critic_branch_fraction: float = Field(
+        default=1.0,
+        gt=0,
+        le=1,
+        description="per_device: share of the critic's (UAV, branch) rows whose TD loss each update trains, drawn "
+        "at random per update [-]; the advantage always reads every row (docs/model.md#coma-per-device); 1: all",
+    )
     critic_steps: int = Field(
         default=4,
         ge=0,
