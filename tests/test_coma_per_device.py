@@ -16,7 +16,7 @@ from ray.rllib.core.columns import Columns
 
 from uavlora_rllib.algorithms.coma.branching import BRANCH_LOGP, BranchLayout, taken
 from uavlora_rllib.algorithms.coma.coma import COMAHParams
-from uavlora_rllib.algorithms.coma.coma_learner import SAMPLED_LOGP, lambda_returns
+from uavlora_rllib.algorithms.coma.coma_learner import SAMPLED_LOGP, critic_targets, lambda_returns
 from uavlora_rllib.algorithms.coma.coma_module import (
     ACTIONS,
     BOOTSTRAP,
@@ -219,6 +219,27 @@ def test_critic_branch_fraction_trains_a_random_subset_and_advises_from_all():
     torch.testing.assert_close(out[Q_VALUES], out_full[Q_VALUES].detach())
     torch.testing.assert_close(out[Q_TARGET], m.row_values(out_full[Q_TARGET], rows, 2))
     assert _module(critic_branch_fraction=1e-6).draw_critic_rows().shape == (1,)  # at least one row
+
+
+@pytest.mark.parametrize("fraction", [1.0, 0.4])
+def test_at_gamma_zero_the_targets_are_the_rewards_without_the_target_critic(fraction):
+    """gamma 0: forward_train leaves the target critic out, and critic_targets gives what TD(lambda)
+    from the target critic gives at gamma 0 (the rewards), on every row or the drawn ones."""
+    batch = _batch()
+    m = _module(gamma=0.0, critic_branch_fraction=fraction)
+    out = m.forward_train(batch)
+    assert Q_TARGET not in out and BOOTSTRAP not in out
+    row_actions = m.row_values(batch[ACTIONS], out[CRITIC_ROWS])
+    with_target = _module(gamma=0.5, critic_branch_fraction=fraction).forward_target(
+        {**batch, LOGITS: m.episode_logits(batch[OBS]), CRITIC_ROWS: out[CRITIC_ROWS]}
+    )
+    want = lambda_returns(batch[REWARDS], taken(with_target[Q_TARGET], row_actions), with_target[BOOTSTRAP], 0.0, 0.8)
+    got = critic_targets(batch[REWARDS], out, row_actions, 0.0, 0.8)
+    assert got.shape == row_actions.shape
+    torch.testing.assert_close(got, want)
+    torch.testing.assert_close(
+        got[:, :, 0], batch[REWARDS] if fraction < 1 else batch[REWARDS][..., None].expand(2, 4, L)
+    )
 
 
 def test_counterfactual_baseline_equals_a_loop_over_branch_values():

@@ -8,6 +8,7 @@ zero state (exactly what the env runner did while sampling), so no sequence leng
 
 One update on a batch (on-policy; `updates_per_iteration` > 1 reuses the batch, see below):
   critic loss  = mean_{b,t,u} (Q_u(s_t, a_t,-u)[a_t,u] - G^lambda_t,u)^2, G from the TARGET critic
+                 (at gamma 0, G_t = r_t: the target critic is then not evaluated, `critic_targets`)
   actor loss   = -mean_{b,t,u} A_t,u log pi_u(a_t,u | tau_t,u) - entropy_coeff * mean entropy,
                  A_t,u = Q_u(s_t, a_t)[a_t,u] - sum_a' pi_u(a' | tau_t,u) Q_u(s_t, (a_t,-u, a'))
 Order within one update: first `critic_steps` (default 4) critic-only Adam steps on the batch
@@ -73,6 +74,18 @@ def lambda_returns(
     return out.view_as(q_target_taken)
 
 
+def critic_targets(
+    rewards: torch.Tensor, fwd: dict[str, Any], row_actions: torch.Tensor, gamma: float, lam: float
+) -> torch.Tensor:
+    """The critic's TD(lambda) targets [B, T, *rows] at the taken values `row_actions` [B, T, *rows],
+    from the target critic's outputs in `fwd` (Q_TARGET, BOOTSTRAP). At gamma 0 every target is the
+    step's reward, exactly what `lambda_returns` gives then, and the target critic is not evaluated
+    (the module leaves Q_TARGET out): the per_device grids train at gamma 0."""
+    if gamma == 0.0:
+        return rewards[(...,) + (None,) * (row_actions.dim() - 2)].expand(row_actions.shape)
+    return lambda_returns(rewards, taken(fwd[Q_TARGET], row_actions), fwd[BOOTSTRAP], gamma, lam)
+
+
 def episode_batch(episodes: list) -> dict[str, np.ndarray]:
     """B complete episodes of one length T -> the train batch's columns (see the module docstring)."""
     if not episodes:
@@ -121,11 +134,10 @@ class COMATorchLearner(TargetNetworkLearner):
             rows = module.draw_critic_rows()  # this update's critic rows (None: all)
             row_actions = module.row_values(actions, rows)
             with torch.no_grad():  # the target critic's side only: the critic itself is evaluated per step below
-                fwd = module.forward_target({**cols, LOGITS: module.episode_logits(cols[OBS]), CRITIC_ROWS: rows})
-                q_target_taken = taken(fwd[Q_TARGET], row_actions)
-                targets = lambda_returns(
-                    cols[REWARDS] * hp.reward_scale, q_target_taken, fwd[BOOTSTRAP], hp.gamma, hp.td_lambda
-                )
+                fwd = {}
+                if hp.gamma > 0.0:
+                    fwd = module.forward_target({**cols, LOGITS: module.episode_logits(cols[OBS]), CRITIC_ROWS: rows})
+                targets = critic_targets(cols[REWARDS] * hp.reward_scale, fwd, row_actions, hp.gamma, hp.td_lambda)
             obs, state = cols[OBS][:, : actions.shape[1]], cols[GLOBAL_STATE][:, : actions.shape[1]]
             for _ in range(hp.critic_steps):
                 q = module.critic_q(module.critic, state, obs, actions, rows)
@@ -159,8 +171,8 @@ class COMATorchLearner(TargetNetworkLearner):
         # Critic: TD(lambda) targets from the target critic, on the rows it trains (all, or per_device
         # the update's random subset: Q_ROWS, Q_TARGET [B, T, K, W])
         row_actions = module.row_values(actions, fwd_out[CRITIC_ROWS])
-        q_target_taken = taken(fwd_out[Q_TARGET], row_actions)  # [B, T, U], [B, T, U, L] or [B, T, K]
-        targets = lambda_returns(rewards, q_target_taken, fwd_out[BOOTSTRAP], hp.gamma, hp.td_lambda).detach()
+        # [B, T, U], [B, T, U, L] or [B, T, K]
+        targets = critic_targets(rewards, fwd_out, row_actions, hp.gamma, hp.td_lambda).detach()
         q_taken = taken(fwd_out[Q_ROWS], row_actions)
         critic_loss = ((q_taken - targets) ** 2).mean()
         # Actor: counterfactual advantage with the (detached) critic, per UAV (per branch).

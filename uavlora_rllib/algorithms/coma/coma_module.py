@@ -270,6 +270,7 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
         mc = self.model_config
         set_torch_threads(mc["torch_threads"])
         self.n_agents, self.obs_dim = self.observation_space.shape
+        self.gamma = float(mc["gamma"])  # 0: the critic's target is the reward, the target critic unread
         nvec = np.asarray(self.action_space.nvec)
         self.per_device = nvec.ndim == 2
         if self.per_device:
@@ -458,6 +459,8 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
             with torch.no_grad():
                 q = self.critic_q(self.critic, state, obs_t, actions)
             q_rows = self.critic_q(self.critic, state, obs_t, actions, rows)
-        with torch.no_grad():
-            target = self.forward_target({**batch, LOGITS: logits, CRITIC_ROWS: rows})
+        target = {}
+        if self.gamma > 0.0:  # (at gamma 0 the TD target is the reward: coma_learner.critic_targets)
+            with torch.no_grad():
+                target = self.forward_target({**batch, LOGITS: logits, CRITIC_ROWS: rows})
         return {LOGITS: logits, Q_VALUES: q, Q_ROWS: q_rows, CRITIC_ROWS: rows, **target}
