@@ -133,11 +133,9 @@ class COMATorchLearner(TargetNetworkLearner):
             actions = cols[ACTIONS].long()
             rows = module.draw_critic_rows()  # this update's critic rows (None: all)
             row_actions = module.row_values(actions, rows)
-            with torch.no_grad():  # the target critic's side only: the critic itself is evaluated per step below
-                fwd = {}
-                if hp.gamma > 0.0:
-                    fwd = module.forward_target({**cols, LOGITS: module.episode_logits(cols[OBS]), CRITIC_ROWS: rows})
-                targets = critic_targets(cols[REWARDS] * hp.reward_scale, fwd, row_actions, hp.gamma, hp.td_lambda)
+            # the target critic's side only (fixed for the batch): the critic itself is evaluated per step below
+            fwd = module.target_terms({**cols, CRITIC_ROWS: rows})
+            targets = critic_targets(cols[REWARDS] * hp.reward_scale, fwd, row_actions, hp.gamma, hp.td_lambda)
             obs, state = cols[OBS][:, : actions.shape[1]], cols[GLOBAL_STATE][:, : actions.shape[1]]
             for _ in range(hp.critic_steps):
                 q = module.critic_q(module.critic, state, obs, actions, rows)

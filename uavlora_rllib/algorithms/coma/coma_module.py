@@ -392,6 +392,16 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
         factor_map = net.factor_map if self.factors else None
         return net.after_first(first_layer_of_rows(net.first, state, obs_in, actions, self.n_actions, factor_map))
 
+    def target_terms(self, batch: dict[str, Any], logits: torch.Tensor | None = None) -> dict[str, Any]:
+        """forward_target's outputs without gradient (the actor's episode logits computed here unless
+        given), or {} at gamma 0: every TD target is then the reward (coma_learner.critic_targets)
+        and the target critic is never read."""
+        if self.gamma == 0.0:
+            return {}
+        with torch.no_grad():
+            logits = self.episode_logits(batch[OBS]) if logits is None else logits
+            return self.forward_target({**batch, LOGITS: logits})
+
     def draw_critic_rows(self) -> torch.Tensor | None:
         """The (UAV, branch) rows, flat u L + l sorted, [K], whose TD loss the next update trains:
         round(critic_branch_fraction U L) of them drawn without replacement (at least one); None
@@ -459,8 +469,5 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
             with torch.no_grad():
                 q = self.critic_q(self.critic, state, obs_t, actions)
             q_rows = self.critic_q(self.critic, state, obs_t, actions, rows)
-        target = {}
-        if self.gamma > 0.0:  # (at gamma 0 the TD target is the reward: coma_learner.critic_targets)
-            with torch.no_grad():
-                target = self.forward_target({**batch, LOGITS: logits, CRITIC_ROWS: rows})
+        target = self.target_terms({**batch, CRITIC_ROWS: rows}, logits)
         return {LOGITS: logits, Q_VALUES: q, Q_ROWS: q_rows, CRITIC_ROWS: rows, **target}
