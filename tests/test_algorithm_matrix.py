@@ -228,3 +228,28 @@ def test_learning_rates_are_bounded(name):
     for field in lr_fields:
         with pytest.raises(ConfigError, match=f"algorithms.{name}.{field}"):
             entry.hparams({field: 1e300})
+
+
+@pytest.mark.parametrize("name, mode", CASES, ids=IDS)
+def test_a_config_from_before_a_field_existed_gets_its_default(name, mode):
+    """A checkpoint's config holds the model_config of its day; a field added since (none of them
+    here) reads as its typed default, which by convention is the former behaviour, and the module
+    builds from it, while a field the trial set keeps its value (HParamsConfig._model_config_auto_includes)."""
+    import dataclasses
+
+    from uavlora_rllib.envs.team import team_action_space, team_observation_space
+
+    scenario = TINY.replace(action_mode=mode)
+    entry, config = _build(name, scenario)
+    defaults = dataclasses.asdict(entry.hparams_cls())
+    for field in defaults:
+        del config._model_config[field]  # as if every field were newer than the checkpoint
+    assert {k: config.model_config[k] for k in defaults} == defaults
+    spec = config.get_default_rl_module_spec()
+    spec.observation_space, spec.action_space = team_observation_space(scenario), team_action_space(scenario)
+    spec.model_config = config.model_config
+    module = spec.build()
+    assert sum(p.numel() for p in module.parameters()) > 0
+    field = next(f for f, v in defaults.items() if isinstance(v, bool))
+    config._model_config[field] = not defaults[field]
+    assert config.model_config[field] is (not defaults[field])

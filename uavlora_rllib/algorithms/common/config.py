@@ -57,6 +57,15 @@ class HParamsConfig(abc.ABC):
     def get_default_rl_module_spec(self) -> RLModuleSpec:
         return RLModuleSpec(module_class=self.module_class)
 
+    @property
+    @override(AlgorithmConfig)
+    def _model_config_auto_includes(self) -> dict[str, Any]:
+        """The typed class's defaults, under the model_config a trial sets (`uavlora`): a config
+        restored from a checkpoint made before a field existed gets that field's default, which by
+        convention is the former behaviour, so the module can still read every setting as
+        `model_config[name]` (RLlib merges these under `_model_config`, as PPOConfig does)."""
+        return {**super()._model_config_auto_includes, **dataclasses.asdict(self.hparams_cls())}  # type: ignore[misc]
+
     @override(AlgorithmConfig)
     def get_default_learner_class(self) -> type:
         return self.learner_class

@@ -144,9 +144,9 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
             int(mc["hypernet_embed_dim"]),
             state_bias=bool(mc["state_bias"]),
         )
-        # The running reward standardiser of the TD targets (`reward_norm`), read by the learner only; a
-        # checkpoint from before the option has no entry for it and had none.
-        self.reward_norm = ValueNorm() if bool(mc.get("reward_norm", False)) else None
+        # The running reward standardiser of the TD targets (`reward_norm`), read by the learner only (a
+        # checkpoint from before the option gets its default, off: HParamsConfig._model_config_auto_includes)
+        self.reward_norm = ValueNorm() if bool(mc["reward_norm"]) else None
         self._eps = (float(mc["epsilon_start"]), float(mc["epsilon_end"]), float(mc["epsilon_anneal_env_steps"]))
 
     def _make_agent(self) -> nn.Module:
