@@ -38,7 +38,7 @@ from uavlora_rllib.sim.scenario import ScenarioConfig
 
 torch.set_num_threads(1)
 
-U, OBS_DIM, STATE_DIM = 3, 11, 11  # obs: 2 ED rows of 4 + 3 (sim/observation.py)
+U, OBS_DIM, STATE_DIM = 3, 7, 11
 ROW = [3, 2, 3, 2, 2]  # [n_sf, n_tp] * 2 slots + [n_bw], small sizes
 L, W = len(ROW), max(ROW)
 
@@ -114,17 +114,15 @@ def test_branch_log_probs_are_the_action_heads():
 
 
 # ------------------------------------------------------------------ the critic
-@pytest.mark.parametrize("ed_rows", [False, True])
-def test_branch_critic_is_an_mlp_on_its_concatenated_rows(ed_rows):
+def test_branch_critic_is_an_mlp_on_its_concatenated_rows():
     """forward (first layer as sums of columns) equals the MLP on the concatenated rows
-    [s, one-hot of all branches with (u, l) left out, one-hot (u, l), o_u (, ED row block)]; row
-    (u, l) never sees a_{u,l} and sees every other branch of every UAV."""
-    m = _module(critic_ed_rows=ed_rows)
+    [s, one-hot of all branches with (u, l) left out, one-hot (u, l), o_u]; row (u, l) never sees
+    a_{u,l} and sees every other branch of every UAV."""
+    m = _module()
     c = m.critic
     state, obs, actions = torch.randn(4, STATE_DIM), torch.rand(4, U, OBS_DIM), _actions(4)
     x = c.inputs(state, obs, actions)  # [4, U, L, in]
-    n_ed = 8 if ed_rows else 0
-    assert x.shape == (4, U, L, STATE_DIM + U * sum(ROW) + U * L + OBS_DIM + n_ed) == (4, U, L, c.in_dim)
+    assert x.shape == (4, U, L, STATE_DIM + U * sum(ROW) + U * L + OBS_DIM) == (4, U, L, c.in_dim)
     # each row: the other U L - 1 branches one-hot, plus the one-hot of (u, l)
     block = x[..., STATE_DIM : STATE_DIM + U * sum(ROW)]
     assert (block.sum(-1) == U * L - 1).all()
@@ -150,11 +148,11 @@ def test_branch_critic_is_an_mlp_on_its_concatenated_rows(ed_rows):
                 assert not torch.allclose(q2[:, u, sibling], q[:, u, sibling])  # and u's other branches
 
 
-@pytest.mark.parametrize("hidden, ed_rows", [([32], False), ([32, 16], False), ([32, 16], True)])
-def test_branch_critic_gradients_are_the_concatenated_mlps(hidden, ed_rows):
+@pytest.mark.parametrize("hidden", [[32], [32, 16]])
+def test_branch_critic_gradients_are_the_concatenated_mlps(hidden):
     """The in-place, branch-major forward has the gradients of the plain MLP on the concatenated
     rows, for every parameter."""
-    m = _module(critic_hidden=hidden, critic_ed_rows=ed_rows)
+    m = _module(critic_hidden=hidden)
     c = m.critic
     state, obs, actions = torch.randn(3, 4, STATE_DIM), torch.rand(3, 4, U, OBS_DIM), _actions(3, 4)
     target = torch.randn(3, 4, U, L, W)
@@ -173,11 +171,10 @@ def test_branch_critic_gradients_are_the_concatenated_mlps(hidden, ed_rows):
         torch.testing.assert_close(grads[0][k], grads[1][k], atol=1e-6, rtol=1e-5, msg=k)
 
 
-@pytest.mark.parametrize("ed_rows", [False, True])
-def test_critic_on_a_subset_of_rows_is_those_rows_of_the_whole_critic(ed_rows):
+def test_critic_on_a_subset_of_rows_is_those_rows_of_the_whole_critic():
     """critic(..., rows) gives the rows u L + l of the full [U, L, W] output, and a loss on them
     the gradient of the same loss taken on the full output's rows, for every parameter."""
-    m = _module(critic_hidden=[32, 16], critic_ed_rows=ed_rows)
+    m = _module(critic_hidden=[32, 16])
     c = m.critic
     state, obs, actions = torch.randn(3, 4, STATE_DIM), torch.rand(3, 4, U, OBS_DIM), _actions(3, 4)
     rows = torch.tensor([0, 3, L + 1, 2 * L + L - 1])  # (0, 0), (0, 3), (1, 1), (2, L - 1)
@@ -194,30 +191,6 @@ def test_critic_on_a_subset_of_rows_is_those_rows_of_the_whole_critic(ed_rows):
     for k in grads[0]:
         torch.testing.assert_close(grads[0][k], grads[1][k], atol=1e-6, rtol=1e-5, msg=k)
     assert grads[0]["out_weight"][2].abs().sum() == 0  # branch 2 is in none of the rows: no gradient
-
-
-def test_critic_ed_rows_give_each_slots_rows_its_own_ed():
-    """With critic_ed_rows (and without o_u, so the ED row is the only path) changing the ED row
-    of UAV u's slot k moves exactly the SF and TP rows of (u, k): not u's other slot, not its BW
-    row, not another UAV's rows; the SF and TP rows read it through different weights. Without
-    the switch nothing moves."""
-    state, obs, actions = torch.randn(5, STATE_DIM), torch.rand(5, U, OBS_DIM) * 2 - 1, _actions(5)
-    for ed_rows in (True, False):
-        c = _module(critic_use_obs=False, critic_ed_rows=ed_rows).critic
-        q = c(state, obs, actions)
-        for u in range(U):
-            for k in range(2):
-                moved = obs.clone()
-                moved[:, u, 4 * k : 4 * k + 4] += 0.5
-                delta = (c(state, moved, actions) - q).abs().sum((0, -1))  # [U, L]
-                if not ed_rows:
-                    assert (delta == 0).all()
-                    continue
-                hit = torch.zeros(U, L, dtype=torch.bool)
-                hit[u, 2 * k : 2 * k + 2] = True
-                assert (delta[hit] > 0).all() and (delta[~hit] == 0).all()
-    w = _module(critic_ed_rows=True).critic.first.weight
-    assert not torch.allclose(w[:, -8:-4], w[:, -4:])  # SF and TP halves: separate weights
 
 
 def test_critic_branch_fraction_trains_a_random_subset_and_advises_from_all():
@@ -484,10 +457,6 @@ def test_registry_offers_per_device_and_checks_the_critic():
         entry.build(per_device, entry.hparams({"critic_hidden": []}), registry.Resources(), 0)
     config = entry.build(per_device, entry.hparams({}), registry.Resources(), 0)
     assert config.model_config["action_factors"] == []  # the per_uav factoring has no role here
-    with pytest.raises(ConfigError, match=r"algorithms\.coma\.critic_ed_rows: true needs action_mode per_device"):
-        entry.build(ScenarioConfig(n_eds=4, n_uavs=2), entry.hparams({"critic_ed_rows": True}), registry.Resources(), 0)
-    config = entry.build(per_device, entry.hparams({"critic_ed_rows": True}), registry.Resources(), 0)
-    assert config.model_config["critic_ed_rows"] is True
 
 
 @pytest.mark.slow

@@ -26,9 +26,6 @@ import numpy as np
 import torch
 from torch import nn
 
-from uavlora_rllib.algorithms.common.branch_heads import slot_rows
-from uavlora_rllib.sim.observation import OBS_ROW
-
 # Env-runner output and train-batch column: log pi_{u,l}(a_{u,l}) of the sampling policy per
 # branch, [B, T, U, L]; the denominator of the per-branch ratio when a batch is reused.
 BRANCH_LOGP = "coma_branch_logp"
@@ -79,17 +76,12 @@ class BranchQCritic(nn.Module):
 
     The function is an MLP on the concatenated input row of (u, l)
         x_{u,l} = [s, one-hot of every UAV's every branch with branch l of u left out (all zeros),
-                   one-hot of (u, l), o_u (if `obs_dim`), ED row block (if `ed_quota`)]
+                   one-hot of (u, l), o_u (if `obs_dim`)]
     with one output layer per branch l (W values, + 1 state value when `dueling`), shared by
     the UAVs (u is in the input). The first layer is never applied to the concatenated rows:
-    W x + b = W_s s + b + sum_{k,m} W[:, a_{k,m}] - W[:, a_{u,l}] + W[:, (u, l)] + W_o o_u (+ W_e e_{u,l}),
+    W x + b = W_s s + b + sum_{k,m} W[:, a_{k,m}] - W[:, a_{u,l}] + W[:, (u, l)] + W_o o_u,
     the same parameters and function, the joint action's sum computed once per step and the
-    U L rows then differing by one column each. No Python loop over UAVs or branches.
-    ED rows (`ed_quota` > 0, COMAHParams.critic_ed_rows, docs/model.md#coma-per-device): the row of
-    an SF or TP branch of slot k also reads that slot's ED row (x, y, d, G) of o_u, in the SF or
-    the TP half of a 2 x 4 block (the other half and the BW row's block zero): weights shared by
-    every slot and UAV, so what the critic learns about one ED's gain serves every slot, as the
-    per-ED actor heads do for the policy."""
+    U L rows then differing by one column each. No Python loop over UAVs or branches."""
 
     layout: BranchLayout
     offsets: torch.Tensor
@@ -106,21 +98,16 @@ class BranchQCritic(nn.Module):
         obs_dim: int,
         hidden: Sequence[int],
         dueling: bool,
-        ed_quota: int = 0,
     ):
         super().__init__()
         if not hidden:
             raise ValueError("BranchQCritic needs at least one hidden layer (critic_hidden)")
-        if ed_quota and layout.n_branches != 2 * ed_quota + 1:
-            raise ValueError(f"ed_quota {ed_quota} needs 2 quota + 1 branches, got {layout.n_branches}")
         self.layout, self.n_agents = layout, int(n_agents)
         self.state_dim, self.obs_dim, self.dueling = int(state_dim), int(obs_dim), bool(dueling)
-        self.ed_quota = int(ed_quota)
         per_agent = sum(layout.row)
         self.n_onehot = self.n_agents * per_agent
         self.n_ids = self.n_agents * layout.n_branches
-        self.n_ed = 2 * OBS_ROW if self.ed_quota else 0  # the SF half, then the TP half
-        self.in_dim = self.state_dim + self.n_onehot + self.n_ids + self.obs_dim + self.n_ed
+        self.in_dim = self.state_dim + self.n_onehot + self.n_ids + self.obs_dim
         self.first = nn.Linear(self.in_dim, int(hidden[0]))
         layers: list[nn.Module] = [nn.ReLU()]
         width = int(hidden[0])
@@ -164,23 +151,7 @@ class BranchQCritic(nn.Module):
         if self.obs_dim:
             assert obs is not None  # (obs_dim > 0)
             parts.append(obs[..., :, None, :].expand(*lead, u_n, l_n, self.obs_dim))
-        if self.ed_quota:
-            assert obs is not None  # (ed_quota > 0)
-            ed = slot_rows(obs, self.ed_quota)  # [..., U, Q, 4]
-            zero = torch.zeros_like(ed)
-            block = torch.stack([torch.cat([ed, zero], -1), torch.cat([zero, ed], -1)], -2)  # [..., U, Q, 2, 8]
-            block = block.flatten(-3, -2)  # [..., U, 2 Q, 8]: slot k's SF row, then its TP row
-            parts.append(torch.cat([block, block.new_zeros(*lead, u_n, 1, self.n_ed)], -2))  # BW row: zeros
         return torch.cat(parts, dim=-1)
-
-    def ed_term(self, obs: torch.Tensor) -> torch.Tensor:
-        """W_e e_{u,l} of every row: obs [..., U, obs_dim] -> [..., U L, H] (the BW rows zero)."""
-        w = self.first.weight[:, self.in_dim - self.n_ed :]  # [H, 8]: SF half, TP half
-        ed = slot_rows(obs, self.ed_quota)  # [..., U, Q, 4]
-        sf_tp = torch.stack([ed @ w[:, :OBS_ROW].t(), ed @ w[:, OBS_ROW:].t()], -2)  # [..., U, Q, 2, H]
-        sf_tp = sf_tp.flatten(-3, -2)  # [..., U, 2 Q, H]
-        term = torch.cat([sf_tp, sf_tp.new_zeros(*sf_tp.shape[:-2], 1, sf_tp.shape[-1])], -2)  # [..., U, L, H]
-        return term.flatten(-3, -2)
 
     def forward(
         self, state: torch.Tensor, obs: torch.Tensor | None, actions: torch.Tensor, rows: torch.Tensor | None = None
@@ -215,16 +186,8 @@ class BranchQCritic(nn.Module):
         z += joint
         if self.obs_dim:
             assert obs is not None  # (obs_dim > 0)
-            w_obs = w[:, s_dim + n_act + self.n_ids : s_dim + n_act + self.n_ids + self.obs_dim]
-            own = nn.functional.linear(obs, w_obs).movedim(-2, 0)  # [U, ..., H]
+            own = nn.functional.linear(obs, w[:, s_dim + n_act + self.n_ids :]).movedim(-2, 0)  # [U, ..., H]
             z += own.unsqueeze(1) if rows is None else own[self.row_agent[rows]]
-        if self.ed_quota:
-            assert obs is not None  # (ed_quota > 0)
-            ed = self.ed_term(obs)  # [..., U L, H]
-            if rows is None:
-                z += ed.movedim(-2, 0).reshape(u_n, l_n, *lead, hid)
-            else:
-                z += ed[..., rows, :].movedim(-2, 0)
         h = z.relu_().view(-1, hid)  # the body's first module (its ReLU), in place
         for layer in list(self.body)[1:]:
             h = layer(h) if isinstance(layer, nn.Linear) else h.relu_()

@@ -333,7 +333,6 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
                 self.obs_dim if self.use_obs else 0,
                 tuple(mc["critic_hidden"]),
                 bool(mc["critic_dueling"]),
-                ed_quota=(self.layout.n_branches - 1) // 2 if mc["critic_ed_rows"] else 0,
             )
 
     @override(InferenceOnlyAPI)
@@ -384,7 +383,7 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
         """Q [..., U, A] (per_uav) or [..., U, L, W] (per_device) of the critic `net` (or its target);
         per_device with `rows` (flat u L + l, [K]): those rows only, [..., K, W]."""
         if self.per_device:
-            return net(state, obs if self.use_obs or net.ed_quota else None, actions, rows)
+            return net(state, obs if self.use_obs else None, actions, rows)
         assert rows is None, "per_uav critics evaluate every UAV's row"
         obs_in = obs if self.use_obs else None
         assert isinstance(net, QHead)

@@ -75,11 +75,6 @@ class COMAHParams:
     critic_dueling: bool = Field(
         default=True, description="Q = V + (D - mean D) head: untried actions start at the state's value [bool]"
     )
-    critic_ed_rows: bool = Field(
-        default=False,
-        description="per_device: each SF and TP row of the critic also reads its slot's ED row (x, y, d, G) "
-        "through weights shared by the slots [bool] (docs/model.md#coma-per-device)",
-    )
     critic_branch_fraction: float = Field(
         default=1.0,
         gt=0,
@@ -116,11 +111,6 @@ class COMAHParams:
         shared actor they sit on."""
         check_actor_heads(self.share_actor, self.actor_agent_heads, path)
         check_per_ed_heads(self.actor_heads, self.actor_agent_heads, scenario, path)
-        if self.critic_ed_rows and scenario.action_mode != "per_device":
-            raise ConfigError(
-                f"{path}.critic_ed_rows: true needs action_mode per_device (the critic's rows are per ED "
-                "only there); allowed with per_uav: false"
-            )
         if scenario.action_mode == "per_device" and not self.critic_hidden:
             raise ConfigError(
                 f"{path}.critic_hidden: per_device needs at least one critic layer (the per-branch critic "
