@@ -1,0 +1,151 @@
+"""Does COMA's per_device critic know what one ED's SF is worth? (BENCHMARKS.md "per_device", COMA)
+
+At gamma 0 the critic's target is the slot's reward, so Q_{u,l}(s, a)[c] should track the reward of
+the joint action with branch l of UAV u set to c, which the simulator gives exactly
+(`core.scorer.score` on the same slot). For every served ED's SF branch this compares the critic's
+values, centred over the SFs, with those exact rewards, centred: their correlation, and how often
+the two pick the same SF (chance 1/6). It also prints the effect size: the std of the team reward
+over one ED's SFs, against the reward's own std.
+
+    python docs/history/measurements/coma_critic_probe.py checkpoint PATH V U
+        a trained COMA checkpoint, on its own sampled policy's slots (6 scenarios, slots 3-5)
+    python docs/history/measurements/coma_critic_probe.py offline STEPS BATCHES
+        a fresh critic (COMA's defaults: 128-128, dueling, Adam 5e-4, grad clip 10) regressed on the
+        reward of BATCHES x 16 episodes of uniformly random per-ED actions at V=60/U=4, on a random
+        1/8 of its rows per step (COMA's critic_branch_fraction of the 60/x grids), 512 slots per
+        step; then the same comparison on held-out random slots
+"""
+
+import os
+import sys
+import time
+
+import numpy as np
+import torch
+
+from uavlora_rllib.algorithms.coma.branching import BranchLayout, BranchQCritic, taken
+from uavlora_rllib.envs.team import team_action_space
+from uavlora_rllib.sim.core import BatchCore
+from uavlora_rllib.sim.scenario import ScenarioConfig
+
+torch.set_num_threads(1)
+SCENARIOS = 6
+
+
+def scenario(v: int, u: int) -> ScenarioConfig:
+    return ScenarioConfig(n_eds=v, n_uavs=u, action_mode="per_device", rate_model="lora_phy")
+
+
+def compare(cfg: ScenarioConfig, critic_values, act, seed: int = 999) -> None:
+    """critic_values(core, a) -> Q [N, U, L, W]; act(core) -> a [N, U, L]; slots 3-5 of 6 scenarios."""
+    nvec = team_action_space(cfg).nvec
+    n_u, quota = nvec.shape[0], (nvec.shape[1] - 1) // 2
+    core = BatchCore(cfg, SCENARIOS)
+    core.reset(seed)
+    corrs, agree, effect, rewards = [], [], [], []
+    for t in range(6):
+        a = act(core)
+        if t >= 3:
+            gains = core.gains if core._score_needs_gains else None
+            q = critic_values(core, a)
+            served = np.abs(core.obs[..., : 4 * quota].reshape(SCENARIOS, n_u, quota, 4)).sum(-1) > 0
+            for u in range(n_u):
+                for k in range(quota):
+                    branch, n = 2 * k, nvec[u, 2 * k]  # slot k's SF branch
+                    exact = np.zeros((SCENARIOS, n))
+                    for c in range(n):
+                        moved = a.copy()
+                        moved[:, u, branch] = c
+                        exact[:, c] = core.scorer.score(moved, core.links, gains)[0]["reward"]
+                    for i in np.flatnonzero(served[:, u, k]):
+                        values = q[i, u, branch, :n]
+                        effect.append(exact[i].std())
+                        if exact[i].std() > 1e-9:
+                            corrs.append(np.corrcoef(exact[i] - exact[i].mean(), values - values.mean())[0, 1])
+                            agree.append(exact[i].argmax() == values.argmax())
+        rewards.append(core.step(a).reward)
+    print(
+        f"reward per slot mean {np.mean(rewards):.1f} std {np.std(rewards):.1f}; one ED's SF moves it by "
+        f"{np.mean(effect):.2f} (std over its SFs, mean)\ncorrelation of the critic's centred values with the exact "
+        f"ones: mean {np.mean(corrs):.3f}, median {np.median(corrs):.3f}; same best SF {np.mean(agree):.3f} "
+        f"(chance {1 / nvec[0, 0]:.3f}); {len(corrs)} ED branches"
+    )
+
+
+def from_checkpoint(path: str, v: int, u: int) -> None:
+    from ray.rllib.algorithms.algorithm import Algorithm
+
+    from uavlora_rllib.algorithms.common.registry import entry_for_algorithm
+
+    cfg = scenario(v, u)
+    algo = Algorithm.from_checkpoint(os.path.abspath(path))
+    policy = entry_for_algorithm(algo).policy(algo, cfg, explore=True, seed=1)
+    module = algo.learner_group._learner.module["default_policy"].unwrapped()
+    started = []
+
+    def act(core):
+        if not started:
+            policy.reset(core)
+            started.append(True)
+        return policy.act(core)
+
+    def values(core, a):
+        state = torch.as_tensor(core.state(), dtype=torch.float32)
+        obs = torch.as_tensor(core.obs, dtype=torch.float32)
+        with torch.no_grad():
+            return module.critic_q(module.critic, state, obs, torch.as_tensor(a)).numpy()
+
+    compare(cfg, values, act)
+
+
+def offline(steps: int, batches: int) -> None:
+    cfg, started = scenario(60, 4), time.time()
+    nvec = team_action_space(cfg).nvec
+    rng = np.random.default_rng(0)
+
+    def act(core):
+        return rng.integers(0, nvec, size=(core.n,) + nvec.shape)
+
+    core = BatchCore(cfg, 16)
+    core.reset(123)
+    data: list[list[np.ndarray]] = [[], [], [], []]
+    for _ in range(batches):
+        for _ in range(cfg.episode_len):
+            a = act(core)
+            for part, x in zip(data, (core.state().astype(np.float32), core.obs.astype(np.float32), a)):
+                part.append(x)
+            data[3].append(core.step(a).reward.astype(np.float32))
+        core.reset()
+    state, obs, actions, reward = (torch.as_tensor(np.concatenate(x)) for x in data)
+    print(f"{len(reward)} slots in {time.time() - started:.0f} s")
+    torch.manual_seed(0)
+    critic = BranchQCritic(
+        BranchLayout(nvec[0].tolist()), nvec.shape[0], state.shape[1], obs.shape[-1], (128, 128), True
+    )
+    opt = torch.optim.Adam(critic.parameters(), lr=5e-4)
+    n_rows = nvec.size
+    for step in range(steps):
+        idx = torch.randint(0, len(reward), (512,))
+        rows = torch.randperm(n_rows)[: round(0.125 * n_rows)].sort().values
+        q = critic(state[idx], obs[idx], actions[idx], rows)
+        loss = ((taken(q, actions[idx].flatten(-2)[:, rows]) - reward[idx, None]) ** 2).mean()
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(critic.parameters(), 10.0)
+        opt.step()
+        if step % max(1, steps // 5) == 0 or step == steps - 1:
+            print(f"step {step}: TD (= regression) MSE {loss.item():.1f} ({time.time() - started:.0f} s)")
+
+    def values(core, a):
+        with torch.no_grad():
+            s, o = torch.as_tensor(core.state(), dtype=torch.float32), torch.as_tensor(core.obs, dtype=torch.float32)
+            return critic(s, o, torch.as_tensor(a)).numpy()
+
+    compare(cfg, values, act)
+
+
+if __name__ == "__main__":
+    if sys.argv[1] == "checkpoint":
+        from_checkpoint(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]))
+    else:
+        offline(int(sys.argv[2]), int(sys.argv[3]))
