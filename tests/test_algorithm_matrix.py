@@ -72,7 +72,13 @@ def test_train_checkpoint_restore_evaluate(ray_session, tmp_path, capsys, name, 
     entry, config = _build(name, scenario)
     algo = config.build_algo()
     try:
+        timed = []  # learning time is logged once per iteration: training_rate.this_iteration reads one entry
+        log_time = algo.metrics.log_time
+        algo.metrics.log_time = lambda key, *a, **k: timed.append(key) or log_time(key, *a, **k)
         result = algo.train()
+        algo.metrics.log_time = log_time
+        assert timed.count(("timers", "learner_update_timer")) <= 1
+        assert "learner_update_timer" not in result["timers"] or timed.count(("timers", "learner_update_timer")) == 1
         runners = result["env_runners"]
         assert runners["num_env_steps_sampled_lifetime"] > 0
         # every algorithm logs the paper's metrics of its sampled episodes the same way

@@ -56,11 +56,14 @@ class EpisodeAlgorithm(Algorithm, abc.ABC):
                 (ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0
             )
         }
-        for _ in range(n_updates):
-            batch = self.next_batch()
+        if n_updates:
+            # one timer entry per iteration, as RLlib's own algorithms log it (the timer is an EMA
+            # over entries: bench_train and the calibration read one iteration's learning time
+            # from it, experiment/training_rate.this_iteration)
             with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
-                learner_results = self.update_learners(batch, timesteps)
-            self.metrics.aggregate(learner_results, key=LEARNER_RESULTS)
+                for _ in range(n_updates):
+                    learner_results = self.update_learners(self.next_batch(), timesteps)
+                    self.metrics.aggregate(learner_results, key=LEARNER_RESULTS)
         self.metrics.log_value(NUM_GRADIENT_UPDATES_LIFETIME, n_updates, reduce="lifetime_sum")
         if n_updates:
             with self.metrics.log_time((TIMERS, SYNCH_WORKER_WEIGHTS_TIMER)):
