@@ -9,6 +9,10 @@ over one ED's SFs, against the reward's own std.
 
     python docs/history/measurements/coma_critic_probe.py checkpoint PATH V U
         a trained COMA checkpoint, on its own sampled policy's slots (6 scenarios, slots 3-5)
+    python docs/history/measurements/coma_critic_probe.py onpolicy PATH V U BATCHES STEPS
+        does the trained critic predict the reward of its own policy's slots (R^2 of its taken value on
+        2 x 16 held-out episodes), and does a fresh critic, fitted to BATCHES x 16 episodes of that
+        policy as `offline` fits, generalise to them
     python docs/history/measurements/coma_critic_probe.py offline STEPS BATCHES
         a fresh critic (COMA's defaults: 128-128, dueling, Adam 5e-4, grad clip 10) regressed on the
         reward of BATCHES x 16 episodes of uniformly random per-ED actions at V=60/U=4, on a random
@@ -18,7 +22,6 @@ over one ED's SFs, against the reward's own std.
 
 import os
 import sys
-import time
 
 import numpy as np
 import torch
@@ -73,14 +76,8 @@ def compare(cfg: ScenarioConfig, critic_values, act, seed: int = 999) -> None:
 
 
 def from_checkpoint(path: str, v: int, u: int) -> None:
-    from ray.rllib.algorithms.algorithm import Algorithm
-
-    from uavlora_rllib.algorithms.common.registry import entry_for_algorithm
-
     cfg = scenario(v, u)
-    algo = Algorithm.from_checkpoint(os.path.abspath(path))
-    policy = entry_for_algorithm(algo).policy(algo, cfg, explore=True, seed=1)
-    module = algo.learner_group._learner.module["default_policy"].unwrapped()
+    policy, module = load(path, cfg)
     started = []
 
     def act(core):
@@ -98,43 +95,93 @@ def from_checkpoint(path: str, v: int, u: int) -> None:
     compare(cfg, values, act)
 
 
-def offline(steps: int, batches: int) -> None:
-    cfg, started = scenario(60, 4), time.time()
-    nvec = team_action_space(cfg).nvec
-    rng = np.random.default_rng(0)
+def load(path: str, cfg: ScenarioConfig):
+    """(sampled policy, learner module with the critic) of a COMA checkpoint."""
+    from ray.rllib.algorithms.algorithm import Algorithm
 
-    def act(core):
-        return rng.integers(0, nvec, size=(core.n,) + nvec.shape)
+    from uavlora_rllib.algorithms.common.registry import entry_for_algorithm
 
+    algo = Algorithm.from_checkpoint(os.path.abspath(path))
+    policy = entry_for_algorithm(algo).policy(algo, cfg, explore=True, seed=1)
+    return policy, algo.learner_group._learner.module["default_policy"].unwrapped()
+
+
+def collect(cfg: ScenarioConfig, act, batches: int, seed: int, reset=None) -> list[torch.Tensor]:
+    """state, obs, actions, reward of `batches` rounds of 16 whole episodes played by act(core)."""
     core = BatchCore(cfg, 16)
-    core.reset(123)
+    core.reset(seed)
     data: list[list[np.ndarray]] = [[], [], [], []]
     for _ in range(batches):
+        if reset is not None:
+            reset(core)
         for _ in range(cfg.episode_len):
             a = act(core)
             for part, x in zip(data, (core.state().astype(np.float32), core.obs.astype(np.float32), a)):
                 part.append(x)
             data[3].append(core.step(a).reward.astype(np.float32))
         core.reset()
-    state, obs, actions, reward = (torch.as_tensor(np.concatenate(x)) for x in data)
-    print(f"{len(reward)} slots in {time.time() - started:.0f} s")
+    return [torch.as_tensor(np.concatenate(x)) for x in data]
+
+
+def fit(cfg: ScenarioConfig, data: list[torch.Tensor], steps: int, report=None) -> BranchQCritic:
+    """A fresh critic (COMA's defaults) regressed on the slots' rewards, 1/8 of its rows per step."""
+    state, obs, actions, reward = data
+    nvec = team_action_space(cfg).nvec
     torch.manual_seed(0)
     critic = BranchQCritic(
         BranchLayout(nvec[0].tolist()), nvec.shape[0], state.shape[1], obs.shape[-1], (128, 128), True
     )
     opt = torch.optim.Adam(critic.parameters(), lr=5e-4)
-    n_rows = nvec.size
     for step in range(steps):
         idx = torch.randint(0, len(reward), (512,))
-        rows = torch.randperm(n_rows)[: round(0.125 * n_rows)].sort().values
+        rows = torch.randperm(nvec.size)[: round(0.125 * nvec.size)].sort().values
         q = critic(state[idx], obs[idx], actions[idx], rows)
         loss = ((taken(q, actions[idx].flatten(-2)[:, rows]) - reward[idx, None]) ** 2).mean()
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(critic.parameters(), 10.0)
         opt.step()
-        if step % max(1, steps // 5) == 0 or step == steps - 1:
-            print(f"step {step}: TD (= regression) MSE {loss.item():.1f} ({time.time() - started:.0f} s)")
+        if step % max(1, steps // 4) == 0 or step == steps - 1:
+            print(f"step {step}: train MSE {loss.item():.1f}" + (f"; {report(critic)}" if report else ""))
+    return critic
+
+
+def r_squared(critic, data: list[torch.Tensor]) -> float:
+    """R^2 of the critic's taken value (mean over its rows) against the slots' rewards."""
+    state, obs, actions, reward = data
+    with torch.no_grad():
+        pred = torch.cat(
+            [
+                taken(
+                    critic(state[i : i + 1200], obs[i : i + 1200], actions[i : i + 1200]), actions[i : i + 1200]
+                ).mean((1, 2))
+                for i in range(0, len(reward), 1200)
+            ]
+        )
+    return 1.0 - float(((pred - reward) ** 2).mean() / reward.var())
+
+
+def on_policy(path: str, v: int, u: int, batches: int, steps: int) -> None:
+    cfg = scenario(v, u)
+    policy, module = load(path, cfg)
+    train = collect(cfg, policy.act, batches, 11, reset=policy.reset)
+    held_out = collect(cfg, policy.act, 2, 99, reset=policy.reset)
+    print(f"{len(train[3])} + {len(held_out[3])} slots; reward std {train[3].std():.1f}")
+    print(f"the trained critic on the held-out slots: R^2 {r_squared(module.critic, held_out):.3f}")
+    fit(cfg, train, steps, report=lambda c: f"held-out R^2 {r_squared(c, held_out):.3f}")
+
+
+def offline(steps: int, batches: int) -> None:
+    cfg = scenario(60, 4)
+    nvec = team_action_space(cfg).nvec
+    rng = np.random.default_rng(0)
+
+    def act(core):
+        return rng.integers(0, nvec, size=(core.n,) + nvec.shape)
+
+    data = collect(cfg, act, batches, 123)
+    print(f"{len(data[3])} slots; reward std {data[3].std():.1f}")
+    critic = fit(cfg, data, steps)
 
     def values(core, a):
         with torch.no_grad():
@@ -147,5 +194,7 @@ def offline(steps: int, batches: int) -> None:
 if __name__ == "__main__":
     if sys.argv[1] == "checkpoint":
         from_checkpoint(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]))
+    elif sys.argv[1] == "onpolicy":
+        on_policy(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5]), int(sys.argv[6]))
     else:
         offline(int(sys.argv[2]), int(sys.argv[3]))
