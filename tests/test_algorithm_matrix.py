@@ -238,9 +238,9 @@ def test_learning_rates_are_bounded(name):
 
 @pytest.mark.parametrize("name, mode", CASES, ids=IDS)
 def test_a_config_from_before_a_field_existed_gets_its_default(name, mode):
-    """A checkpoint's config holds the model_config of its day; a field added since (none of them
-    here) reads as its typed default, which by convention is the former behaviour, and the module
-    builds from it, while a field the trial set keeps its value (HParamsConfig._model_config_auto_includes)."""
+    """A checkpoint's config holds the model_config of its day; a field added since (here: every
+    field, dropped) reads as its typed default, which by convention is the former behaviour, and the
+    module builds from it, while a field the trial set keeps its value (HParamsConfig._model_config_auto_includes)."""
     import dataclasses
 
     from uavlora_rllib.envs.team import team_action_space, team_observation_space

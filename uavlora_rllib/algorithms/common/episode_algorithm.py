@@ -58,8 +58,8 @@ class EpisodeAlgorithm(Algorithm, abc.ABC):
         }
         if n_updates:
             # one timer entry per iteration, as RLlib's own algorithms log it (the timer is an EMA
-            # over entries: bench_train and the calibration read one iteration's learning time
-            # from it, experiment/training_rate.this_iteration)
+            # over entries: bench_train reads one iteration's learning time back from it,
+            # experiment/training_rate.this_iteration)
             with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
                 for _ in range(n_updates):
                     learner_results = self.update_learners(self.next_batch(), timesteps)
