@@ -2,7 +2,7 @@
 
 At gamma 0 the critic's target is the slot's reward, so Q_{u,l}(s, a)[c] should track the reward of
 the joint action with branch l of UAV u set to c, which the simulator gives exactly
-(`core.scorer.score` on the same slot). For every served ED's SF branch this compares the critic's
+(AllocationScorer.score_ed_moves on the same slot). For every served ED's SF branch this compares the critic's
 values, centred over the SFs, with those exact rewards, centred: their correlation, and how often
 the two pick the same SF (chance 1/6). It also prints the effect size: the std of the team reward
 over one ED's SFs, against the reward's own std.
@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from uavlora_rllib.algorithms.coma.branching import BranchLayout, BranchQCritic, taken
+from uavlora_rllib.baselines.slots import AllocationScorer, Slots
 from uavlora_rllib.envs.team import team_action_space
 from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.sim.scenario import ScenarioConfig
@@ -39,39 +40,45 @@ def scenario(v: int, u: int) -> ScenarioConfig:
     return ScenarioConfig(n_eds=v, n_uavs=u, action_mode="per_device", rate_model="lora_phy")
 
 
+def exact_sf_rewards(core: BatchCore, a: np.ndarray) -> np.ndarray:
+    """The slot's reward with each ED moved to each SF at its own TP, the others held [N, V, n_sf]
+    (baselines/slots.py AllocationScorer.score_ed_moves: the simulator's equations, vectorised)."""
+    cfg, slots = core.cfg, Slots.of_core(core)
+    n, v = slots.g_serving.shape
+    sf, tp, _ = core.decoder.allocations(a, core.links)  # the simulator's own decoding, per ED
+    setting = np.where(slots.associated, sf * cfg.n_tp + tp, 0).astype(np.int64)
+    scorer = AllocationScorer(cfg, core.tables, "reward")
+    moved, _ = scorer.score_ed_moves(
+        setting, a[:, :, -1].astype(np.int64), slots, np.broadcast_to(np.arange(v), (n, v))
+    )
+    by_sf = moved.reshape(n, v, cfg.n_sf, cfg.n_tp)  # settings are sf * n_tp + tp
+    return np.take_along_axis(by_sf, np.where(slots.associated, tp, 0)[..., None, None], axis=-1)[..., 0]
+
+
 def compare(cfg: ScenarioConfig, critic_values, act, seed: int = 999) -> None:
     """critic_values(core, a) -> Q [N, U, L, W]; act(core) -> a [N, U, L]; slots 3-5 of 6 scenarios."""
-    nvec = team_action_space(cfg).nvec
-    n_u, quota = nvec.shape[0], (nvec.shape[1] - 1) // 2
     core = BatchCore(cfg, SCENARIOS)
     core.reset(seed)
     corrs, agree, effect, rewards = [], [], [], []
     for t in range(6):
         a = act(core)
         if t >= 3:
-            gains = core.gains if core._score_needs_gains else None
-            q = critic_values(core, a)
-            served = np.abs(core.obs[..., : 4 * quota].reshape(SCENARIOS, n_u, quota, 4)).sum(-1) > 0
-            for u in range(n_u):
-                for k in range(quota):
-                    branch, n = 2 * k, nvec[u, 2 * k]  # slot k's SF branch
-                    exact = np.zeros((SCENARIOS, n))
-                    for c in range(n):
-                        moved = a.copy()
-                        moved[:, u, branch] = c
-                        exact[:, c] = core.scorer.score(moved, core.links, gains)[0]["reward"]
-                    for i in np.flatnonzero(served[:, u, k]):
-                        values = q[i, u, branch, :n]
-                        effect.append(exact[i].std())
-                        if exact[i].std() > 1e-9:
-                            corrs.append(np.corrcoef(exact[i] - exact[i].mean(), values - values.mean())[0, 1])
-                            agree.append(exact[i].argmax() == values.argmax())
+            q = critic_values(core, a)  # [N, U, L, W]
+            exact = exact_sf_rewards(core, a)  # [N, V, n_sf]
+            served = np.argwhere(core.associated)  # (scenario, ED)
+            uav, slot = core.links.serving_idx, core.slot_of_ed
+            for i, ed in served:
+                values = q[i, uav[i, ed], 2 * slot[i, ed], : cfg.n_sf]  # the ED's slot's SF branch
+                effect.append(exact[i, ed].std())
+                if exact[i, ed].std() > 1e-9:
+                    corrs.append(np.corrcoef(exact[i, ed] - exact[i, ed].mean(), values - values.mean())[0, 1])
+                    agree.append(exact[i, ed].argmax() == values.argmax())
         rewards.append(core.step(a).reward)
     print(
         f"reward per slot mean {np.mean(rewards):.1f} std {np.std(rewards):.1f}; one ED's SF moves it by "
         f"{np.mean(effect):.2f} (std over its SFs, mean)\ncorrelation of the critic's centred values with the exact "
         f"ones: mean {np.mean(corrs):.3f}, median {np.median(corrs):.3f}; same best SF {np.mean(agree):.3f} "
-        f"(chance {1 / nvec[0, 0]:.3f}); {len(corrs)} ED branches"
+        f"(chance {1 / cfg.n_sf:.3f}); {len(corrs)} ED branches"
     )
 
 
