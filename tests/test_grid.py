@@ -141,6 +141,16 @@ BAD = [
         {"resources": {"num_env_runners": -1}},
         r"resources\.num_env_runners: Input should be greater than or equal to 0",
     ),
+    (  # each one a placement-group bundle: refused before a list of 2**32 of them is built
+        "too_many_env_runners",
+        {"resources": {"num_env_runners": 2**32}},
+        r"resources\.num_env_runners: Input should be less than or equal to 4096",
+    ),
+    (
+        "too_many_learners",
+        {"resources": {"num_learners": 10**6}},
+        r"resources\.num_learners: Input should be less than or equal to 4096",
+    ),
     ("unknown_baseline", {"baselines": ["random", "oracle"]}, r"baselines\.1: unknown baseline 'oracle'"),
     (
         "baseline_scenario_mismatch",

@@ -58,7 +58,6 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import itertools
-import math
 import os
 import re
 import urllib.parse
@@ -461,10 +460,7 @@ def check_local_resources(grid: GridConfig, available_cpus: float) -> None:
     """Refuse a grid one of whose trials needs more CPUs than the local Ray has (Tune would
     wait for them forever). On a cluster (--address) the cluster's size decides instead."""
     r = grid.resources
-    try:
-        need = r.num_cpus_per_learner + r.num_env_runners * r.num_cpus_per_env_runner
-    except OverflowError:  # (Resources' counts have no upper bound of their own)
-        need = math.inf
+    need = r.num_cpus_per_learner + r.num_env_runners * r.num_cpus_per_env_runner
     if need <= available_cpus:
         return
     field = "resources.num_cpus_per_learner" if r.num_cpus_per_learner > available_cpus else "resources"

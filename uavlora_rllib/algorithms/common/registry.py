@@ -56,18 +56,27 @@ HPARAMS_MODULES: dict[str, str] = {
 }
 
 
+# Most remote env runners or learners one trial may ask for: each is a bundle of the trial's placement
+# group (`Resources.bundles`), so a count from a typo (10**9) would be built as a list before Ray saw it.
+MAX_ACTORS_PER_TRIAL = 4096
+
+
 @typed_dataclass(config={"extra": "forbid", "frozen": True})
 class Resources:
     """How one trial samples and learns (grid YAML `resources:`)."""
 
     num_env_runners: int = Field(
-        default=0, ge=0, description="remote env runners; 0: sample in the trial's own process"
+        default=0,
+        ge=0,
+        le=MAX_ACTORS_PER_TRIAL,
+        description="remote env runners; 0: sample in the trial's own process",
     )
     num_envs_per_env_runner: int = Field(default=16, ge=1, description="scenarios per env runner, all in one BatchCore")
     num_cpus_per_env_runner: float = Field(default=1.0, gt=0, description="CPUs reserved per remote env runner")
     num_learners: int = Field(
         default=0,
         ge=0,
+        le=MAX_ACTORS_PER_TRIAL,
         description="remote learner actors (data-parallel updates); 0: learn in the trial's own process",
     )
     num_gpus_per_learner: float = Field(
