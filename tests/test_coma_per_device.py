@@ -16,7 +16,12 @@ from ray.rllib.core.columns import Columns
 
 from uavlora_rllib.algorithms.coma.branching import BRANCH_LOGP, BranchLayout, taken
 from uavlora_rllib.algorithms.coma.coma import COMAHParams
-from uavlora_rllib.algorithms.coma.coma_learner import SAMPLED_LOGP, critic_targets, lambda_returns
+from uavlora_rllib.algorithms.coma.coma_learner import (
+    SAMPLED_LOGP,
+    critic_targets,
+    lambda_returns,
+    sampled_advantage,
+)
 from uavlora_rllib.algorithms.coma.coma_module import (
     ACTIONS,
     BOOTSTRAP,
@@ -444,6 +449,51 @@ def test_critic_steps_lower_the_td_error(learner, fraction):
         learner.train_critic(multi)
     module.branch_fraction = 1.0
     assert td_error() < before
+
+
+def test_sampled_advantage_by_hand():
+    """G_t - b per row, G_t the mean of the step's targets over the rows trained (each is r_t at gamma 0)."""
+    baseline = torch.tensor([[[[1.0, 2.0], [3.0, 4.0]]]])  # [B=1, T=1, U=2, L=2]
+    targets = torch.full((1, 1, 2, 2), 5.0)
+    assert torch.equal(sampled_advantage(targets, baseline), 5.0 - baseline)
+    subset = torch.tensor([[[4.0, 6.0, 8.0]]])  # [B, T, K=3]: a row subset, per_device at fraction < 1
+    assert torch.equal(sampled_advantage(subset, baseline), 6.0 - baseline)
+    per_uav = torch.tensor([[[7.0, 9.0]]])  # [B, T, U]
+    assert torch.equal(sampled_advantage(per_uav, baseline[..., 0]), 8.0 - baseline[..., 0])
+
+
+@pytest.mark.parametrize("fraction", [1.0, 0.4])
+def test_taken_value_return_puts_the_reward_in_place_of_the_critics_q(fraction):
+    """`taken_value: return` at gamma 0: the actor's advantage is r_t - the counterfactual baseline of
+    the same critic, on every row whatever rows the critic trains; `critic` (COMA's) uses Q's taken value."""
+    from uavlora_rllib.envs.team import team_action_space, team_observation_space
+
+    scenario = ScenarioConfig(n_eds=4, n_uavs=2, episode_len=5, action_mode="per_device")
+    entry = registry.get("coma")
+    small = {
+        "actor_hidden": 16,
+        "gru_hidden": 8,
+        "critic_hidden": [32],
+        "gamma": 0.0,
+        "critic_branch_fraction": fraction,
+    }
+    spaces = {DEFAULT_MODULE_ID: (team_observation_space(scenario), team_action_space(scenario))}
+    advantages = {}
+    for taken_value in ("critic", "return"):
+        config = entry.build(scenario, entry.hparams({**small, "taken_value": taken_value}), registry.Resources(), 0)
+        learner = config.build_learner(env=None, spaces=spaces)
+        module = learner.module[DEFAULT_MODULE_ID].unwrapped()
+        batch = _learner_batch(module, scenario)
+        torch.manual_seed(0)
+        fwd = module.forward_train(batch)
+        learner.compute_loss_for_module(module_id=DEFAULT_MODULE_ID, config=None, batch=batch, fwd_out=fwd)
+        pi, _, _ = module.policy_terms(fwd[LOGITS][:, : scenario.episode_len], batch[ACTIONS])
+        adv, baseline, _ = counterfactual_advantage(fwd[Q_VALUES], pi, batch[ACTIONS])
+        expected = adv if taken_value == "critic" else batch[REWARDS][..., None, None] - baseline
+        logged = float(learner.metrics.peek((DEFAULT_MODULE_ID, "advantage_abs_mean")))
+        assert logged == pytest.approx(float(expected.abs().mean()), rel=1e-5)
+        advantages[taken_value] = logged
+    assert advantages["critic"] != pytest.approx(advantages["return"], rel=1e-3)
 
 
 # ------------------------------------------------------------------ registry and config

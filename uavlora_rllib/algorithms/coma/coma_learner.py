@@ -11,6 +11,7 @@ One update on a batch (on-policy; `updates_per_iteration` > 1 reuses the batch, 
                  (at gamma 0, G_t = r_t: the target critic is then not evaluated, `critic_targets`)
   actor loss   = -mean_{b,t,u} A_t,u log pi_u(a_t,u | tau_t,u) - entropy_coeff * mean entropy,
                  A_t,u = Q_u(s_t, a_t)[a_t,u] - sum_a' pi_u(a' | tau_t,u) Q_u(s_t, (a_t,-u, a'))
+                 (`taken_value: return`: G^lambda_t in place of Q_u(s_t, a_t)[a_t,u], `sampled_advantage`)
 Order within one update: first `critic_steps` (default 4) critic-only Adam steps on the batch
 (`train_critic`, fixed TD(lambda) targets), so the critic goes first as in the paper; then one
 learner update, the joint step: one backward pass of critic + actor loss (the actor's term sees
@@ -84,6 +85,16 @@ def critic_targets(
     if gamma == 0.0:
         return rewards[(...,) + (None,) * (row_actions.dim() - 2)].expand(row_actions.shape)
     return lambda_returns(rewards, taken(fwd[Q_TARGET], row_actions), fwd[BOOTSTRAP], gamma, lam)
+
+
+def sampled_advantage(targets: torch.Tensor, baseline: torch.Tensor) -> torch.Tensor:
+    """The advantage with the return in place of the critic's taken value (`taken_value: return`):
+    G_t - b_u(s_t, a_t,-u) per UAV (per_device per branch), b the counterfactual baseline [B, T, *rows].
+    G_t is the mean of the step's TD(lambda) targets over the critic rows trained (all estimate the same
+    joint return; at gamma 0 each is r_t). b does not depend on the row's own action, so the gradient
+    stays unbiased whatever the critic (Kuba et al., NeurIPS 2021); docs/model.md#coma-per-device."""
+    ret = targets.flatten(2).mean(-1)  # [B, T]
+    return ret[(...,) + (None,) * (baseline.dim() - 2)] - baseline
 
 
 def episode_batch(episodes: list) -> dict[str, np.ndarray]:
@@ -177,6 +188,8 @@ class COMATorchLearner(TargetNetworkLearner):
         logits = fwd_out[LOGITS][:, :steps]  # [B, T, U, n_logits]
         pi, logp, entropy = module.policy_terms(logits, actions)
         adv, baseline, _ = counterfactual_advantage(q, pi, actions)
+        if hp.taken_value == "return":
+            adv = sampled_advantage(targets, baseline)
         if hp.normalize_advantages:
             adv = (adv - adv.mean()) / (adv.std() + 1e-8)
         entropy = entropy.mean()

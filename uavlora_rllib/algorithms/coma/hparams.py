@@ -3,6 +3,8 @@ torch (registry.spec: grid checks, --dry-run, --list-hparams)."""
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field
 from pydantic.dataclasses import dataclass as typed_dataclass
 
@@ -104,6 +106,12 @@ class COMAHParams:
         default=False, description="standardise the advantages over the batch [bool] (not in COMA)"
     )
     reward_scale: float = Field(default=1.0, gt=0, description="factor on the rewards in the critic targets [-]")
+    taken_value: Literal["critic", "return"] = Field(
+        default="critic",
+        description="first term of the advantage: the critic's Q(s, a) (COMA) or the TD(lambda) return the critic "
+        "regresses (unbiased whatever the critic; the counterfactual baseline stays) "
+        "(docs/model.md#coma-per-device)",
+    )
 
     def check(self, scenario: ScenarioConfig, resources: Resources, path: str) -> None:
         """COMA learns from whole episodes, sampled in whole rounds of all envs of all runners;
