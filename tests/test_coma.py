@@ -243,3 +243,43 @@ def test_updates_per_iteration_reuse_the_batch_with_a_clipped_ratio(trained):
             assert np.isfinite(float(stats["actor_loss"])) and np.isfinite(float(stats["critic_loss"]))
     finally:
         algo.stop()
+
+
+def test_taken_value_return_per_uav_with_a_discount():
+    """`taken_value: return` per_uav at gamma 0.99: the advantage is G^lambda_t (from the target critic)
+    minus the counterfactual baseline; it differs from COMA's Q-based one and sends a gradient to the actor."""
+    from ray.rllib.core import DEFAULT_MODULE_ID
+
+    from uavlora_rllib.algorithms.coma.coma_learner import SAMPLED_LOGP
+    from uavlora_rllib.algorithms.coma.coma_module import ACTIONS, GLOBAL_STATE, OBS, REWARDS
+    from uavlora_rllib.algorithms.common.config import module_dims
+    from uavlora_rllib.envs.team import team_action_space, team_observation_space
+
+    scenario = ScenarioConfig(n_eds=4, n_uavs=2, episode_len=5)
+    entry = registry.get("coma")
+    spaces = {DEFAULT_MODULE_ID: (team_observation_space(scenario), team_action_space(scenario))}
+    dims, gen = module_dims(scenario), torch.Generator().manual_seed(3)
+    b, t, u = 2, scenario.episode_len, dims["n_agents"]
+    batch = {
+        OBS: torch.rand(b, t + 1, u, dims["obs_dim"], generator=gen),
+        ACTIONS: torch.randint(0, 90, (b, t, u), generator=gen),
+        REWARDS: torch.rand(b, t, generator=gen),
+        GLOBAL_STATE: torch.randn(b, t + 1, dims["state_dim"], generator=gen),
+        SAMPLED_LOGP: torch.zeros(b, t, u),
+    }
+    logged = {}
+    for taken_value in ("critic", "return"):
+        hparams = entry.hparams(
+            {"actor_hidden": 16, "gru_hidden": 8, "critic_hidden": [32], "taken_value": taken_value}
+        )
+        learner = entry.build(scenario, hparams, registry.Resources(), 0).build_learner(env=None, spaces=spaces)
+        module = learner.module[DEFAULT_MODULE_ID].unwrapped()
+        torch.manual_seed(0)
+        loss = learner.compute_loss_for_module(
+            module_id=DEFAULT_MODULE_ID, config=None, batch=batch, fwd_out=module.forward_train(batch)
+        )
+        module.zero_grad()
+        loss.backward()
+        assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in module.actor.parameters())
+        logged[taken_value] = float(learner.metrics.peek((DEFAULT_MODULE_ID, "advantage_abs_mean")))
+    assert logged["critic"] != pytest.approx(logged["return"], rel=1e-3)
