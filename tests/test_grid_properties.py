@@ -163,14 +163,19 @@ def _is_number_field(path: tuple) -> bool:
     return _field_type(path) in (int, float)
 
 
+def _at(data, path: tuple):
+    """The node of nested dicts / lists `data` at `path`."""
+    for part in path:
+        data = data[part]
+    return data
+
+
 @st.composite
 def mutations(draw):
     grid = copy.deepcopy(BASE)
     path = draw(st.sampled_from(PATHS))
     kind = draw(st.sampled_from(["replace", "replace", "replace", "delete", "add_key"]))
-    parent = grid
-    for part in path[:-1]:
-        parent = parent[part]
+    parent = _at(grid, path[:-1])
     key = path[-1]
     value = None
     if kind == "replace":
@@ -199,10 +204,7 @@ def _real_field_path(text: str, added: tuple | None) -> bool:
 
 def _replaced(path: tuple, value) -> tuple:
     grid = copy.deepcopy(BASE)
-    parent = grid
-    for part in path[:-1]:
-        parent = parent[part]
-    parent[path[-1]] = value
+    _at(grid, path[:-1])[path[-1]] = value
     return grid, "replace", path, value
 
 
@@ -233,11 +235,8 @@ def test_mutated_grid_validates_or_fails_with_one_line(mutation):
         assert kind != "add_key", "an unknown key was accepted"
         # the value as the grid loader reads it back: safe_dump writes the string "1e-3" unquoted, and the
         # loader's YAML 1.2 float resolver reads that as the float 1e-3, which a number field rightly takes
-        read = parse_yaml(read_yaml_text(file, "grid file"), file)
         if kind == "replace":
-            for part in path:
-                read = read[part]
-            value = read
+            value = _at(parse_yaml(read_yaml_text(file, "grid file"), file), path)
         must_refuse = isinstance(value, (bool, str)) or (isinstance(value, float) and not math.isfinite(value))
         assert not (kind == "replace" and _is_number_field(path) and must_refuse), (path, value)
         assert trials(load_grid(file))  # it expands to trials
