@@ -75,6 +75,7 @@ PER_DEVICE_LEARNERS = [n for n in LEARNERS if "per_device" in registry.get(n).ac
 # Discount 0 where it is set: a slot's action never changes later states, so every discount has the same
 # optimal policy, and at 0 the critic regresses the slot's reward alone (docs/model.md#training-defaults).
 # A learner gets a budget here once a CI-sized run beats best_fixed on this scenario.
+_Q_PER_DEVICE = {**_Q_CI, "gamma": 0.0, "buffer_size_episodes": 512, "epsilon_end": 0.3}  # QMIX's and VDN's, below
 PER_DEVICE_CI: dict[str, tuple[dict, int]] = {
     # per-ED heads, their per_device default (docs/model.md#mappo-and-ippo-per-device): each ED's (SF, TP)
     # must follow its own gain here; 100 x 8 episodes x 20 slots = 16,000 env steps. Probes (w1 = 0.1,
@@ -100,8 +101,8 @@ PER_DEVICE_CI: dict[str, tuple[dict, int]] = {
     # with the paper's 32 episodes the per-ED utilities fit the last few episodes' noise and stay at 0.83-0.98x best_fixed;
     # 480 x 4 episodes x 20 slots = 38,400 env steps. Probe (ci_probe.py, 2026-12-05): VDN 1.07 / 1.10 / 1.13x at 300 /
     # 420 / 480 iterations, QMIX 1.05 / 1.12 / 1.14x
-    "qmix": ({**_Q_CI, "gamma": 0.0, "buffer_size_episodes": 512, "epsilon_end": 0.3}, 480),
-    "vdn": ({**_Q_CI, "gamma": 0.0, "buffer_size_episodes": 512, "epsilon_end": 0.3}, 480),
+    "qmix": (_Q_PER_DEVICE, 480),
+    "vdn": (_Q_PER_DEVICE, 480),
 }
 # per_device learners whose CI-sized training does not yet beat best_fixed here, and why; they keep
 # the other learning tests, and the issue that asks for it stays open (results: BENCHMARKS.md#per_device-learning-benchmark)

@@ -33,6 +33,14 @@ from uavlora_rllib.baselines.slots import AllocationScorer, Slots  # noqa: E402
 from uavlora_rllib.experiment.evaluation import run_episodes  # noqa: E402
 
 
+def slot_settings(core, actions, cfg) -> np.ndarray:
+    """Each ED's (SF, TP) setting index sf n_tp + tp [N, V] under the agents' actions (0 where unserved),
+    from the simulator's own decoding: the index AllocationScorer scores."""
+    slots = Slots.of_core(core)
+    sf, tp, _ = core.decoder.allocations(actions, core.links)
+    return np.where(slots.associated, sf * cfg.n_tp + tp, 0).astype(np.int64)
+
+
 class Probe:
     """Wraps a policy: plays its actions and records the single-move statistics of each slot."""
 
@@ -49,8 +57,7 @@ class Probe:
         actions = np.asarray(self.policy.act(core))
         cfg, slots = self.cfg, Slots.of_core(core)
         n, v = slots.g_serving.shape
-        sf, tp, _ = core.decoder.allocations(actions, core.links)  # the simulator's own decoding, per ED
-        setting = np.where(slots.associated, sf * cfg.n_tp + tp, 0).astype(np.int64)
+        setting = slot_settings(core, actions, cfg)
         bw = actions[:, :, -1].astype(np.int64)
         scorer = AllocationScorer(cfg, core.tables, "reward")
         setting_ok, bw_ok = scorer.allowed(slots)  # everything, under "reward"

@@ -23,6 +23,7 @@ from ray.rllib.core.columns import Columns
 sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "tests"))
 
 import test_learning as tl  # noqa: E402
+from br_probe import slot_settings  # noqa: E402
 
 from uavlora_rllib.baselines.slots import AllocationScorer, Slots  # noqa: E402
 from uavlora_rllib.experiment.evaluation import run_episodes  # noqa: E402
@@ -42,28 +43,29 @@ class UtilityProbe:
         pol = self.policy
         if pol.state is None or next(iter(pol.state.values())).shape[0] != core.n:
             pol.reset(core)
-        obs = torch.as_tensor(np.clip(core.obs, -1.0, 1.0), dtype=torch.float32).unsqueeze(1)
+        obs = torch.as_tensor(np.clip(core.obs, -1.0, 1.0), dtype=torch.float32).unsqueeze(1)  # as ModulePolicy.act
         with torch.no_grad():  # the utilities behind this slot's greedy action (same obs, same GRU state)
             (slot_q, _), _ = pol.module._step({Columns.OBS: obs, Columns.STATE_IN: pol.state})
-        slot_q = slot_q.numpy()  # [N, U, K, P]
         actions = np.asarray(pol.act(core))
-        cfg, slots = self.cfg, Slots.of_core(core)
+        slots, links = Slots.of_core(core), core.links
         n, v = slots.g_serving.shape
-        sf, tp, _ = core.decoder.allocations(actions, core.links)
-        setting = np.where(slots.associated, sf * cfg.n_tp + tp, 0).astype(np.int64)
-        scorer = AllocationScorer(cfg, core.tables, "reward")
+        setting = slot_settings(core, actions, self.cfg)
+        scorer = AllocationScorer(self.cfg, core.tables, "reward")
         exact, _ = scorer.score_ed_moves(
             setting, actions[:, :, -1].astype(np.int64), slots, np.broadcast_to(np.arange(v), (n, v))
         )  # [N, V, P]
-        links = core.links
-        for i, j in zip(*np.nonzero(slots.associated)):
-            q, e = slot_q[i, links.serving_idx[i, j], links.slot_of_ed[i, j]], exact[i, j]
-            if e.std() < 1e-9:
-                continue
-            self.stats["corr"].append(np.corrcoef(q, e)[0, 1])
-            self.stats["same"].append(q.argmax() == e.argmax())
-            self.stats["rank"].append((q > q[e.argmax()]).sum())
-            self.stats["loss"].append(e.max() - e[q.argmax()])
+        rows = np.arange(n)[:, None]
+        q = slot_q.numpy()[rows, links.serving_idx, np.maximum(links.slot_of_ed, 0)]  # each ED's utilities [N, V, P]
+        keep = slots.associated & (exact.std(-1) > 1e-9)
+        q, e = q[keep], exact[keep]  # [M, P]
+        qc, ec = q - q.mean(-1, keepdims=True), e - e.mean(-1, keepdims=True)
+        corr = (qc * ec).sum(-1) / np.sqrt((qc**2).sum(-1) * (ec**2).sum(-1) + 1e-30)
+        best, pick = e.argmax(-1), q.argmax(-1)
+        m = np.arange(len(q))
+        self.stats["corr"].extend(corr)
+        self.stats["same"].extend(pick == best)
+        self.stats["rank"].extend((q > q[m, best][:, None]).sum(-1))
+        self.stats["loss"].extend(e[m, best] - e[m, pick])
         return actions
 
 
