@@ -388,6 +388,19 @@ def test_target_networks_move_by_tau_per_update():
         assert all(not p.requires_grad for p in tgt.parameters())
 
 
+@pytest.mark.parametrize("lr_end", [None, 1e-3])
+def test_lr_end_decays_the_step_linearly_over_t_max(lr_end):
+    # lr_end: Adam's step falls linearly from lr at env step 0 to lr_end at t_max_env_steps, then holds;
+    # unset: the paper's constant lr
+    cfg, spaces = _matrix_config(QMIXConfig, lr=1e-2, lr_end=lr_end, t_max_env_steps=1000, gru_hidden=8, fc_hidden=8)
+    learner = cfg.build_learner(spaces=spaces)
+    batch = _matrix_batch(np.arange(9.0).reshape(3, 3))
+    for step, decayed in ((0, 1e-2), (250, 7.75e-3), (1000, 1e-3), (5000, 1e-3)):
+        learner.update(batch=batch, timesteps={"num_env_steps_sampled_lifetime": step})
+        lr = learner.get_optimizer(DEFAULT_MODULE_ID).param_groups[0]["lr"]
+        assert lr == pytest.approx(1e-2 if lr_end is None else decayed, rel=1e-6)
+
+
 # ---------------------------------------------------------------------- RLlib end to end
 def _train(name: str, seed: int, iters: int):
     entry = registry.get(name)

@@ -32,6 +32,13 @@ class QMIXHParams:
     lr: float = Field(
         default=1e-4, gt=0, le=1, description="Adam step size, agent network and mixer [1/update] (paper)"
     )
+    lr_end: float | None = Field(
+        default=None,
+        gt=0,
+        le=1,
+        description="Adam step size reached at t_max_env_steps, linearly from lr [1/update]; null: lr throughout "
+        "(paper). A decaying step lets the per-ED utilities settle (docs/model.md#qmix-and-vdn-per-device)",
+    )
     gamma: float = Field(default=0.99, ge=0, le=1, description="discount per slot [-] (paper)")
     gru_hidden: int = Field(default=128, ge=1, description="GRU width of the agent network [units] (paper)")
     fc_hidden: int = Field(default=128, ge=1, description="width of the ReLU layer before the GRU [units] (decision)")
@@ -126,7 +133,8 @@ class QMIXHParams:
     t_max_env_steps: int = Field(
         default=2_000_000,
         ge=1,
-        description="the paper's training budget T_max [env steps]: the epsilon schedule is a share of it; "
+        description="the paper's training budget T_max [env steps]: the epsilon schedule is a share of it, and "
+        "lr_end is reached at it; "
         "independent of a grid's stop.env_steps, so a short run explores as the paper's first env steps do",
     )
 
@@ -151,6 +159,14 @@ class QMIXHParams:
     @property
     def epsilon_anneal_env_steps(self) -> int:
         return int(round(self.epsilon_anneal_fraction * self.t_max_env_steps))
+
+    @property
+    def lr_schedule(self) -> float | list[list[float]]:
+        """RLlib's `lr`: the constant lr, or [[0, lr], [t_max_env_steps, lr_end]] (piecewise linear
+        over the sampled env steps, held at lr_end after)."""
+        if self.lr_end is None:
+            return self.lr
+        return [[0, self.lr], [self.t_max_env_steps, self.lr_end]]
 
 
 @typed_dataclass(config={"extra": "forbid", "frozen": True})

@@ -86,7 +86,7 @@ class QMIXConfig(HParamsConfig, AlgorithmConfig):
 
     @override(HParamsConfig)
     def apply_hparams(self, h: QMIXHParams, scenario: ScenarioConfig) -> dict:
-        self.training(lr=h.lr, gamma=h.gamma, grad_clip=h.grad_clip, grad_clip_by="global_norm")
+        self.training(lr=h.lr_schedule, gamma=h.gamma, grad_clip=h.grad_clip, grad_clip_by="global_norm")
         return {
             "mixer": self.mixer,
             "epsilon_anneal_env_steps": h.epsilon_anneal_env_steps,
