@@ -467,6 +467,65 @@ def test_shipped_grids_are_valid():
         assert (fit.evaluation.episodes, fit.evaluation.interval_env_steps) == (10, 20_000)
 
 
+# The per_device benchmark in one grid per scenario, and the experiments that measured each learner's form there
+# (BENCHMARKS.md "per_device learning benchmark"): the one-command grids must run what was measured.
+_MEASURED = {
+    "10x2": {
+        "mappo": ["learning_per_device_10x2_lora_phy"],
+        "ippo": ["learning_per_device_10x2_lora_phy"],
+        "qmix": ["learning_per_device_10x2_lora_phy_qmix_lr_end"],
+        "vdn": ["learning_per_device_10x2_lora_phy_vdn_lr_end"],
+        "coma": ["learning_per_device_10x2_lora_phy_coma_return"],
+    },
+    "60x4": {
+        "mappo": ["learning_per_device_60x4_lora_phy", "learning_per_device_60x4_lora_phy_seeds12"],
+        "ippo": ["learning_per_device_60x4_lora_phy_ac"],
+        "qmix": ["learning_per_device_60x4_lora_phy_value_lr_end"],
+        "vdn": ["learning_per_device_60x4_lora_phy_value_lr_end"],
+        "coma": ["learning_per_device_60x4_lora_phy_coma_return"],
+    },
+    "60x8": {
+        "mappo": ["learning_per_device_60x8_lora_phy", "learning_per_device_60x8_lora_phy_seeds12"],
+        "ippo": ["learning_per_device_60x8_lora_phy_ippo_value"],
+        "qmix": ["learning_per_device_60x8_lora_phy_qmix_lr_end"],
+        "vdn": ["learning_per_device_60x8_lora_phy_vdn_lr_end"],
+        "coma": ["learning_per_device_60x8_lora_phy_coma_return"],
+    },
+}
+
+
+def _one_value(settings: dict | None) -> dict:
+    """A learner's settings with each single-value grid_search (how a measured grid names its variant) resolved."""
+    out = {}
+    for key, value in (settings or {}).items():
+        if isinstance(value, dict) and "grid_search" in value:
+            assert len(value["grid_search"]) == 1, f"{key}: a benchmark form is one setting"
+            value = value["grid_search"][0]
+        out[key] = value
+    return out
+
+
+@pytest.mark.parametrize("scenario", sorted(_MEASURED))
+def test_benchmark_grids_run_what_was_measured(scenario):
+    """tune_configs/benchmark_per_device_<V>x<U>.yaml holds all five learners with the settings, scenario, budget
+    and evaluation of the experiments whose results BENCHMARKS.md reports for them, and the three references."""
+    folder = os.path.join(REPO, "tune_configs")
+    bench = load_grid(os.path.join(folder, f"benchmark_per_device_{scenario}.yaml"))
+    assert set(bench.algorithms) == {"mappo", "ippo", "qmix", "vdn", "coma"}
+    assert set(bench.baselines) == {"random", "best_fixed", "greedy"}
+    assert bench.scenario == {"action_mode": "per_device", "rate_model": "lora_phy"}
+    for learner, sources in _MEASURED[scenario].items():
+        measured_seeds: set[int] = set()  # the first V=60 grids listed 0-2 but were stopped after seed 0
+        for name in sources:
+            grid = load_grid(os.path.join(folder, f"{name}.yaml"))
+            assert grid.experiment == name
+            assert _one_value(grid.algorithms[learner]) == _one_value(bench.algorithms[learner]), (learner, name)
+            same = ("n_eds", "n_uavs", "scenario", "stop", "evaluation")
+            assert [getattr(grid, f) for f in same] == [getattr(bench, f) for f in same], (learner, name)
+            measured_seeds |= set(grid.seeds)
+        assert measured_seeds == set(bench.seeds), learner
+
+
 def test_parse_grid_without_file(tmp_path):
     with pytest.raises(ConfigError, match=r"^stop: required field is missing$"):
         parse_grid(_mutate(tmp_path, stop=None))
