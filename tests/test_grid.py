@@ -508,7 +508,8 @@ def _one_value(settings: dict | None) -> dict:
 @pytest.mark.parametrize("scenario", sorted(_MEASURED))
 def test_benchmark_grids_run_what_was_measured(scenario):
     """tune_configs/benchmark_per_device_<V>x<U>.yaml holds all five learners with the settings, scenario, budget
-    and evaluation of the experiments whose results BENCHMARKS.md reports for them, and the three references."""
+    and evaluation of the experiments whose results BENCHMARKS.md reports for them (archived beside the report), and the
+    three references."""
     folder = os.path.join(REPO, "tune_configs")
     bench = load_grid(os.path.join(folder, f"benchmark_per_device_{scenario}.yaml"))
     assert set(bench.algorithms) == {"mappo", "ippo", "qmix", "vdn", "coma"}
@@ -519,6 +520,8 @@ def test_benchmark_grids_run_what_was_measured(scenario):
         for name in sources:
             grid = load_grid(os.path.join(folder, f"{name}.yaml"))
             assert grid.experiment == name
+            archive = os.path.join(REPO, "docs", "results", "learning_per_device_lora_phy", "runs", f"{name}.mlflow.json.gz")
+            assert os.path.isfile(archive), f"{name}: its runs are not archived beside the report"
             assert _one_value(grid.algorithms[learner]) == _one_value(bench.algorithms[learner]), (learner, name)
             same = ("n_eds", "n_uavs", "scenario", "stop", "evaluation")
             assert [getattr(grid, f) for f in same] == [getattr(bench, f) for f in same], (learner, name)
