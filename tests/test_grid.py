@@ -520,7 +520,9 @@ def test_benchmark_grids_run_what_was_measured(scenario):
         for name in sources:
             grid = load_grid(os.path.join(folder, f"{name}.yaml"))
             assert grid.experiment == name
-            archive = os.path.join(REPO, "docs", "results", "learning_per_device_lora_phy", "runs", f"{name}.mlflow.json.gz")
+            archive = os.path.join(
+                REPO, "docs", "results", "learning_per_device_lora_phy", "runs", f"{name}.mlflow.json.gz"
+            )
             assert os.path.isfile(archive), f"{name}: its runs are not archived beside the report"
             assert _one_value(grid.algorithms[learner]) == _one_value(bench.algorithms[learner]), (learner, name)
             same = ("n_eds", "n_uavs", "scenario", "stop", "evaluation")
