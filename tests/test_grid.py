@@ -3,6 +3,7 @@ trial product / dry-run table are right. No Ray here (fast)."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 import subprocess
@@ -14,6 +15,7 @@ import yaml
 
 from uavlora_rllib import tune as tune_cli
 from uavlora_rllib.config_errors import ConfigError
+from uavlora_rllib.experiment import sweep
 from uavlora_rllib.experiment.grid import baseline_runs, load_grid, parse_grid, trials
 
 TESTS_DIR = os.path.dirname(os.path.abspath(__file__))
@@ -494,15 +496,14 @@ _MEASURED = {
 }
 
 
-def _one_value(settings: dict | None) -> dict:
-    """A learner's settings with each single-value grid_search (how a measured grid names its variant) resolved."""
-    out = {}
-    for key, value in (settings or {}).items():
-        if isinstance(value, dict) and "grid_search" in value:
-            assert len(value["grid_search"]) == 1, f"{key}: a benchmark form is one setting"
-            value = value["grid_search"][0]
-        out[key] = value
-    return out
+def _trial_settings(grid, learner: str) -> tuple:
+    """What a learner's trials of `grid` run, validated as the trials are built (defaults filled in): the
+    hyperparameters with each single-value grid_search (how a measured grid names its variant) applied, and the
+    scenario. More than one value per field fails the unpacking: a benchmark form is one setting."""
+    specs = [s for s in trials(grid) if s.algorithm == learner]
+    (combo,) = {tuple(c.items()) for s in specs for c in sweep.representative_combinations(s.spaces)}
+    (settings,) = {(dataclasses.replace(s.hparams, **dict(combo)), s.scenario) for s in specs}
+    return settings
 
 
 @pytest.mark.parametrize("scenario", sorted(_MEASURED))
@@ -524,9 +525,8 @@ def test_benchmark_grids_run_what_was_measured(scenario):
                 REPO, "docs", "results", "learning_per_device_lora_phy", "runs", f"{name}.mlflow.json.gz"
             )
             assert os.path.isfile(archive), f"{name}: its runs are not archived beside the report"
-            assert _one_value(grid.algorithms[learner]) == _one_value(bench.algorithms[learner]), (learner, name)
-            same = ("n_eds", "n_uavs", "scenario", "stop", "evaluation")
-            assert [getattr(grid, f) for f in same] == [getattr(bench, f) for f in same], (learner, name)
+            assert _trial_settings(grid, learner) == _trial_settings(bench, learner), (learner, name)
+            assert (grid.stop, grid.evaluation) == (bench.stop, bench.evaluation), (learner, name)
             measured_seeds |= set(grid.seeds)
         assert measured_seeds == set(bench.seeds), learner
 
