@@ -2,7 +2,7 @@
 
     python -m uavlora_rllib.bench_train ALGO [--iterations K] [--n-eds V --n-uavs U]
         [--episode-len T] [--envs-per-runner N] [--env-runners R] [--torch-threads K]
-        [--set key=value ...]
+        [--learner-precision float32|bfloat16] [--set key=value ...]
 
 Builds ALGO from the registry (hyperparameter overrides with --set, validated like the grid
 YAML), trains K iterations after one warm-up iteration (`experiment.training_rate`, the
@@ -78,6 +78,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--torch-threads", type=int_in(1, 1024), default=1, help="torch threads of the learner (default 1)")
     p.add_argument(
+        "--learner-precision",
+        choices=("float32", "bfloat16"),
+        default="float32",
+        help="number format of the learner's matrix products (resources.learner_precision; default float32)",
+    )
+    p.add_argument(
         "--num-cpus", type=int_in(1, 100_000), default=None, help="CPUs of the local Ray (default: all of this machine)"
     )
     p.add_argument("--seed", type=int_in(0, SEED_MAX), default=0, help="training seed (default 0)")
@@ -110,6 +116,7 @@ def _resolve(args: argparse.Namespace):
             "num_env_runners": args.env_runners,
             "num_envs_per_env_runner": args.envs_per_runner,
             "torch_threads": args.torch_threads,
+            "learner_precision": args.learner_precision,
         },
         "resources",
     )

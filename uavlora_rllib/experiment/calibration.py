@@ -48,6 +48,7 @@ SPEED_RESOURCES = (
     "torch_threads",
     "num_learners",
     "num_gpus_per_learner",
+    "learner_precision",
 )
 DEFAULT_ITERATIONS = 2  # timed training iterations per cell (after the warm-up)
 # A baseline whose (unloaded, single-core) cost model, `baselines.policies.evaluation_seconds`,

@@ -382,6 +382,12 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
     ) -> torch.Tensor:
         """Q [..., U, A] (per_uav) or [..., U, L, W] (per_device) of the critic `net` (or its target);
         per_device with `rows` (flat u L + l, [K]): those rows only, [..., K, W]."""
+        q = self._critic_q(net, state, obs, actions, rows)
+        return q.float()  # float32 under autocast too (common/precision.py)
+
+    def _critic_q(
+        self, net: nn.Module, state: torch.Tensor, obs: torch.Tensor, actions: torch.Tensor, rows: torch.Tensor | None
+    ) -> torch.Tensor:
         if self.per_device:
             return net(state, obs if self.use_obs else None, actions, rows)
         assert rows is None, "per_uav critics evaluate every UAV's row"

@@ -157,7 +157,7 @@ class RecurrentAgentNet(nn.Module):
             own = torch.einsum("buth,uho->buto", feat, self.agent_out).reshape(b * u, t, -1)
             out = net.out[-1](feat.reshape(b * u, t, -1)) + own
         out = out.reshape(b, u, t, self.n_out).permute(0, 2, 1, 3)
-        return out, h_out.reshape(b, u, self.gru_hidden)
+        return out.float(), h_out.reshape(b, u, self.gru_hidden)  # float32 under autocast too (common/precision.py)
 
     def _stacked(self, name: str) -> torch.Tensor:
         """The stacked [U, ...] parameter of the per-agent parameter `name` (share=False)."""
@@ -179,7 +179,8 @@ class RecurrentAgentNet(nn.Module):
             y = self._linear(y, f"out.{2 * k}")
             if k < self.n_out_layers - 1:
                 y = torch.relu(y)
-        return y.reshape(u, b, t, self.n_out).permute(1, 2, 0, 3), h_out.transpose(0, 1).contiguous()
+        out = y.reshape(u, b, t, self.n_out).permute(1, 2, 0, 3).float()  # float32 under autocast too
+        return out, h_out.transpose(0, 1).contiguous()
 
     def _gru(self, z: torch.Tensor, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """U GRUs at once: z [U, B, T, fc], h [U, B, H] -> outputs [U, B, T, H], h_T [U, B, H].
@@ -190,12 +191,14 @@ class RecurrentAgentNet(nn.Module):
             self._stacked(f"gru.{k}_l0") for k in ("weight_ih", "weight_hh", "bias_ih", "bias_hh")
         )
         z = z.transpose(1, 2).reshape(u, t * b, f)  # time-major rows, as nn.GRU sums its gradients
-        gi = torch.baddbmm(b_ih.unsqueeze(1), z, w_ih.transpose(1, 2))
+        # .float(): under bf16 autocast (train_precision) the products run in bf16 but the gates and
+        # the carried state stay float32, so rounding does not compound over T (a no-op in float32)
+        gi = torch.baddbmm(b_ih.unsqueeze(1), z, w_ih.transpose(1, 2)).float()
         w_hh_t, b_hh = w_hh.transpose(1, 2), b_hh.unsqueeze(1)
         ys = []
         for g in gi.reshape(u, t, b, -1).unbind(1):  # unbind: one backward node for all steps
             i_r, i_z, i_n = g.chunk(3, -1)
-            h_r, h_z, h_n = torch.baddbmm(b_hh, h, w_hh_t).chunk(3, -1)
+            h_r, h_z, h_n = torch.baddbmm(b_hh, h, w_hh_t).float().chunk(3, -1)
             r = torch.sigmoid(i_r + h_r)
             zg = torch.sigmoid(i_z + h_z)
             n = torch.tanh(i_n + r * h_n)

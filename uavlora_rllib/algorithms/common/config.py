@@ -14,7 +14,7 @@ The convention every algorithm follows:
   implements `apply_hparams`, which sets the fields RLlib's own machinery reads (lr, gamma,
   batch sizes, grad_clip, ...), and, where it samples differently from RLlib's defaults,
   `env_runner_settings`. `team_config` builds every trial's config the same way: team env,
-  resources, `config.uavlora(hparams, scenario, torch_threads)` (the typed object is kept as
+  resources, `config.uavlora(hparams, scenario, torch_threads, learner_precision)` (the typed object is kept as
   `config.hparams`, where learners read it; its fields plus the scenario's dimensions become
   the RLModule's model_config, so a module reads every setting as `model_config[name]` and
   states no default of its own), the episode-metric callbacks and the seed.
@@ -64,13 +64,19 @@ class HParamsConfig(abc.ABC):
         restored from a checkpoint made before a field existed gets that field's default, which by
         convention is the former behaviour, so the module can still read every setting as
         `model_config[name]` (RLlib merges these under `_model_config`, as PPOConfig does)."""
-        return {**super()._model_config_auto_includes, **dataclasses.asdict(self.hparams_cls())}  # type: ignore[misc]
+        return {
+            **super()._model_config_auto_includes,  # type: ignore[misc]
+            **dataclasses.asdict(self.hparams_cls()),
+            "learner_precision": "float32",  # Resources' default (checkpoints made before it existed)
+        }
 
     @override(AlgorithmConfig)
     def get_default_learner_class(self) -> type:
         return self.learner_class
 
-    def uavlora(self, hparams: Any, scenario: ScenarioConfig, torch_threads: int = 1) -> Any:
+    def uavlora(
+        self, hparams: Any, scenario: ScenarioConfig, torch_threads: int = 1, learner_precision: str = "float32"
+    ) -> Any:
         if not isinstance(hparams, self.hparams_cls):
             raise TypeError(f"hparams: expected {self.hparams_cls.__name__}, got {type(hparams).__name__}")
         self.hparams = hparams
@@ -82,6 +88,7 @@ class HParamsConfig(abc.ABC):
                 **dataclasses.asdict(hparams),
                 **resolved,
                 "torch_threads": self.torch_threads,
+                "learner_precision": learner_precision,  # read by the learner (common/precision.py)
             }
         )
         return self
@@ -113,7 +120,9 @@ def team_config(config: Any, name: str, scenario: ScenarioConfig, hparams: Any, 
     hparams.check(scenario, resources, f"algorithms.{name}")
     settings = config.env_runner_settings(scenario)
     config = sample_through_team_env(config, scenario, resources, name, **settings).framework("torch")
-    config = apply_resources(config, resources).uavlora(hparams, scenario, torch_threads=resources.torch_threads)
+    config = apply_resources(config, resources).uavlora(
+        hparams, scenario, torch_threads=resources.torch_threads, learner_precision=resources.learner_precision
+    )
     return log_episode_metrics(config).debugging(seed=seed)
 
 
@@ -121,4 +130,4 @@ def hparams_model_config(hparams_cls: type, **entries: Any) -> dict[str, Any]:
     """The model_config of an RLModule built without an AlgorithmConfig (tests): the typed
     hyperparameter class's defaults, one torch thread, then `entries` (the scenario's sizes
     and the entries the algorithm's `apply_hparams` resolves)."""
-    return {**dataclasses.asdict(hparams_cls()), "torch_threads": 1, **entries}
+    return {**dataclasses.asdict(hparams_cls()), "torch_threads": 1, "learner_precision": "float32", **entries}

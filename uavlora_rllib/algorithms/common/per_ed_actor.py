@@ -81,7 +81,8 @@ class PerEDActor(nn.Module):
             rows = torch.cat((rows, self.slot_onehot.expand(*rows.shape[:-2], -1, -1)), dim=-1)
         slot_logits = self.slot_heads(f, rows, self.quota)  # [B, T, U, K, n_sf + n_tp]
         bw_logits = self.bw_head(f).squeeze(-2)  # [B, T, U, n_bw]
-        return torch.cat((slot_logits.flatten(-2), bw_logits), dim=-1), h_out
+        # float32 under autocast too (common/precision.py)
+        return torch.cat((slot_logits.flatten(-2), bw_logits), dim=-1).float(), h_out
 
 
 def make_actor(

@@ -21,7 +21,7 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import Field
 from pydantic.dataclasses import dataclass as typed_dataclass
@@ -56,6 +56,10 @@ HPARAMS_MODULES: dict[str, str] = {
 }
 
 
+# `Resources.learner_precision`: float32 everywhere, or the learner's matrix products in bfloat16
+LearnerPrecision = Literal["float32", "bfloat16"]
+
+
 # Most remote env runners or learners one trial may ask for: each is a bundle of the trial's placement
 # group (`Resources.bundles`), so a count from a typo (10**9) would be built as a list before Ray saw it.
 MAX_ACTORS_PER_TRIAL = 4096
@@ -86,6 +90,12 @@ class Resources:
         default=1.0, gt=0, description="CPUs per learner (the trial's process when num_learners is 0)"
     )
     torch_threads: int = Field(default=1, ge=1, description="torch intra-op threads per process")
+    learner_precision: LearnerPrecision = Field(
+        default="float32",
+        description="number format of the learner's matrix products: 'bfloat16' runs the training update "
+        "under torch.autocast (the GRU state, losses and parameters stay float32); fast only where the "
+        "chip has bfloat16 arithmetic (docs/model.md#learner-precision)",
+    )
 
     def bundles(self) -> list[dict[str, float]]:
         """Placement-group bundles of one trial, in RLlib's layout

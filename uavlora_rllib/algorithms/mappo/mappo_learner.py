@@ -44,6 +44,7 @@ from ray.rllib.evaluation.postprocessing import Postprocessing
 from ray.rllib.utils.annotations import override
 
 from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE, VF_PREDS
+from uavlora_rllib.algorithms.common.precision import PrecisionLearner
 
 
 class AddGlobalStateToBatch(ConnectorV2):
@@ -141,7 +142,7 @@ class PerAgentGAE(ConnectorV2):
         return batch
 
 
-class MAPPOTorchLearner(TorchLearner):
+class MAPPOTorchLearner(PrecisionLearner):
     """Per-agent clipped PPO with a (central or local) critic. Settings: the typed
     `config.hparams` (MAPPOHParams: value_clip) and the PPOConfig fields MAPPOConfig sets from
     it (clip_param, vf_loss_coeff, entropy_coeff, gamma, lambda_, grad_clip, lr); the critic
