@@ -2,7 +2,7 @@
 
 The networks: under the learner's autocast every network's output comes back float32, close to
 its float32 output (bfloat16 keeps ~3 significant digits of each product's inputs) but not equal
-to it (the products did run in bfloat16). The learners: every registered algorithm trains one
+to it (the products did run in bfloat16). The learners: every built-in algorithm trains one
 iteration with it, its update runs under autocast (and only its update: acting stays float32),
 and its weights move by finite amounts; with float32 nothing runs under autocast.
 """
@@ -76,6 +76,24 @@ def test_learner_precision_is_checked_at_the_boundary():
     assert build(registry.Resources, {"learner_precision": "bfloat16"}, "resources").learner_precision == "bfloat16"
     with pytest.raises(ConfigError, match=r"resources\.learner_precision.*float32.*bfloat16"):
         build(registry.Resources, {"learner_precision": "fp16"}, "resources")
+
+
+def test_a_learner_without_precision_is_refused_bfloat16():
+    """An algorithm registered through `register_algorithm` whose learner ignores the setting (a plugin's
+    plain TorchLearner) is refused in one line, before anything is built, rather than run in float32."""
+    from ray.rllib.core.learner.torch.torch_learner import TorchLearner
+
+    from uavlora_rllib.algorithms.common.config import team_config
+    from uavlora_rllib.algorithms.mappo.mappo import MAPPOConfig
+
+    class PlainLearnerConfig(MAPPOConfig):
+        learner_class = TorchLearner
+
+    entry = registry.get("mappo")
+    bf16 = registry.Resources(learner_precision="bfloat16")
+    with pytest.raises(ConfigError, match=r"^resources\.learner_precision: 'bfloat16' needs .*allowed: 'float32'$"):
+        team_config(PlainLearnerConfig(), "plain", TINY, entry.hparams({}), bf16, 0)
+    team_config(PlainLearnerConfig(), "plain", TINY, entry.hparams({}), registry.Resources(), 0)  # float32: fine
 
 
 TINY = ScenarioConfig(n_eds=10, n_uavs=2, episode_len=10, action_mode="per_device")

@@ -191,7 +191,7 @@ class RecurrentAgentNet(nn.Module):
             self._stacked(f"gru.{k}_l0") for k in ("weight_ih", "weight_hh", "bias_ih", "bias_hh")
         )
         z = z.transpose(1, 2).reshape(u, t * b, f)  # time-major rows, as nn.GRU sums its gradients
-        # .float(): under bf16 autocast (train_precision) the products run in bf16 but the gates and
+        # .float(): under bf16 autocast (learner_precision) the products run in bf16 but the gates and
         # the carried state stay float32, so rounding does not compound over T (a no-op in float32)
         gi = torch.baddbmm(b_ih.unsqueeze(1), z, w_ih.transpose(1, 2)).float()
         w_hh_t, b_hh = w_hh.transpose(1, 2), b_hh.unsqueeze(1)
