@@ -19,7 +19,7 @@ from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE, HIDDEN, TERMIN
 from uavlora_rllib.algorithms.common.config import hparams_model_config
 from uavlora_rllib.algorithms.common.policy import trained_module
 from uavlora_rllib.algorithms.qmix.qmix import QMIXConfig, QMIXHParams, VDNConfig
-from uavlora_rllib.algorithms.qmix.qmix_learner import nstep_targets
+from uavlora_rllib.algorithms.qmix.qmix_learner import nstep_targets, td_targets
 from uavlora_rllib.algorithms.qmix.qmix_module import (
     Q_ALL,
     Q_TAKEN,
@@ -171,6 +171,32 @@ def test_nstep_targets_bootstrap_through_truncation(n):
     # Truncated episode (row 0): the last transition bootstraps from the final state.
     assert y[0, -1] == pytest.approx(r[0, -1] + 0.9 * nxt[0, -1])
     assert y[1, -1] == pytest.approx(r[1, -1])  # terminated: no bootstrap
+
+
+@pytest.mark.parametrize("n", [1, 3])
+def test_gamma_zero_targets_are_the_rewards_without_the_target_networks(n):
+    """At gamma 0 every n-step target is r_t, whatever the bootstrap: td_targets returns the rewards, and the
+    module leaves TARGET_Q_TOT_NEXT out without running the target agent network or mixer (the per_device
+    benchmark trains at gamma 0, so this skips a third of each update's forward passes)."""
+    rng = np.random.default_rng(n)
+    r, nxt = torch.as_tensor(rng.normal(size=(3, 20))), torch.as_tensor(rng.normal(size=(3, 20)) * 100)
+    term = torch.tensor([False, True, False])
+    torch.testing.assert_close(td_targets(r, {}, term, 0.0, n), nstep_targets(r, nxt, term, 0.0, n))
+    torch.testing.assert_close(
+        td_targets(r, {TARGET_Q_TOT_NEXT: nxt}, term, 0.9, n), nstep_targets(r, nxt, term, 0.9, n)
+    )
+    batch = {
+        Columns.OBS: torch.randn(2, 5, 2, 3),
+        Columns.ACTIONS: torch.randint(0, 5, (2, 4, 2)),
+        GLOBAL_STATE: torch.randn(2, 5, 4),
+    }
+    for gamma in (0.0, 0.5):
+        mod = _module(gamma=gamma)
+        mod.make_target_networks()
+        calls: list[int] = []
+        mod._target_agent.register_forward_hook(lambda *_, calls=calls: calls.append(1))
+        out = mod.forward_train(batch)
+        assert (TARGET_Q_TOT_NEXT in out, len(calls)) == ((False, 0) if gamma == 0.0 else (True, 1))
 
 
 def test_epsilon_schedule_and_exploration():

@@ -235,6 +235,21 @@ def test_replay_stores_and_returns_action_vectors():
     assert EpisodeReplay(2, 3, U, OBS_DIM, 2).actions.shape == (2, 3, U)  # per_uav: one index per UAV
 
 
+def test_gamma_zero_leaves_the_target_networks_unread():
+    """At gamma 0 (the per_device benchmark) the TD target is the reward: no target agent network pass,
+    no TARGET_Q_TOT_NEXT; the online outputs are those of any other gamma."""
+    batch = _batch(b=2, t=4, seed=6)
+    outs = {}
+    for gamma in (0.0, 0.9):
+        torch.manual_seed(7)
+        mod = _module(mixer="qmix", gamma=gamma)
+        calls: list[int] = []
+        mod._target_agent.register_forward_hook(lambda *_, calls=calls: calls.append(1))
+        outs[gamma] = mod.forward_train(batch)
+        assert (TARGET_Q_TOT_NEXT in outs[gamma], len(calls)) == ((False, 0) if gamma == 0.0 else (True, 1))
+    torch.testing.assert_close(outs[0.0][Q_TOT], outs[0.9][Q_TOT])
+
+
 @pytest.mark.parametrize("double_q", [True, False])
 def test_target_is_double_q_per_branch(double_q):
     """TARGET_Q_TOT_NEXT against a hand computation (VDN without V(s): the sum of the UAVs' means)."""

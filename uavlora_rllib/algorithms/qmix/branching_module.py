@@ -105,11 +105,8 @@ class BranchingQMixModule(QMixModule):
         slot_v, bw_v = branching.taken(q[Q_SLOTS][:, :n_t], q[Q_BW][:, :n_t], slot_idx, bw_idx)
         q_taken = branching.aggregate(slot_v, bw_v, branching.active_slots(obs[:, :n_t], self.quota))
         q_tot = self.mixer(q_taken, batch[GLOBAL_STATE].float()[:, :n_t])
-        out = {**q, Q_TAKEN: q_taken, Q_TOT: q_tot}
-        with torch.no_grad():
-            online = {Q_SLOTS: q[Q_SLOTS].detach(), Q_BW: q[Q_BW].detach()}
-            out[TARGET_Q_TOT_NEXT] = self.forward_target({**batch, **online})[TARGET_Q_TOT_NEXT]
-        return out
+        online = {Q_SLOTS: q[Q_SLOTS].detach(), Q_BW: q[Q_BW].detach()}
+        return {**q, Q_TAKEN: q_taken, Q_TOT: q_tot, **self.target_terms({**batch, **online})}
 
     # ------------------------------------------------------------------ target networks
     @override(TargetNetworkAPI)

@@ -46,6 +46,16 @@ def nstep_targets(
     return ret + torch.pow(torch.full_like(m, gamma), m).view(1, t) * boot * (~done).to(rewards.dtype)
 
 
+def td_targets(
+    rewards: torch.Tensor, fwd_out: dict[str, Any], terminated: torch.Tensor, gamma: float, n_step: int
+) -> torch.Tensor:
+    """The TD targets y [B, T]: n-step ones from the module's TARGET_Q_TOT_NEXT, or at gamma 0 the rewards
+    themselves (the module leaves the target networks unevaluated then: QMixModule.target_terms)."""
+    if gamma == 0.0:
+        return rewards
+    return nstep_targets(rewards, fwd_out[TARGET_Q_TOT_NEXT].detach(), terminated, gamma, n_step)
+
+
 class QMIXTorchLearner(TargetNetworkLearner):
     """TD loss above; hyperparameters from the typed config.hparams (QMIXHParams)."""
 
@@ -68,9 +78,7 @@ class QMIXTorchLearner(TargetNetworkLearner):
             norm.update(rewards)
             rewards = norm.normalize(rewards)
         q_tot = fwd_out[Q_TOT]
-        y = nstep_targets(
-            rewards, fwd_out[TARGET_Q_TOT_NEXT].detach(), batch[TERMINATED], config.gamma, config.hparams.n_step
-        )
+        y = td_targets(rewards, fwd_out, batch[TERMINATED], config.gamma, config.hparams.n_step)
         td = q_tot - y
         # optimistic weighting: an over-estimate (target below Q_tot) counts negative_td_weight (1: plain TD)
         loss = (torch.where(td > 0, config.hparams.negative_td_weight, 1.0) * td**2).mean()

@@ -134,6 +134,8 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
         self.n_actions = int(mc["n_actions"])
         self.gru_hidden = int(mc["gru_hidden"])
         self.double_q = bool(mc["double_q"])
+        # 0: every TD target is the reward, so the target networks are not evaluated (target_terms)
+        self.gamma = float(mc["gamma"])
         self.agent = self._make_agent()
         # The mixer is built here and removed again on inference-only (env runner) copies.
         self.mixer = make_mixer(
@@ -220,10 +222,15 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
         q_taken = q_all[:, :n_t].gather(-1, actions.unsqueeze(-1)).squeeze(-1)
         state = batch[GLOBAL_STATE].float()
         q_tot = self.mixer(q_taken, state[:, :n_t])
-        out = {Q_ALL: q_all, Q_TAKEN: q_taken, Q_TOT: q_tot}
+        return {Q_ALL: q_all, Q_TAKEN: q_taken, Q_TOT: q_tot, **self.target_terms({**batch, Q_ALL: q_all.detach()})}
+
+    def target_terms(self, batch: dict[str, Any]) -> dict[str, Any]:
+        """forward_target's TARGET_Q_TOT_NEXT without gradient, or {} at gamma 0: every TD target is then
+        the reward (qmix_learner.td_targets) and the target agent network and mixer are never read."""
+        if self.gamma == 0.0:
+            return {}
         with torch.no_grad():
-            out[TARGET_Q_TOT_NEXT] = self.forward_target({**batch, Q_ALL: q_all.detach()})[TARGET_Q_TOT_NEXT]
-        return out
+            return {TARGET_Q_TOT_NEXT: self.forward_target(batch)[TARGET_Q_TOT_NEXT]}
 
     # ------------------------------------------------------------------ target networks
     @override(TargetNetworkAPI)
