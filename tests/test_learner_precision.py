@@ -99,13 +99,8 @@ def test_a_learner_without_precision_is_refused_bfloat16():
 TINY = ScenarioConfig(n_eds=10, n_uavs=2, episode_len=10, action_mode="per_device")
 
 
-# The built-in learners (PrecisionLearner): MODULES also holds test plugins once another test module has
-# imported them (tests/tune_stock_ppo.py adds itself at import, before this module is collected)
-BUILT_IN = sorted(n for n, m in registry.MODULES.items() if m.startswith("uavlora_rllib.algorithms."))
-
-
 @pytest.mark.parametrize("precision", ["bfloat16", "float32"])
-@pytest.mark.parametrize("name", BUILT_IN)
+@pytest.mark.parametrize("name", registry.built_in())  # PrecisionLearners all (test plugins are not)
 def test_every_learner_updates_under_its_precision(ray_session, name, precision):
     entry = registry.get(name)
     resources = registry.Resources(num_envs_per_env_runner=4, learner_precision=precision)

@@ -52,9 +52,9 @@ _Q_CI = {
     "buffer_size_episodes": 32,
     "learning_starts_episodes": 8,
 }
-# the project's learners: every algorithm registered from this package (a plugin that another
-# test module registers, such as tests/tune_stock_ppo.py, is not a learner of this project)
-LEARNERS = [n for n in registry.available() if registry.MODULES[n].startswith("uavlora_rllib.algorithms.")]
+# the project's learners (a plugin that another test module registers, such as tests/tune_stock_ppo.py,
+# is not a learner of this project)
+LEARNERS = registry.built_in()
 CI: dict[str, tuple[dict, int]] = {
     # mappo: 80 x 8 episodes x 20 slots = 12,800 env steps
     "mappo": (_PPO_CI, 80),

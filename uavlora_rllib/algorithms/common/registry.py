@@ -221,6 +221,12 @@ def register_algorithm(name: str, config_cls: type[Any], action_modes: tuple[str
     return entry
 
 
+def built_in() -> list[str]:
+    """The algorithms this package implements, in MODULES' order: a plugin adds its own line to MODULES
+    when it is imported (tests/tune_stock_ppo.py), so MODULES alone is not the built-in set."""
+    return [name for name, module in MODULES.items() if module.startswith("uavlora_rllib.algorithms.")]
+
+
 def available() -> list[str]:
     """Names whose module can be imported (implemented algorithms)."""
     out = []
