@@ -411,7 +411,7 @@ class _FakeEntry:
     def __init__(self, algo):
         self.algo = algo
 
-    def build(self, scenario, hparams, resources, seed):
+    def algorithm_config(self, scenario, hparams, resources, seed):
         return self
 
     def build_algo(self):

@@ -26,6 +26,11 @@ def _one_line(err: str) -> bool:
             ["stock_ppo", "--action-mode", "per_device"],
             "--action-mode: algorithm 'stock_ppo' supports action modes ['per_uav']",
         ),
+        (
+            # the same plugin's own builder and plain PPO learner: bfloat16 would be ignored, so it is refused
+            ["stock_ppo", "--learner-precision", "bfloat16"],
+            "resources.learner_precision: 'bfloat16' needs a learner built on common/precision.py's PrecisionLearner",
+        ),
         (["mappo", "--set", "lr"], "--set: expected key=value, got 'lr'"),
         (["mappo", "--set", "lr=1", "lr=2"], "--set: 'lr' given twice"),
         (["mappo", "--set", "lr=true"], "--set.lr: expected a number in (0, 1], got True (bool)"),

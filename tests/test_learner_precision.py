@@ -79,8 +79,10 @@ def test_learner_precision_is_checked_at_the_boundary():
 
 
 def test_a_learner_without_precision_is_refused_bfloat16():
-    """An algorithm registered through `register_algorithm` whose learner ignores the setting (a plugin's
-    plain TorchLearner) is refused in one line, before anything is built, rather than run in float32."""
+    """An algorithm whose learner ignores the setting (a plugin's plain TorchLearner, through `team_config` or
+    its own builder) is refused in one line when its trial's config is built, rather than run in float32."""
+    import dataclasses
+
     from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 
     from uavlora_rllib.algorithms.common.config import team_config
@@ -89,11 +91,17 @@ def test_a_learner_without_precision_is_refused_bfloat16():
     class PlainLearnerConfig(MAPPOConfig):
         learner_class = TorchLearner
 
-    entry = registry.get("mappo")
+    mappo = registry.get("mappo")
+    entry = dataclasses.replace(
+        mappo,
+        name="plain",
+        build=lambda sc, hp, res, seed: team_config(PlainLearnerConfig(), "plain", sc, hp, res, seed),
+    )
     bf16 = registry.Resources(learner_precision="bfloat16")
     with pytest.raises(ConfigError, match=r"^resources\.learner_precision: 'bfloat16' needs .*allowed: 'float32'$"):
-        team_config(PlainLearnerConfig(), "plain", TINY, entry.hparams({}), bf16, 0)
-    team_config(PlainLearnerConfig(), "plain", TINY, entry.hparams({}), registry.Resources(), 0)  # float32: fine
+        entry.algorithm_config(TINY, mappo.hparams({}), bf16, 0)
+    entry.algorithm_config(TINY, mappo.hparams({}), registry.Resources(), 0)  # float32: fine
+    mappo.algorithm_config(TINY, mappo.hparams({}), bf16, 0)  # a PrecisionLearner: fine
 
 
 TINY = ScenarioConfig(n_eds=10, n_uavs=2, episode_len=10, action_mode="per_device")

@@ -124,7 +124,7 @@ def _resolve(args: argparse.Namespace):
     cpus = args.num_cpus or os.cpu_count() or 1
     if need > cpus:  # Ray would wait for the missing CPUs forever
         raise UsageError(f"--env-runners: {args.env_runners} runners and a learner need {need:g} CPUs; Ray has {cpus}")
-    entry.build(scenario, hparams, resources, args.seed)  # the entry's own cross-checks, before Ray starts
+    entry.algorithm_config(scenario, hparams, resources, args.seed)  # the entry's own cross-checks, before Ray starts
     return entry, scenario, hparams, resources
 
 

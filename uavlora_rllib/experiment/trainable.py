@@ -40,7 +40,7 @@ class UavLoraTrainable(tune.Trainable):
         # overrides as Tune resolved them: sampled values (and PBT's mutations, which reach a
         # running trial through reset_config / a new actor, then restore) included
         self.hparams = self.entry.hparams(cfg["overrides"])
-        algo_config = self.entry.build(self.scenario, self.hparams, resources, int(cfg["seed"]))
+        algo_config = self.entry.algorithm_config(self.scenario, self.hparams, resources, int(cfg["seed"]))
         self._eval_settings = periodic_eval.PeriodicEvalSettings(
             self.scenario, int(cfg.get("eval_interval_env_steps", 0)), int(cfg["eval_episodes"]), int(cfg["seed"])
         )

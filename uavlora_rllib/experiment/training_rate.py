@@ -85,7 +85,7 @@ def measure_training(
         raise ValueError(f"iterations: must be >= 1, got {iterations}")
     set_torch_threads(resources.torch_threads)
     t0 = time.perf_counter()
-    algo = entry.build(scenario, hparams, resources, seed).build_algo()
+    algo = entry.algorithm_config(scenario, hparams, resources, seed).build_algo()
     build_s = time.perf_counter() - t0
     try:
         prev = _timers(algo.train())  # first sampling, connector setup, optimizer state

@@ -31,8 +31,6 @@ from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 from ray.rllib.utils.annotations import override
 
 from uavlora_rllib.algorithms.common.metrics import log_episode_metrics
-from uavlora_rllib.algorithms.common.precision import PrecisionLearner
-from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.sim.observation import obs_dim, state_dim
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
@@ -120,12 +118,6 @@ def team_config(config: Any, name: str, scenario: ScenarioConfig, hparams: Any, 
     from uavlora_rllib.envs.team import sample_through_team_env
 
     hparams.check(scenario, resources, f"algorithms.{name}")
-    if resources.learner_precision != "float32" and not issubclass(config.learner_class, PrecisionLearner):
-        raise ConfigError(
-            f"resources.learner_precision: {resources.learner_precision!r} needs a learner built on "
-            f"common/precision.py's PrecisionLearner, and algorithm {name!r}'s {config.learner_class.__name__} "
-            "is not; allowed: 'float32'"
-        )
     settings = config.env_runner_settings(scenario)
     config = sample_through_team_env(config, scenario, resources, name, **settings).framework("torch")
     config = apply_resources(config, resources).uavlora(

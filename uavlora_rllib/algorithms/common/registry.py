@@ -164,9 +164,26 @@ class AlgorithmEntry(AlgorithmSpec):
     def greedy_policy(self, algo: Algorithm, scenario: ScenarioConfig) -> Policy:
         return self.policy(algo, scenario, explore=False)
 
+    def algorithm_config(
+        self, scenario: ScenarioConfig, hparams: Any, resources: Resources, seed: int
+    ) -> AlgorithmConfig:
+        """The trial's AlgorithmConfig from `build`, refused (ConfigError) when its learner cannot run
+        `resources.learner_precision`: only a PrecisionLearner applies bfloat16 (docs/model.md#learner-precision),
+        and a plugin's plain learner would otherwise train in float32 without a word."""
+        from uavlora_rllib.algorithms.common.precision import PrecisionLearner
+
+        config = self.build(scenario, hparams, resources, seed)
+        if resources.learner_precision != "float32" and not issubclass(config.learner_class, PrecisionLearner):
+            raise ConfigError(
+                f"resources.learner_precision: {resources.learner_precision!r} needs a learner built on "
+                f"common/precision.py's PrecisionLearner, and algorithm {self.name!r}'s "
+                f"{config.learner_class.__name__} is not; allowed: 'float32'"
+            )
+        return config
+
     def check_trial(self, scenario: ScenarioConfig, hparams: Any, resources: Resources, seed: int) -> None:
         """Building the trial's AlgorithmConfig (not the algorithm): a plugin's own builder holds its checks."""
-        self.build(scenario, hparams, resources, seed)
+        self.algorithm_config(scenario, hparams, resources, seed)
 
 
 _REGISTRY: dict[str, AlgorithmEntry] = {}
