@@ -247,6 +247,8 @@ def test_tune_objects(tmp_path):
     from ray.tune.schedulers import ASHAScheduler, MedianStoppingRule, PopulationBasedTraining
     from ray.tune.search.optuna import OptunaSearch
 
+    from uavlora_rllib.experiment.synch_pbt import SynchronousPBT
+
     spaces = {
         "lr": sweep.SearchSpace("loguniform", (1e-4, 1e-2)),
         "num_epochs": sweep.SearchSpace("randint", (1, 4)),
@@ -264,6 +266,12 @@ def test_tune_objects(tmp_path):
     assert isinstance(made["median_stopping"], MedianStoppingRule)
     pbt = made["pbt"]
     assert isinstance(pbt, PopulationBasedTraining) and pbt._perturbation_interval == 80
+    assert not pbt._synch and not isinstance(pbt, SynchronousPBT)
+    grid = parse_grid(
+        sweep_grid(tmp_path, {"lr": {"loguniform": [1e-4, 1e-2]}}, scheduler={"type": "pbt", "synch": True})
+    )
+    synch = sweep.make_scheduler(grid, spaces, eval_interval(grid))
+    assert isinstance(synch, SynchronousPBT) and synch._synch  # Ray's, less a race (test_synch_pbt.py)
     assert set(pbt._hyperparam_mutations["trial"]["overrides"]) == set(spaces)
     # a perturbed value stays inside its space (x 1.2 of the upper bound, x 0.8 of the lower)
     clamp = pbt._custom_explore_fn

@@ -389,17 +389,21 @@ def make_scheduler(grid: Any, spaces: Mapping[str, SearchSpace], eval_interval: 
         return schedulers.MedianStoppingRule(
             grace_period=interval, min_samples_required=s.min_samples_required, hard_stop=s.hard_stop, **common
         )
-    return schedulers.PopulationBasedTraining(
-        perturbation_interval=interval,
-        burn_in_period=s.burn_in_period,
-        hyperparam_mutations={"trial": {"overrides": {k: v.to_mutation() for k, v in spaces.items()}}},
-        quantile_fraction=s.quantile_fraction,
-        resample_probability=s.resample_probability,
-        perturbation_factors=tuple(s.perturbation_factors),
-        custom_explore_fn=ClampToSpaces(spaces),
-        synch=s.synch,
+    pbt = {
+        "perturbation_interval": interval,
+        "burn_in_period": s.burn_in_period,
+        "hyperparam_mutations": {"trial": {"overrides": {k: v.to_mutation() for k, v in spaces.items()}}},
+        "quantile_fraction": s.quantile_fraction,
+        "resample_probability": s.resample_probability,
+        "perturbation_factors": tuple(s.perturbation_factors),
+        "custom_explore_fn": ClampToSpaces(spaces),
         **common,
-    )
+    }
+    if s.synch:  # Ray's, less a race that stops a trial early (experiment/synch_pbt.py)
+        from uavlora_rllib.experiment.synch_pbt import SynchronousPBT
+
+        return SynchronousPBT(**pbt)
+    return schedulers.PopulationBasedTraining(synch=False, **pbt)
 
 
 class ClampToSpaces:
