@@ -482,14 +482,14 @@ _MEASURED = {
     "60x4": {
         "mappo": ["learning_per_device_60x4_lora_phy", "learning_per_device_60x4_lora_phy_seeds12"],
         "ippo": ["learning_per_device_60x4_lora_phy_ac"],
-        "qmix": ["learning_per_device_60x4_lora_phy_value_lr_end"],
+        "qmix": ["learning_per_device_60x4_lora_phy_qmix_upd4"],
         "vdn": ["learning_per_device_60x4_lora_phy_value_lr_end"],
         "coma": ["learning_per_device_60x4_lora_phy_coma_return"],
     },
     "60x8": {
         "mappo": ["learning_per_device_60x8_lora_phy", "learning_per_device_60x8_lora_phy_seeds12"],
         "ippo": ["learning_per_device_60x8_lora_phy_ippo_value"],
-        "qmix": ["learning_per_device_60x8_lora_phy_qmix_lr_end"],
+        "qmix": ["learning_per_device_60x8_lora_phy_qmix_upd4"],
         "vdn": ["learning_per_device_60x8_lora_phy_vdn_lr_end"],
         "coma": ["learning_per_device_60x8_lora_phy_coma_return"],
     },
