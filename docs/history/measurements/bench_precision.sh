@@ -4,7 +4,7 @@
 # round 2), one JSON line per run appended to OUT.
 #
 #   git worktree add /tmp/wt6f 6f5d51a
-#   bash docs/history/measurements/bench_precision.sh /tmp/wt6f bench_precision.jsonl
+#   PY=$(pwd)/.venv/bin/python bash docs/history/measurements/bench_precision.sh /tmp/wt6f bench_precision.jsonl
 set -u
 OLD=$1 OUT=$2 HERE=$(pwd) PY=${PY:-$(pwd)/.venv/bin/python}
 run() { # version algorithm U mode round
