@@ -93,8 +93,8 @@ class Resources:
     learner_precision: LearnerPrecision = Field(
         default="float32",
         description="number format of the learner's matrix products: 'bfloat16' runs the training update "
-        "under torch.autocast (the GRU state, losses and parameters stay float32); fast only where the "
-        "chip has bfloat16 arithmetic (docs/model.md#learner-precision)",
+        "under torch.autocast (the GRU state, losses and parameters stay float32); faster only on some chips "
+        "with bfloat16 arithmetic, so measure it with bench_train (docs/model.md#learner-precision)",
     )
 
     def bundles(self) -> list[dict[str, float]]:
