@@ -7,6 +7,7 @@
 #   PY=$(pwd)/.venv/bin/python bash docs/history/measurements/bench_coma_pair.sh /tmp/wt6f bench_coma_pair.jsonl
 set -u
 OLD=$1 OUT=$2 HERE=$(pwd) PY=${PY:-$(pwd)/.venv/bin/python}
+[ -x "$PY" ] || { echo "no python at $PY: set PY=/path/to/.venv/bin/python" >&2; exit 2; }
 for v in this old old this; do
   dir=$HERE; [ $v = old ] && dir=$OLD
   load=$(cut -d' ' -f1 /proc/loadavg)

@@ -7,6 +7,7 @@
 #   PY=$(pwd)/.venv/bin/python bash docs/history/measurements/bench_precision.sh /tmp/wt6f bench_precision.jsonl
 set -u
 OLD=$1 OUT=$2 HERE=$(pwd) PY=${PY:-$(pwd)/.venv/bin/python}
+[ -x "$PY" ] || { echo "no python at $PY: set PY=/path/to/.venv/bin/python" >&2; exit 2; }
 run() { # version algorithm U mode round
   local dir=$HERE extra="" line
   [ "$1" = old ] && dir=$OLD
