@@ -1,5 +1,8 @@
 # Fresh-machine entry points; both install everything first (pinned by constraints.txt).
 VENV ?= .venv
+# An extra index to take torch from before the rest (e.g. https://download.pytorch.org/whl/cpu, PyTorch's CPU
+# wheels): PyPI's Linux torch is the CUDA build, GBs more. Empty: pip's own configuration decides.
+TORCH_INDEX ?=
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
@@ -8,6 +11,7 @@ STAMP := $(VENV)/.installed
 $(STAMP): pyproject.toml constraints.txt
 	python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
+	$(if $(TORCH_INDEX),$(PY) -m pip install -q -c constraints.txt torch --extra-index-url $(TORCH_INDEX))
 	$(PY) -m pip install -q -c constraints.txt -e ".[test]"
 	touch $(STAMP)
 

@@ -112,7 +112,7 @@ def test_usage_and_unknown_commands(argv, code, capsys):
         assert "\n" not in err
         assert (
             err
-            == "uavlora: error: command: unknown 'tun'; allowed: tune, evaluate, report, archive, animate, bench (or --version)"
+            == "uavlora: error: command: unknown 'tun'; allowed: tune, evaluate, report, archive, animate, bench, bench_train (or --version)"
         )
     else:
         text = captured.out or captured.err

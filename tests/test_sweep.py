@@ -375,6 +375,13 @@ def test_shipped_sweep_examples(name, capsys):
     else:
         assert grid.search_alg.type == "optuna" and "lr" in trials(grid)[0].spaces
         assert list(grid.algorithms) == ["qmix"]
+    # a sweep tunes a learner's benchmark form on the benchmark's scenario: every field it does not search
+    # is the benchmark grid's, so its best configuration is comparable with the benchmark's rows
+    bench = load_grid(os.path.join(REPO, "tune_configs", "benchmark_per_device_10x2.yaml"))
+    assert grid.scenario == bench.scenario and (grid.n_eds, grid.n_uavs) == (bench.n_eds, bench.n_uavs)
+    (algo, fields), searched = next(iter(grid.algorithms.items())), set(trials(grid)[0].spaces)
+    fixed = {k: v for k, v in fields.items() if k not in searched}
+    assert fixed == {k: v for k, v in bench.algorithms[algo].items() if k not in searched}
 
 
 # --------------------------------------------------------------------------- with Ray (slow)

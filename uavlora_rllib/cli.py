@@ -1,6 +1,6 @@
 """The `uavlora` console command: the package's tools under one name (`uavlora tune GRID.yaml`).
 
-    uavlora tune|evaluate|report|archive|animate|bench [ARGS...]    (each: --help)
+    uavlora tune|evaluate|report|archive|animate|bench|bench_train [ARGS...]    (each: --help)
     uavlora --version
 
 Each subcommand is the tool's own `main` (`python -m MODULE` keeps working, same arguments,
@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "archive": ("analysis.archive", "an experiment's MLflow runs to a file that can be committed, and back"),
     "animate": ("analysis.animate", "an episode as an animated GIF"),
     "bench": ("uavlora_rllib.bench", "simulator benchmarks"),
+    "bench_train": ("uavlora_rllib.bench_train", "training throughput of any registered algorithm"),
 }
 
 
