@@ -72,7 +72,11 @@ def test_bench_train_set_reads_values_as_the_grid_does():
         (["env", "--repeats", "two"], "--repeats: expected an integer, got 'two'"),
         (
             ["env", "--write", "/no/such/dir/BENCH.md"],
-            "--write: cannot write '/no/such/dir/BENCH.md': /no/such/dir is not a writable directory",
+            "--write: cannot write '/no/such/dir/BENCH.md': /no/such/dir is not a directory",
+        ),
+        (  # a real write test: os.access says yes to root, /proc included
+            ["env", "--write", "/proc/BENCH.md"],
+            "--write: cannot write '/proc/BENCH.md': /proc is not writable",
         ),
         (["env", "--bogus"], "unrecognized arguments: --bogus"),
     ],
@@ -87,3 +91,8 @@ def test_bench_write_must_not_be_a_directory(capsys, tmp_path):
     assert bench.main(["env", "--write", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert _one_line(err) and "is a directory; allowed: a markdown file" in err, err
+    binary = tmp_path / "b.md"
+    binary.write_bytes(b"\x8a\xff\x00")  # its other sections would be read back before the benchmark ends
+    assert bench.main(["env", "--write", str(binary)]) == 2
+    err = capsys.readouterr().err
+    assert _one_line(err) and "is not UTF-8 text; allowed: a markdown file" in err, err

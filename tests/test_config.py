@@ -215,7 +215,7 @@ def test_bad_input_at_every_entry_point():
         UavLoraParallelEnv({"n_edz": 3})
     with pytest.raises(ConfigError, match=r"scenario\.sf_set: "):
         UavLoraMultiAgentEnv({"scenario": {"sf_set": [5]}})
-    with pytest.raises(TypeError, match="env config"):
+    with pytest.raises(ConfigError, match=r"^scenario: expected a ScenarioConfig or a mapping of its fields, got int"):
         UavLoraParallelEnv(42)  # type: ignore[arg-type]
 
 

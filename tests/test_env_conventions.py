@@ -21,6 +21,7 @@ from uavlora_rllib.envs import uavlora_v0
 from uavlora_rllib.envs.multi_agent import UavLoraMultiAgentEnv
 from uavlora_rllib.envs.parallel import UavLoraParallelEnv
 from uavlora_rllib.envs.team import UavLoraTeamEnv, UavLoraTeamVectorEnv
+from uavlora_rllib.sim.actions import ActionError
 from uavlora_rllib.sim.core import BatchCore
 
 MODES = ["per_uav", "per_device"]
@@ -77,6 +78,11 @@ def test_factories_metadata_and_keywords():
         (uavlora_v0.parallel_env, {"n_edz": 5}, "n_edz"),
         (uavlora_rllib.envs.team.gym_env, {"render_mode": "ansi"}, "render_mode"),
         (uavlora_rllib.envs.team.gym_vector_env, {"render_mode": "rgb_array"}, "render_mode"),
+        (uavlora_rllib.envs.team.gym_vector_env, {"num_envs": 10**12}, "num_envs"),
+        (uavlora_rllib.envs.team.gym_vector_env, {"num_envs": 0}, "num_envs"),
+        (uavlora_rllib.envs.team.gym_vector_env, {"num_envs": "4"}, "num_envs"),
+        (uavlora_v0.parallel_env, {"scenario": [1, 2]}, "scenario"),
+        (uavlora_rllib.envs.team.gym_env, {"scenario": "x"}, "scenario"),
     ],
 )
 def test_bad_input_is_one_error_naming_the_field(make, kwargs, field):
@@ -86,6 +92,32 @@ def test_bad_input_is_one_error_naming_the_field(make, kwargs, field):
     assert field in msg and "\n" not in msg
     if field == "render_mode":
         assert "allowed: None" in msg
+
+
+@pytest.mark.parametrize("seed", [-1, 2**32, "a", 1.5, True])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: uavlora_v0.parallel_env(**SMALL),
+        lambda: uavlora_rllib.envs.team.gym_env(**SMALL),
+        lambda: uavlora_rllib.envs.team.gym_vector_env(num_envs=2, **SMALL),
+    ],
+)
+def test_a_bad_reset_seed_is_one_error_naming_seed(make, seed):
+    with pytest.raises(ConfigError, match=r"^seed: expected an integer in \[0, 4294967295\] or None, got "):
+        make().reset(seed=seed)
+
+
+def test_the_team_env_refuses_fractional_actions_rather_than_truncating():
+    env = uavlora_rllib.envs.team.gym_env(**SMALL)
+    env.reset(seed=0)
+    with pytest.raises(ActionError, match=r"^action: expected integers, got non-integer values \[0\.5, 1\.5\]"):
+        env.step(np.array([0.5, 1.5]))
+    env.step(np.array([0.0, 1.0]))  # whole-valued floats, as a policy may output, are actions
+    vec = uavlora_rllib.envs.team.gym_vector_env(num_envs=2, **SMALL)
+    vec.reset(seed=0)
+    with pytest.raises(ActionError, match=r"non-integer values"):
+        vec.step(np.array([[0, 1], [2.5, 0]]))
 
 
 def test_human_mode_prints_one_line_per_slot(capsys):

@@ -96,6 +96,8 @@ def test_table_in_process(capsys, tmp_path):
         (["--policy", "fixed", "--episodes", "0"], "--episodes: must be an integer in [1, 1000000], got 0"),
         (["--policy", "fixed", "--execution", "sampled"], "--execution: 'sampled' applies to a checkpoint"),
         (["--policy", "fixed", "--execution", "argmax"], "--execution"),
+        (["--policy", "random", "--objective", "reward"], "--objective: applies to the greedy and optimal baselines"),
+        (["--policy", "fixed", "--scenario-yaml", "/tmp"], "--scenario-yaml: /tmp is a directory"),
     ],
 )
 def test_bad_args_exit_2_with_field_name(capsys, argv, field):
@@ -111,6 +113,16 @@ def test_bad_yaml_field(capsys, tmp_path):
     yaml_file.write_text("n_edz: 5\n")
     assert main(["--policy", "fixed", "--scenario-yaml", str(yaml_file)]) == 2
     assert "scenario.n_edz" in capsys.readouterr().err
+
+
+def test_a_grid_yaml_gives_its_scenario_and_names_what_is_ignored(capsys, tmp_path):
+    grid = tmp_path / "g.yaml"
+    grid.write_text("experiment: x\nn_eds: [40]\nscenario: {episode_len: 3}\n")
+    assert main(["--policy", "fixed", "--scenario-yaml", str(grid), "--episodes", "1", "--json"]) == 0
+    out, err = capsys.readouterr()
+    assert "ignored: experiment, n_eds (V and U: --n-eds / --n-uavs)" in err
+    summary = json.loads(out)
+    assert round(summary["ee_sys_episode_sum"] / summary["ee_sys_mean"]) == 3  # its scenario's 3 slots were played
 
 
 def test_subprocess_json_and_error():

@@ -153,6 +153,26 @@ BAD = [
         {"resources": {"num_learners": 10**6}},
         r"resources\.num_learners: Input should be less than or equal to 4096",
     ),
+    (  # sizes from a typo are refused at load, not by an allocation inside the trial
+        "huge_gru_width",
+        {"plugins": [], "algorithms": {"mappo": {"gru_hidden": 10**9}}},
+        r"algorithms\.mappo\.gru_hidden: Input should be less than or equal to 8192",
+    ),
+    (
+        "huge_replay",
+        {"plugins": [], "algorithms": {"qmix": {"buffer_size_episodes": 10**7}}},
+        r"algorithms\.qmix\.buffer_size_episodes: Input should be less than or equal to 100000",
+    ),
+    (
+        "zero_width_critic_layer",
+        {"plugins": [], "algorithms": {"coma": {"critic_hidden": [64, 0]}}},
+        r"algorithms\.coma\.critic_hidden\.1: Input should be greater than or equal to 1",
+    ),
+    (
+        "huge_torch_threads",
+        {"resources": {"torch_threads": 10**6}},
+        r"resources\.torch_threads: Input should be less than or equal to 1024",
+    ),
     ("unknown_baseline", {"baselines": ["random", "oracle"]}, r"baselines\.1: unknown baseline 'oracle'"),
     (
         "baseline_scenario_mismatch",
@@ -259,6 +279,17 @@ BAD = [
         {"storage": "/dev/null/x"},
         r"storage: must be a directory that exists or can be created: cannot create /dev/null/x: /dev/null is not a directory",
     ),
+    (  # a real write test: os.access says yes to root, /proc included
+        "sqlite_under_proc",
+        {"mlflow": {"tracking_uri": "sqlite:////proc/x/m.db"}},
+        r"mlflow\.tracking_uri: the sqlite file's directory is not usable \(cannot create /proc/x: /proc is not writable",
+    ),
+    (
+        "sqlite_in_memory",
+        {"mlflow": {"tracking_uri": "sqlite:///:memory:"}},
+        r"mlflow\.tracking_uri: a grid's runs must outlive the driver: name a sqlite file",
+    ),
+    ("storage_under_proc", {"storage": "/proc/x"}, r"storage: .*cannot create /proc/x: /proc is not writable"),
     ("storage_unknown_scheme", {"storage": "ftp://host/x"}, r"storage: must be a local directory or a URI .*'s3'"),
     (
         "plugin_not_a_module_name",
@@ -297,6 +328,7 @@ BAD = [
         r"line 3, column \d+: YAML error: duplicate key 'lr'",
     ),
     ("not_a_mapping", "- just\n- a list\n", r"<top level>: expected a mapping"),
+    ("int_key", "experiment: g\n5: 1\n", r"<top level>: 5 is not a field name; allowed: algorithms, baselines"),
 ]
 
 
@@ -376,6 +408,11 @@ def test_resources_beyond_the_local_machine(tmp_path, capsys):
     data = _mutate(tmp_path, resources={"num_env_runners": 3, "num_cpus_per_env_runner": 1})
     rc, _, err = run_cli([write(tmp_path, data), "--num-cpus", "2"], capsys)
     assert rc == 2 and err.startswith("error: ") and ": resources: one trial needs 4 CPUs" in err, err
+    data = _mutate(tmp_path, resources={"num_learners": 4})  # remote learners count too, beside the trial's process
+    rc, _, err = run_cli([write(tmp_path, data), "--num-cpus", "2"], capsys)
+    assert rc == 2 and "one trial needs 5 CPUs (its own process 1 + num_learners 4 x num_cpus_per_learner 1)" in err, (
+        err
+    )
 
 
 def test_storage_flag_is_checked(tmp_path, capsys):
@@ -386,6 +423,20 @@ def test_storage_flag_is_checked(tmp_path, capsys):
 def test_missing_file(tmp_path, capsys):
     rc, _, err = run_cli([str(tmp_path / "nope.yaml")], capsys)
     assert rc == 2 and "cannot read the grid file" in err
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["GRID", "--address", " "], "error: --address: empty; allowed: auto, HOST:PORT or ray://HOST:10001"),
+        (["", "--dry-run"], "error: grid: empty path; give a grid YAML file"),
+        (["GRID", "--list-hparams", "mappo"], "error: --list-hparams: lists and exits; drop the grid"),
+    ],
+)
+def test_flags_that_would_be_ignored_are_refused(tmp_path, capsys, argv, message):
+    grid = write(tmp_path, base_grid(tmp_path))
+    rc, out, err = run_cli([grid if a == "GRID" else a for a in argv], capsys)
+    assert rc == 2 and out == "" and err.strip().startswith(message) and err.count("\n") == 1, err
 
 
 def test_bad_cli_flag(tmp_path, capsys):

@@ -224,6 +224,14 @@ BAD_SWEEPS = [
         "search_alg: optuna needs at least one search space",
     ),
     ({"num_samples": 0}, "num_samples: Input should be greater than or equal to 1"),
+    (
+        {"scheduler": {"type": "asha"}, "evaluation": {"episodes": 1, "interval_env_steps": 200}},
+        "evaluation.interval_env_steps: 200 is not below stop.env_steps (200), so the scheduler never sees",
+    ),
+    (
+        {"num_samples": 5, "algorithms": {"mappo": {"lr": 1e-3}}},
+        "num_samples: 5 samples of a grid with no search space are 5 identical trials",
+    ),
 ]
 
 

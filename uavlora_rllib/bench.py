@@ -31,7 +31,7 @@ from dataclasses import dataclass  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in  # noqa: E402
+from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in, write_problem  # noqa: E402
 from uavlora_rllib.sim.core import BatchCore  # noqa: E402
 from uavlora_rllib.sim.mobility import NOISE_CHUNK  # noqa: E402
 from uavlora_rllib.sim.scenario import ScenarioConfig  # noqa: E402
@@ -229,10 +229,21 @@ def _writable_file(text: str) -> str:
     folder = os.path.dirname(os.path.abspath(text)) or "."
     if os.path.isdir(text):
         raise argparse.ArgumentTypeError(f"{text!r} is a directory; allowed: a markdown file")
-    if not os.path.isdir(folder) or not os.access(folder, os.W_OK):
-        raise argparse.ArgumentTypeError(f"cannot write {text!r}: {folder} is not a writable directory")
-    if os.path.exists(text) and not os.access(text, os.W_OK):
-        raise argparse.ArgumentTypeError(f"cannot write {text!r}: not writable")
+    if not os.path.isdir(folder):
+        raise argparse.ArgumentTypeError(f"cannot write {text!r}: {folder} is not a directory")
+    problem = write_problem(folder)
+    if problem:
+        raise argparse.ArgumentTypeError(f"cannot write {text!r}: {folder} is not writable ({problem})")
+    if os.path.exists(text):  # its other sections are kept, so it must be readable UTF-8 text, and writable
+        try:
+            with open(text, "rb") as fh:
+                fh.read().decode("utf-8")
+            with open(text, "a"):
+                pass
+        except UnicodeDecodeError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not UTF-8 text; allowed: a markdown file") from None
+        except OSError as exc:
+            raise argparse.ArgumentTypeError(f"cannot write {text!r}: {exc.strerror or exc}") from None
     return text
 
 

@@ -23,6 +23,7 @@ import sys
 
 import yaml
 
+from uavlora_rllib.algorithms.common.registry import MAX_ENVS_PER_RUNNER, MAX_TORCH_THREADS
 from uavlora_rllib.cli_args import SEED_MAX, Parser, UsageError, fail, int_in
 from uavlora_rllib.experiment.grid import UniqueKeyLoader
 
@@ -66,7 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--envs-per-runner",
-        type=int_in(1, 100_000),
+        type=int_in(1, MAX_ENVS_PER_RUNNER),
         default=8,
         help="scenarios sampled at once per env runner, in one BatchCore (default 8)",
     )
@@ -76,7 +77,9 @@ def build_parser() -> argparse.ArgumentParser:
         default=0,
         help="remote env runners; 0 samples in the algorithm's own process (default 0)",
     )
-    p.add_argument("--torch-threads", type=int_in(1, 1024), default=1, help="torch threads of the learner (default 1)")
+    p.add_argument(
+        "--torch-threads", type=int_in(1, MAX_TORCH_THREADS), default=1, help="torch threads of the learner (default 1)"
+    )
     p.add_argument(
         "--learner-precision",
         choices=("float32", "bfloat16"),

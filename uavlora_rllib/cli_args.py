@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
+import tempfile
 from collections.abc import Callable
 from typing import NoReturn
 
@@ -89,3 +91,15 @@ def fail(message: object, prog: str | None = None, code: int = 2) -> int:
     head = f"{prog}: error: " if prog else "error: "
     print(head + " ".join(str(message).split()), file=sys.stderr)
     return code
+
+
+def write_problem(folder: str) -> str | None:
+    """Why no file can be created in the existing directory `folder`, or None. A real create-and-delete
+    (nothing remains): os.access says yes to root everywhere, /proc included."""
+    if not os.path.isdir(folder):
+        return f"{folder} is not a directory"
+    try:
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-test-"):
+            return None
+    except OSError as exc:
+        return exc.strerror or str(exc)

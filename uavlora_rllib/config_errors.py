@@ -165,6 +165,11 @@ def build(cls: type, data: Mapping[str, Any] | None, prefix: str) -> Any:
         data = {}
     if not isinstance(data, Mapping):
         raise ConfigError(f"{prefix}: expected a mapping, got {type(data).__name__} {data!r}")
+    where = prefix or "<top level>"
+    not_names = [k for k in data if not isinstance(k, str)]
+    if not_names:  # YAML reads `5:` as an int key, which no field is named
+        names = ", ".join(sorted(f.name for f in dataclasses.fields(cls)))
+        raise ConfigError(f"{where}: {not_names[0]!r} is not a field name; allowed: {names}")
     problems = number_problems(cls, data, prefix)
     if problems:
         raise ConfigError("; ".join(problems))
@@ -174,4 +179,4 @@ def build(cls: type, data: Mapping[str, Any] | None, prefix: str) -> Any:
         raise from_validation_error(exc, prefix, root=cls) from None
     except TypeError as exc:  # e.g. a keyword the constructor does not take
         names = ", ".join(sorted(f.name for f in dataclasses.fields(cls)))
-        raise ConfigError(f"{prefix}: {exc}; allowed: {names}") from None
+        raise ConfigError(f"{where}: {exc}; allowed: {names}") from None

@@ -67,7 +67,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--scenario-yaml", default=None, help="YAML file of scenario fields (or with a 'scenario:' key)")
-    p.add_argument("--objective", choices=OBJECTIVES, default="ee", help="greedy/optimal objective (default ee)")
+    p.add_argument(
+        "--objective", choices=OBJECTIVES, default=None, help="the greedy and optimal baselines' objective (default ee)"
+    )
     p.add_argument(
         "--execution",
         choices=("greedy", "sampled"),
@@ -85,6 +87,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _load_yaml_scenario(path: str) -> dict[str, Any]:
+    if os.path.isdir(path):
+        raise UsageError(f"--scenario-yaml: {path} is a directory; expected a YAML file")
     if not os.path.isfile(path):
         raise UsageError(f"--scenario-yaml: file not found: {path}")
     try:  # UTF-8 only, no duplicate keys: the grid YAML's reader
@@ -94,6 +98,13 @@ def _load_yaml_scenario(path: str) -> dict[str, Any]:
     if not isinstance(data, Mapping):
         raise UsageError(f"--scenario-yaml: expected a mapping of scenario fields, got {type(data).__name__}")
     if "scenario" in data:
+        ignored = sorted(str(k) for k in data if k != "scenario")
+        if ignored:  # e.g. a grid YAML: its n_eds / n_uavs lists are not the scenario's
+            print(
+                f"note: --scenario-yaml: only its 'scenario:' is read; ignored: {', '.join(ignored)} "
+                "(V and U: --n-eds / --n-uavs)",
+                file=sys.stderr,
+            )
         data = data["scenario"]
         if not isinstance(data, Mapping):
             raise UsageError(f"--scenario-yaml: 'scenario' must be a mapping, got {type(data).__name__}")
@@ -163,6 +174,8 @@ def checkpoint_fit_problem(trained: ScenarioConfig, scenario: ScenarioConfig) ->
 
 def _resolve(args: argparse.Namespace):
     overrides = {k: v for k, v in (("n_eds", args.n_eds), ("n_uavs", args.n_uavs)) if v is not None}
+    if args.objective is not None and args.policy not in ("greedy", "optimal"):
+        raise UsageError(f"--objective: applies to the greedy and optimal baselines only; --policy is {args.policy!r}")
     if args.policy in BASELINES:
         if args.execution != "greedy":
             raise UsageError(
@@ -170,7 +183,7 @@ def _resolve(args: argparse.Namespace):
             )
         base = _load_yaml_scenario(args.scenario_yaml) if args.scenario_yaml else {}
         cfg = ScenarioConfig.from_dict({**base, **overrides})
-        return make_baseline(args.policy, cfg, seed=args.seed, objective=args.objective), cfg
+        return make_baseline(args.policy, cfg, seed=args.seed, objective=args.objective or "ee"), cfg
     if not os.path.exists(args.policy):
         raise UsageError(
             f"--policy: {args.policy!r} is neither a baseline ({', '.join(BASELINES)}) nor an existing checkpoint path"

@@ -149,8 +149,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     quiet_known_warnings()
     try:
         args = build_parser().parse_args(argv)
+        if args.address is not None and not args.address.strip():
+            raise UsageError(
+                "--address: empty; allowed: auto, HOST:PORT or ray://HOST:10001 (or leave it out: a local Ray)"
+            )
+        if args.grid == "":
+            raise UsageError("grid: empty path; give a grid YAML file")
         args.address = cluster.job_address(args.address)
         if args.list_hparams is not None:
+            if args.grid is not None:  # one job per call: listing ignores a grid, so say so rather than drop it
+                raise UsageError(f"--list-hparams: lists and exits; drop the grid {args.grid!r} or --list-hparams")
             from uavlora_rllib.algorithms.common.hparams import describe_hparams
 
             entry = registry.spec(args.list_hparams, path="--list-hparams")

@@ -76,7 +76,7 @@ def scenario_from(config: Any) -> ScenarioConfig:
         if isinstance(inner, ScenarioConfig):
             return inner
         return ScenarioConfig.from_dict(inner)
-    raise TypeError(f"env config: expected a ScenarioConfig or a mapping, got {type(config).__name__}")
+    raise ConfigError(f"scenario: expected a ScenarioConfig or a mapping of its fields, got {type(config).__name__}")
 
 
 def scenario_with(scenario: Any, fields: Mapping[str, Any]) -> ScenarioConfig:

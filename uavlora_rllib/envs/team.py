@@ -41,8 +41,8 @@ from uavlora_rllib.envs.parallel import (
     scenario_with,
     state_space,
 )
-from uavlora_rllib.sim.actions import per_device_action_len
-from uavlora_rllib.sim.core import BatchCore
+from uavlora_rllib.sim.actions import ActionError, per_device_action_len
+from uavlora_rllib.sim.core import BatchCore, check_n_envs, check_seed
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
 TEAM_ENV_NAME = "uavlora_team"  # its name in Tune's registry (registered by envs.multi_agent, which imports Ray)
@@ -64,6 +64,17 @@ def team_action_space(cfg: ScenarioConfig) -> gym.spaces.MultiDiscrete:
 
 def _obs32(obs: np.ndarray) -> np.ndarray:
     return np.clip(obs, -1.0, 1.0).astype(np.float32)
+
+
+def team_actions(action: Any) -> np.ndarray:
+    """The team action as integers: whole-valued floats (a policy's output) are cast, other floats refused
+    (a cast would truncate them silently); the core checks shape and range."""
+    arr = np.asarray(action)
+    if arr.dtype.kind == "f":
+        if not (np.isfinite(arr).all() and (arr == np.round(arr)).all()):
+            raise ActionError(f"action: expected integers, got non-integer values {arr.tolist()}")
+        return arr.astype(np.int64)
+    return arr
 
 
 class UavLoraTeamEnv(gym.Env):
@@ -95,14 +106,14 @@ class UavLoraTeamEnv(gym.Env):
         self._last_metrics: dict[str, float] = {}
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        super().reset(seed=seed)
+        super().reset(seed=check_seed(seed))
         obs = self.core.reset(seed)
         self._last_metrics = {}
         self._show_human()
         return _obs32(obs[0]), {STATE_KEY: self.core.state()[0].astype(np.float32)}
 
     def step(self, action):
-        res = self.core.step(np.asarray(action, dtype=np.int64)[None])
+        res = self.core.step(team_actions(action)[None])
         info = {k: float(v[0]) for k, v in res.metrics.items()}
         self._last_metrics = dict(info)
         self._show_human()
@@ -128,7 +139,7 @@ class UavLoraTeamVectorEnv(gym.vector.VectorEnv):
 
     def __init__(self, config: Mapping[str, Any] | ScenarioConfig | None = None, num_envs: int = 1):
         self.scenario = scenario_from(config)
-        self.num_envs = int(num_envs)
+        self.num_envs = check_n_envs(num_envs, "num_envs")
         self.core = BatchCore(self.scenario, self.num_envs)
         self.single_observation_space = team_observation_space(self.scenario)
         self.single_action_space = team_action_space(self.scenario)
@@ -151,7 +162,7 @@ class UavLoraTeamVectorEnv(gym.vector.VectorEnv):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         """seed s: scenario i gets s + i, and later episodes children of SeedSequence(s); None
         continues that stream (Gymnasium's seeding contract; fresh entropy before any seed)."""
-        if seed is not None:
+        if check_seed(seed) is not None:
             self._seeds = np.random.SeedSequence(seed)
             obs = self.core.reset(seed)
         else:
@@ -160,7 +171,7 @@ class UavLoraTeamVectorEnv(gym.vector.VectorEnv):
         return _obs32(obs), self._infos(None, np.zeros(self.num_envs, dtype=bool))
 
     def step(self, actions):
-        actions = np.asarray(actions, dtype=np.int64)
+        actions = team_actions(actions)
         restart = self._needs_reset.copy()
         if restart.any():
             # NEXT_STEP autoreset: these scenarios ignore their action and start a new episode.

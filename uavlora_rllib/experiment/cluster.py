@@ -200,8 +200,8 @@ def preflight(bundles: Sequence[Mapping[str, float]], baseline_cpus: float, n_ba
     why = infeasible(bundles, nodes)
     if why:
         raise ConfigError(
-            f"resources: a trial can never start: {why}; lower resources.num_cpus_per_learner, "
-            "num_env_runners or num_cpus_per_env_runner, or add nodes"
+            f"resources: a trial can never start: {why}; lower the trial's resources (num_cpus_per_learner, "
+            "num_gpus_per_learner, num_learners, num_env_runners, num_cpus_per_env_runner), or add nodes"
         )
     if n_baselines and infeasible([{"CPU": baseline_cpus}], nodes):
         raise ConfigError(f"baselines: a baseline task needs {baseline_cpus} CPU and no node has that many")

@@ -70,6 +70,7 @@ from pydantic import ConfigDict, Field, field_validator
 from pydantic.dataclasses import dataclass as typed_dataclass
 
 from uavlora_rllib.algorithms.common import registry
+from uavlora_rllib.cli_args import SEED_MAX, write_problem
 from uavlora_rllib.config_errors import ConfigError, build
 from uavlora_rllib.experiment import sweep
 from uavlora_rllib.experiment.sweep import SchedulerConfig, SearchAlgConfig, SearchSpace
@@ -77,7 +78,6 @@ from uavlora_rllib.sim.scenario import ScenarioConfig
 
 _STRICT = ConfigDict(extra="forbid", frozen=True)
 PosInt = Annotated[int, Field(ge=1)]
-SEED_MAX = 2**32 - 1  # NumPy's legacy seeding and Ray/RLlib's seeding take 32-bit seeds
 Seed = Annotated[int, Field(ge=0, le=SEED_MAX)]
 
 # The experiment name is a directory under `storage` and an MLflow experiment name.
@@ -96,15 +96,15 @@ def _writable_dir_problem(path: str) -> str | None:
     if os.path.exists(path):
         if not os.path.isdir(path):
             return f"{path} exists and is not a directory"
-        return None if os.access(path, os.W_OK | os.X_OK) else f"{path} is not writable"
+        problem = write_problem(path)
+        return f"{path} is not writable ({problem})" if problem else None
     parent = path
     while not os.path.exists(parent):  # the nearest existing ancestor must be a writable directory
         parent = os.path.dirname(parent)
     if not os.path.isdir(parent):
         return f"cannot create {path}: {parent} is not a directory"
-    if not os.access(parent, os.W_OK | os.X_OK):
-        return f"cannot create {path}: {parent} is not writable"
-    return None
+    problem = write_problem(parent)
+    return f"cannot create {path}: {parent} is not writable ({problem})" if problem else None
 
 
 def check_storage(value: str) -> str:
@@ -160,12 +160,13 @@ class MlflowConfig:
             if not rest.startswith("///") or rest == "///":
                 raise ValueError(f"{allowed}; got {v!r} (a sqlite URI is sqlite:///relative.db or sqlite:////abs.db)")
             db_file = rest[3:]
-            if db_file != ":memory:":
-                if os.path.isdir(db_file):
-                    raise ValueError(f"the sqlite file {db_file} is a directory; got {v!r}")
-                problem = _writable_dir_problem(os.path.dirname(os.path.abspath(db_file)))
-                if problem:
-                    raise ValueError(f"the sqlite file's directory is not usable ({problem}); got {v!r}")
+            if db_file == ":memory:":  # the grid's runs would vanish with the driver
+                raise ValueError(f"a grid's runs must outlive the driver: name a sqlite file, got {v!r}")
+            if os.path.isdir(db_file):
+                raise ValueError(f"the sqlite file {db_file} is a directory; got {v!r}")
+            problem = _writable_dir_problem(os.path.dirname(os.path.abspath(db_file)))
+            if problem:
+                raise ValueError(f"the sqlite file's directory is not usable ({problem}); got {v!r}")
         return v
 
 
@@ -460,15 +461,19 @@ def check_local_resources(grid: GridConfig, available_cpus: float) -> None:
     """Refuse a grid one of whose trials needs more CPUs than the local Ray has (Tune would
     wait for them forever). On a cluster (--address) the cluster's size decides instead."""
     r = grid.resources
-    need = r.num_cpus_per_learner + r.num_env_runners * r.num_cpus_per_env_runner
+    bundles = r.bundles()  # the trial's process, then its remote env runners, then its remote learners
+    need = sum(b.get("CPU", 0.0) for b in bundles)
     if need <= available_cpus:
         return
+    parts = [f"its own process {bundles[0].get('CPU', 0.0):g}"]
+    if r.num_env_runners:
+        parts.append(f"num_env_runners {r.num_env_runners} x num_cpus_per_env_runner {r.num_cpus_per_env_runner:g}")
+    if r.num_learners:
+        parts.append(f"num_learners {r.num_learners} x num_cpus_per_learner {r.num_cpus_per_learner:g}")
     field = "resources.num_cpus_per_learner" if r.num_cpus_per_learner > available_cpus else "resources"
     raise ConfigError(
-        f"{field}: one trial needs {need:g} CPUs (num_cpus_per_learner {r.num_cpus_per_learner:g} + "
-        f"num_env_runners {r.num_env_runners} x num_cpus_per_env_runner {r.num_cpus_per_env_runner:g}), "
-        f"but the local Ray has {available_cpus:g}; allowed: at most {available_cpus:g} in all "
-        "(or run on a cluster with --address)"
+        f"{field}: one trial needs {need:g} CPUs ({' + '.join(parts)}), but the local Ray has {available_cpus:g}; "
+        f"allowed: at most {available_cpus:g} in all (or run on a cluster with --address)"
     )
 
 

@@ -28,6 +28,8 @@ from typing import Any
 
 import numpy as np
 
+from uavlora_rllib.cli_args import SEED_MAX
+from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.sim import physics
 from uavlora_rllib.sim.actions import ActionDecoder
 from uavlora_rllib.sim.links import Links, LinkStage, default_link_stage, pair_channels
@@ -37,6 +39,24 @@ from uavlora_rllib.sim.scenario import ScenarioConfig
 from uavlora_rllib.sim.scoring import SlotScorer
 
 Seed = int | np.random.SeedSequence | None  # one scenario's seed (None: from the unseeded stream)
+MAX_ENVS = 100_000  # scenarios one BatchCore steps at once: far above any use, below an allocation from a typo
+
+
+def check_seed(seed: Any, name: str = "seed") -> int | None:
+    """A reset seed as an int in [0, SEED_MAX] or None; ConfigError naming `name` otherwise (NumPy's own
+    message, 'expected non-negative integer', names no field)."""
+    if seed is None:
+        return None
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed <= SEED_MAX:
+        raise ConfigError(f"{name}: expected an integer in [0, {SEED_MAX}] or None, got {seed!r}")
+    return int(seed)
+
+
+def check_n_envs(n_envs: Any, name: str = "n_envs") -> int:
+    """A scenario count as an int in [1, MAX_ENVS]; ConfigError naming `name` otherwise."""
+    if isinstance(n_envs, bool) or not isinstance(n_envs, (int, np.integer)) or not 1 <= n_envs <= MAX_ENVS:
+        raise ConfigError(f"{name}: expected an integer in [1, {MAX_ENVS}], got {n_envs!r}")
+    return int(n_envs)
 
 
 @dataclass
@@ -62,8 +82,7 @@ class BatchCore:
         lookahead: int = 0,
         link_stage: Callable[[ScenarioConfig, int], LinkStage] = default_link_stage,
     ):
-        if n_envs < 1:
-            raise ValueError(f"n_envs: must be >= 1, got {n_envs}")
+        n_envs = check_n_envs(n_envs)
         if lookahead < 0 or (lookahead and n_envs != 1):
             raise ValueError(f"lookahead: must be 0, or >= 1 with n_envs = 1; got {lookahead} with n_envs = {n_envs}")
         self.cfg = cfg
@@ -124,13 +143,19 @@ class BatchCore:
         (docs/model.md#seeds)."""
         if seed is None:
             return [s for s in self._seed_source.spawn(self.n)]
-        if isinstance(seed, (int, np.integer)):
-            self._seed_source = np.random.SeedSequence(int(seed))
-            return [int(seed) + i for i in range(self.n)]
-        seeds = list(seed)
-        if len(seeds) != self.n:
-            raise ValueError(f"seed: expected {self.n} seeds, got {len(seeds)}")
-        return [s if s is not None else self._seed_source.spawn(1)[0] for s in seeds]
+        if isinstance(seed, np.ndarray) or (isinstance(seed, Sequence) and not isinstance(seed, str)):
+            seeds = list(seed)
+            if len(seeds) != self.n:
+                raise ValueError(f"seed: expected {self.n} seeds, got {len(seeds)}")
+            spawn = self._seed_source.spawn
+            return [
+                spawn(1)[0] if s is None else s if isinstance(s, np.random.SeedSequence) else check_seed(s)
+                for s in seeds
+            ]
+        start = check_seed(seed)  # one seed for all: scenario i gets seed + i
+        assert start is not None  # (None was answered above)
+        self._seed_source = np.random.SeedSequence(start)
+        return [start + i for i in range(self.n)]
 
     # ------------------------------------------------------------------ step
     def step(self, actions: np.ndarray) -> StepResult:

@@ -3,12 +3,20 @@ torch (registry.spec: grid checks, --dry-run, --list-hparams)."""
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import Field
 from pydantic.dataclasses import dataclass as typed_dataclass
 
-from uavlora_rllib.algorithms.common.hparams import ActorHeads, check_actor_heads, check_per_ed_heads
+from uavlora_rllib.algorithms.common.hparams import (
+    MAX_EPISODES,
+    MAX_UPDATE_COUNT,
+    MAX_UPDATES,
+    MAX_WIDTH,
+    ActorHeads,
+    check_actor_heads,
+    check_per_ed_heads,
+)
 from uavlora_rllib.algorithms.common.registry import Resources, declare
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.sim.scenario import ScenarioConfig
@@ -44,16 +52,24 @@ class COMAHParams:
         default=10.0, gt=0, description="max global L2 gradient norm, per optimizer (actor, critic) [-]"
     )
     batch_episodes: int = Field(
-        default=16, ge=1, description="whole episodes per update [episodes] (paper: batch 16); a multiple of all envs"
+        default=16,
+        ge=1,
+        le=MAX_EPISODES,
+        description="whole episodes per update [episodes] (paper: batch 16); a multiple of all envs",
     )
     tau: float = Field(
         default=0.01, gt=0, le=1, description="Polyak weight of the target critic per update [-] (paper)"
     )
     target_hard_update_every: int = Field(
-        default=0, ge=0, description="> 0: hard target copy every K updates instead of Polyak [updates]"
+        default=0,
+        ge=0,
+        le=MAX_UPDATE_COUNT,
+        description="> 0: hard target copy every K updates instead of Polyak [updates]",
     )
-    actor_hidden: int = Field(default=128, ge=1, description="width of the actor's ReLU layer before the GRU [units]")
-    gru_hidden: int = Field(default=128, ge=1, description="GRU width of the actor [units] (paper)")
+    actor_hidden: int = Field(
+        default=128, ge=1, le=MAX_WIDTH, description="width of the actor's ReLU layer before the GRU [units]"
+    )
+    gru_hidden: int = Field(default=128, ge=1, le=MAX_WIDTH, description="GRU width of the actor [units] (paper)")
     share_actor: bool = Field(
         default=True,
         description="one actor for all UAVs (+ agent-id one-hot) [bool]; false: one actor per UAV, batched "
@@ -64,7 +80,7 @@ class COMAHParams:
         description="with share_actor=true: each UAV also gets its own linear output layer, added to the shared one [bool]",
     )
     actor_heads: ActorHeads = "flat"
-    critic_hidden: tuple[int, ...] = Field(
+    critic_hidden: tuple[Annotated[int, Field(ge=1, le=MAX_WIDTH)], ...] = Field(
         default=(128, 128), description="ReLU layer widths of the critic MLP [units]"
     )
     critic_use_obs: bool = Field(default=True, description="also give the critic UAV u's own observation row [bool]")
@@ -87,11 +103,13 @@ class COMAHParams:
     critic_steps: int = Field(
         default=4,
         ge=0,
+        le=MAX_UPDATES,
         description="critic-only gradient steps on each batch before the joint step [steps] (critic first, as in the paper)",
     )
     updates_per_iteration: int = Field(
         default=8,
         ge=1,
+        le=MAX_UPDATES,
         description="learner updates (critic steps + joint step + target move) on each sampled batch [updates]; "
         "> 1 turns the actor's term into PPO's clipped surrogate, since from the second update on the batch is "
         "off-policy; 1: COMA's plain on-policy gradient (docs/model.md#training-defaults)",
@@ -100,7 +118,7 @@ class COMAHParams:
         default=0.2, gt=0, le=1, description="clip of each UAV's probability ratio when updates_per_iteration > 1 [-]"
     )
     critic_warmup_updates: int = Field(
-        default=0, ge=0, description="first updates that train the critic only [updates]; 0: off"
+        default=0, ge=0, le=MAX_UPDATE_COUNT, description="first updates that train the critic only [updates]; 0: off"
     )
     normalize_advantages: bool = Field(
         default=False, description="standardise the advantages over the batch [bool] (not in COMA)"

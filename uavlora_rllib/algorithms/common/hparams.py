@@ -12,6 +12,14 @@ from pydantic import Field
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
+# Upper bounds of the size and count hyperparameters: far above any use, and low enough that a typo (10**9)
+# is refused when the grid loads instead of failing an allocation inside a trial.
+MAX_WIDTH = 8192  # units of one layer
+MAX_EPISODES = 100_000  # episodes in a batch or a replay
+MAX_UPDATES = 100_000  # epochs, minibatches, updates or critic steps per iteration; n-step and sequence length in slots
+MAX_UPDATE_COUNT = 10**9  # updates over a whole run
+MAX_ENV_STEPS = 10**12  # env steps of a run, as stop.env_steps
+
 
 def check_actor_heads(share_actor: bool, actor_agent_heads: bool, path: str) -> None:
     """Per-UAV output heads sit on a shared actor; with one actor per UAV they have nothing to add."""

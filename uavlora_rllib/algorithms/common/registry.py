@@ -63,6 +63,10 @@ LearnerPrecision = Literal["float32", "bfloat16"]
 # Most remote env runners or learners one trial may ask for: each is a bundle of the trial's placement
 # group (`Resources.bundles`), so a count from a typo (10**9) would be built as a list before Ray saw it.
 MAX_ACTORS_PER_TRIAL = 4096
+# Most scenarios one env runner steps at once (one BatchCore) and most torch threads a process asks for;
+# as bench_train's flags.
+MAX_ENVS_PER_RUNNER = 100_000
+MAX_TORCH_THREADS = 1024
 
 
 @typed_dataclass(config={"extra": "forbid", "frozen": True})
@@ -75,7 +79,9 @@ class Resources:
         le=MAX_ACTORS_PER_TRIAL,
         description="remote env runners; 0: sample in the trial's own process",
     )
-    num_envs_per_env_runner: int = Field(default=16, ge=1, description="scenarios per env runner, all in one BatchCore")
+    num_envs_per_env_runner: int = Field(
+        default=16, ge=1, le=MAX_ENVS_PER_RUNNER, description="scenarios per env runner, all in one BatchCore"
+    )
     num_cpus_per_env_runner: float = Field(default=1.0, gt=0, description="CPUs reserved per remote env runner")
     num_learners: int = Field(
         default=0,
@@ -89,7 +95,7 @@ class Resources:
     num_cpus_per_learner: float = Field(
         default=1.0, gt=0, description="CPUs per learner (the trial's process when num_learners is 0)"
     )
-    torch_threads: int = Field(default=1, ge=1, description="torch intra-op threads per process")
+    torch_threads: int = Field(default=1, ge=1, le=MAX_TORCH_THREADS, description="torch intra-op threads per process")
     learner_precision: LearnerPrecision = Field(
         default="float32",
         description="number format of the learner's matrix products: 'bfloat16' runs the training update "

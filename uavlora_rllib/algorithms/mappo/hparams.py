@@ -8,7 +8,14 @@ from typing import Literal
 from pydantic import ConfigDict, Field
 from pydantic.dataclasses import dataclass as typed_dataclass
 
-from uavlora_rllib.algorithms.common.hparams import ActorHeadsName, check_actor_heads, check_per_ed_heads
+from uavlora_rllib.algorithms.common.hparams import (
+    MAX_EPISODES,
+    MAX_UPDATES,
+    MAX_WIDTH,
+    ActorHeadsName,
+    check_actor_heads,
+    check_per_ed_heads,
+)
 from uavlora_rllib.algorithms.common.registry import Resources, declare
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.sim.scenario import ScenarioConfig
@@ -33,29 +40,34 @@ class MAPPOHParams:
         "states (docs/model.md#training-defaults)",
     )
     clip_param: float = Field(default=0.2, gt=0.0, le=1.0, description="PPO ratio clip epsilon, per agent [-] (paper)")
-    num_epochs: int = Field(default=15, ge=1, description="passes over each train batch [epochs] (paper)")
+    num_epochs: int = Field(
+        default=15, ge=1, le=MAX_UPDATES, description="passes over each train batch [epochs] (paper)"
+    )
     batch_episodes: int = Field(
         default=16,
         ge=1,
+        le=MAX_EPISODES,
         description="train batch [episodes]: 16 x episode_len env steps, each holding all U agents (paper)",
     )
     num_minibatches: int = Field(
         default=4,
         ge=1,
+        le=MAX_UPDATES,
         description="minibatches per epoch [-]: minibatch = train batch / this (docs/model.md#training-defaults)",
     )
     max_seq_len: int = Field(
         default=32,
         ge=1,
+        le=MAX_UPDATES,
         description="GRU backprop window [slots]; each window starts from the GRU state recorded during the "
         "rollout (docs/model.md#training-defaults)",
     )
-    gru_hidden: int = Field(default=128, ge=1, description="GRU width of the actor [units] (paper)")
+    gru_hidden: int = Field(default=128, ge=1, le=MAX_WIDTH, description="GRU width of the actor [units] (paper)")
     fc_hidden: int = Field(
-        default=128, ge=1, description="width of the actor's ReLU layers before and after the GRU [units]"
+        default=128, ge=1, le=MAX_WIDTH, description="width of the actor's ReLU layers before and after the GRU [units]"
     )
     critic_hidden: int = Field(
-        default=128, ge=1, description="width of the critic's two ReLU layers [units] (decision)"
+        default=128, ge=1, le=MAX_WIDTH, description="width of the critic's two ReLU layers [units] (decision)"
     )
     entropy_coeff: float = Field(
         default=0.001,

@@ -8,6 +8,7 @@ from typing import Literal
 from pydantic import Field, model_validator
 from pydantic.dataclasses import dataclass as typed_dataclass
 
+from uavlora_rllib.algorithms.common.hparams import MAX_ENV_STEPS, MAX_EPISODES, MAX_UPDATES, MAX_WIDTH
 from uavlora_rllib.algorithms.common.registry import Resources, declare
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
@@ -40,8 +41,12 @@ class QMIXHParams:
         "(paper). A decaying step lets the per-ED utilities settle (docs/model.md#qmix-and-vdn-per-device)",
     )
     gamma: float = Field(default=0.99, ge=0, le=1, description="discount per slot [-] (paper)")
-    gru_hidden: int = Field(default=128, ge=1, description="GRU width of the agent network [units] (paper)")
-    fc_hidden: int = Field(default=128, ge=1, description="width of the ReLU layer before the GRU [units] (decision)")
+    gru_hidden: int = Field(
+        default=128, ge=1, le=MAX_WIDTH, description="GRU width of the agent network [units] (paper)"
+    )
+    fc_hidden: int = Field(
+        default=128, ge=1, le=MAX_WIDTH, description="width of the ReLU layer before the GRU [units] (decision)"
+    )
     share_agent_net: bool = Field(
         default=False,
         description="one agent network for all UAVs (+ one-hot UAV id) [bool]; false: one per UAV, which breaks "
@@ -62,6 +67,7 @@ class QMIXHParams:
     head_hidden: int = Field(
         default=64,
         ge=1,
+        le=MAX_WIDTH,
         description="per_device only: hidden width of every branch head (each slot's and the BW's) [units] "
         "(docs/model.md#qmix-and-vdn-per-device)",
     )
@@ -71,7 +77,10 @@ class QMIXHParams:
         "BDQ's dueling form [bool] (docs/model.md#qmix-and-vdn-per-device)",
     )
     mixing_embed_dim: int = Field(
-        default=32, ge=1, description="mixing-network width of QMIX and width of V(s) [units] (Rashid et al.)"
+        default=32,
+        ge=1,
+        le=MAX_WIDTH,
+        description="mixing-network width of QMIX and width of V(s) [units] (Rashid et al.)",
     )
     state_bias: bool = Field(
         default=True,
@@ -94,29 +103,35 @@ class QMIXHParams:
         "agents' exploration causes (hysteretic Q-learning; OW-QMIX's weighting) (docs/model.md#qmix-and-vdn-per-device)",
     )
     hypernet_embed_dim: int = Field(
-        default=64, ge=1, description="hidden width of the 2-layer weight hypernetworks [units]; unused by VDN"
+        default=64,
+        ge=1,
+        le=MAX_WIDTH,
+        description="hidden width of the 2-layer weight hypernetworks [units]; unused by VDN",
     )
     double_q: bool = Field(
         default=True, description="double Q [bool]: the online net picks argmax at t+1, the target net evaluates it"
     )
     n_step: int = Field(
-        default=1, ge=1, description="n of the n-step TD targets [slots] (truncated at the episode end)"
+        default=1, ge=1, le=MAX_UPDATES, description="n of the n-step TD targets [slots] (truncated at the episode end)"
     )
     tau: float = Field(
         default=0.01, gt=0, le=1, description="soft target update weight after every gradient update [-] (paper)"
     )
     grad_clip: float = Field(default=10.0, gt=0, description="global gradient-norm clip [-] (decision)")
     batch_size_episodes: int = Field(
-        default=16, ge=1, description="whole episodes per gradient update [episodes] (paper)"
+        default=16, ge=1, le=MAX_EPISODES, description="whole episodes per gradient update [episodes] (paper)"
     )
-    buffer_size_episodes: int = Field(default=32, ge=1, description="replay capacity |D| [episodes] (paper)")
+    buffer_size_episodes: int = Field(
+        default=32, ge=1, le=MAX_EPISODES, description="replay capacity |D| [episodes] (paper)"
+    )
     learning_starts_episodes: int = Field(
-        default=16, ge=1, description="episodes in the replay before the first update [episodes]"
+        default=16, ge=1, le=MAX_EPISODES, description="episodes in the replay before the first update [episodes]"
     )
     updates_per_episode: float = _updates_per_episode(0.25)
     updates_per_iteration: int | None = Field(
         default=None,
         ge=1,
+        le=MAX_UPDATES,
         description="gradient updates per training iteration [updates], overriding updates_per_episode; "
         "null: updates_per_episode x the episodes the iteration added",
     )
@@ -133,6 +148,7 @@ class QMIXHParams:
     t_max_env_steps: int = Field(
         default=2_000_000,
         ge=1,
+        le=MAX_ENV_STEPS,
         description="the paper's training budget T_max [env steps]: the epsilon schedule is a share of it, and "
         "lr_end is reached at it; "
         "independent of a grid's stop.env_steps, so a short run explores as the paper's first env steps do",
