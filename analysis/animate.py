@@ -22,7 +22,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from uavlora_rllib.cli_args import Parser, UsageError, integer, positive_int
+from analysis.runs import check_writable_folder
+from uavlora_rllib.cli_args import Parser, UsageError, int_in, positive_int, seed
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -32,9 +33,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--policy", required=True, help=f"one of {', '.join(BASELINES)}, or a checkpoint directory")
     p.add_argument("--n-eds", type=positive_int, default=None, help="V (default: the scenario's)")
     p.add_argument("--n-uavs", type=positive_int, default=None, help="U (default: the scenario's)")
-    p.add_argument("--seed", type=integer, default=0, help="episode seed (default 0)")
+    p.add_argument("--seed", type=seed, default=0, help="episode seed in [0, 2^32 - 1] (default 0)")
     p.add_argument("--steps", type=positive_int, default=None, help="slots to play, <= episode_len (default: all)")
-    p.add_argument("--fps", type=positive_int, default=8, help="frames per second (default 8)")
+    # a GIF's frame delay is a whole number of hundredths of a second (10 ms at least): 100 fps at most
+    p.add_argument("--fps", type=int_in(1, 100), default=8, help="frames per second in [1, 100] (default 8)")
     p.add_argument("--out", default="animation.gif", help="output GIF (default animation.gif)")
     return p
 
@@ -52,27 +54,29 @@ def resolve_policy(policy: str, n_eds: int | None, n_uavs: int | None, seed: int
         raise UsageError(
             f"--policy: {policy!r} is neither a baseline ({', '.join(BASELINES)}) nor an existing checkpoint directory"
         )
+    if not os.path.isfile(os.path.join(policy, "rllib_checkpoint.json")):
+        # checked before RLlib, which logs warnings and guesses before it gives up (as evaluate does)
+        inner = sorted(d for d in os.listdir(policy) if d.startswith("checkpoint_"))
+        hint = f"; it holds checkpoints, the latest is {os.path.join(policy, inner[-1])}" if inner else ""
+        raise UsageError(f"--policy: {policy!r} is not an RLlib checkpoint (no rllib_checkpoint.json){hint}")
+    from uavlora_rllib.config_errors import ConfigError
     from uavlora_rllib.evaluate import load_checkpoint_policy
 
     try:
         return load_checkpoint_policy(policy, overrides)
+    except ConfigError:
+        raise  # its message names --policy and the problem already
     except ValueError as exc:  # the trained network does not fit the scenario (shapes, action mode)
         raise UsageError(f"--policy: checkpoint {policy!r} does not fit the scenario: {exc}") from None
 
 
 def check_out(path: str) -> None:
-    """UsageError unless `path` can become a GIF file (not a folder, its folder creatable)."""
+    """UsageError unless `path` can become a GIF file (not a folder; its folder created and writable)."""
     if not path.lower().endswith(".gif"):
         raise UsageError(f"--out: expected a .gif file name, got {path!r}")
     if os.path.isdir(path):
         raise UsageError(f"--out: {path!r} is a folder; expected a .gif file name")
-    folder = os.path.dirname(os.path.abspath(path))
-    try:
-        os.makedirs(folder, exist_ok=True)
-    except OSError as exc:
-        raise UsageError(f"--out: cannot create the folder {folder!r}: {exc.strerror or exc}") from None
-    if not os.access(folder, os.W_OK):
-        raise UsageError(f"--out: cannot write to the folder {folder!r}: permission denied")
+    check_writable_folder(os.path.dirname(os.path.abspath(path)), "--out")
 
 
 def record_frames(policy, cfg, seed: int, steps: int) -> list[np.ndarray]:

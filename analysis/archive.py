@@ -32,7 +32,15 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
-from analysis.runs import ReportError, _quiet_mlflow, connect, resolve_sources, sqlite_path
+from analysis.runs import (
+    ReportError,
+    _quiet_mlflow,
+    check_writable_folder,
+    connect,
+    nonempty_path,
+    resolve_sources,
+    sqlite_path,
+)
 from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in
 
 FORMAT = "uavlora-rllib/mlflow-archive"
@@ -124,6 +132,23 @@ def export_experiment(tracking_uri: str, experiment: str, out: str, max_artifact
         if os.path.exists(tmp):
             os.remove(tmp)
     return archive
+
+
+def check_out(path: str) -> None:
+    """ReportError naming --out unless `path` can become the archive file (not a folder; its
+    folder created and writable), so that a bad path fails before the export, not after it."""
+    if os.path.isdir(path):
+        raise ReportError(f"--out: {path} is a directory; expected a file name")
+    check_writable_folder(os.path.dirname(os.path.abspath(path)), "--out")
+
+
+def check_store(tracking_uri: str) -> None:
+    """ReportError naming --tracking-uri unless its sqlite database can be created where it is
+    missing (MLflow creates the file and its folders); an existing path, and other URIs, are
+    checked when connecting."""
+    db = sqlite_path(tracking_uri)
+    if db is not None and not os.path.exists(db):
+        check_writable_folder(os.path.dirname(os.path.abspath(db)), "--tracking-uri")
 
 
 def read_archive(path: str) -> dict[str, Any]:
@@ -220,7 +245,9 @@ def build_parser() -> Parser:
     ex = sub.add_parser("export", help="write one experiment's runs to an archive file")
     ex.add_argument("--experiment", required=True, help="MLflow experiment name (or a glob matching one)")
     ex.add_argument("--tracking-uri", default="sqlite:///mlflow.db", help="default sqlite:///mlflow.db")
-    ex.add_argument("--out", default=None, help="archive file (default <experiment>.mlflow.json.gz)")
+    ex.add_argument(
+        "--out", type=nonempty_path, default=None, help="archive file (default <experiment>.mlflow.json.gz)"
+    )
     ex.add_argument(
         "--max-artifact-kb",
         type=int_in(0),
@@ -239,6 +266,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = build_parser().parse_args(argv)
         if args.command == "export":
             out = args.out or f"{args.experiment}.mlflow.json.gz"
+            check_out(out)
             data = export_experiment(args.tracking_uri, args.experiment, out, args.max_artifact_kb * 1024)
             left = sum(len(r["artifacts_left_out"]) for r in data["runs"])
             print(
@@ -248,6 +276,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "restore":
             for path in args.archives:
                 read_archive(path)  # every file checked before any is restored
+            check_store(args.tracking_uri)
             for path in args.archives:
                 created, already = restore(args.tracking_uri, path)
                 print(f"archive: {path}: {created} runs restored, {already} already there, at {args.tracking_uri}")

@@ -54,8 +54,13 @@ from collections.abc import Sequence
 
 from analysis.report_files import build_report
 from analysis.report_mlflow import log_summary
-from analysis.runs import ReportError, Source, resolve_sources
+from analysis.runs import ReportError, Source, nonempty_path, resolve_sources
 from uavlora_rllib.cli_args import Parser, UsageError, fail, float_in, int_in, seed
+
+DEFAULT_REFERENCE = "mappo"
+# Fig. 3a interpolates every run's curves onto a grid of --points env steps: 10^5 is far more than
+# a figure can show, and 10^9 exhaust the memory
+MAX_POINTS = 100_000
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -72,16 +77,26 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="MLflow tracking URI; repeat to read several stores (default sqlite:///mlflow.db)",
     )
-    p.add_argument("--out", default=None, help="output folder (default reports/<experiment>)")
-    p.add_argument("--reference", default="mappo", help="algorithm whose improvement is reported (default mappo)")
+    p.add_argument("--out", type=nonempty_path, default=None, help="output folder (default reports/<experiment>)")
+    p.add_argument(
+        "--reference",
+        default=None,
+        help=f"learner whose improvement is reported (default {DEFAULT_REFERENCE}, skipped with a note when it has "
+        "no training runs; a name given must have some)",
+    )
     p.add_argument(
         "--smooth",
         type=float_in(0.0, 1.0, high_open=True),
         default=0.6,
         help="EMA weight of the training-return curves in [0, 1) (default 0.6)",
     )
-    p.add_argument("--points", type=int_in(2), default=200, help="env-step grid points of Fig. 3a (default 200)")
-    p.add_argument("--fig2-seed", type=seed, default=0, help="evaluation episode of Fig. 2 (seed offset, default 0)")
+    p.add_argument(
+        "--points",
+        type=int_in(2, MAX_POINTS),
+        default=200,
+        help=f"env-step grid points of Fig. 3a in [2, {MAX_POINTS}] (default 200)",
+    )
+    p.add_argument("--fig2-seed", type=seed, default=None, help="evaluation episode of Fig. 2 (seed offset, default 0)")
     p.add_argument(
         "--fig2-algorithm", default=None, help="learner that plays Fig. 2 (default: the best by execution EE)"
     )
@@ -99,9 +114,22 @@ def default_out(sources: list[Source]) -> str:
     return os.path.join("reports", "+".join(names)[:120])
 
 
+def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    """The parsed flags, with the combinations that would silently do nothing refused (UsageError)."""
+    args = build_parser().parse_args(argv)
+    if args.no_fig2:
+        for flag, value in (("--fig2-algorithm", args.fig2_algorithm), ("--fig2-seed", args.fig2_seed)):
+            if value is not None:
+                raise UsageError(f"{flag}: applies to Fig. 2, which --no-fig2 skips; drop one of them")
+    args.fig2_seed = 0 if args.fig2_seed is None else args.fig2_seed
+    args.reference_given = args.reference is not None
+    args.reference = DEFAULT_REFERENCE if args.reference is None else args.reference
+    return args
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     try:
-        args = build_parser().parse_args(argv)
+        args = parse_args(argv)
         sources = resolve_sources(args.tracking_uri or ["sqlite:///mlflow.db"], args.experiment)
         out_dir = args.out or default_out(sources)
         result = build_report(sources, out_dir, args)

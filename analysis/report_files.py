@@ -33,7 +33,7 @@ from analysis.export import MARL_EVAL_FILE, marl_eval_data, write_marl_eval
 from analysis.figures import fig2, fig2_record, fig3a, fig_profile, fig_sweep, looks, write_curves_csv
 from analysis.paper import PAPER_COLUMNS, paper_md, paper_rows
 from analysis.report_md import report_markdown
-from analysis.runs import ReportError, RunRecord, Source, load_runs
+from analysis.runs import ReportError, RunRecord, Source, check_writable_folder, load_runs
 from analysis.tables import (
     TABLE_EE_COLUMNS,
     TABLE_IMP_COLUMNS,
@@ -100,8 +100,7 @@ def prepare_out_dir(out_dir: str) -> None:
                 os.remove(p)
     except OSError as exc:
         raise ReportError(f"--out: cannot write to {out_dir!r}: {exc.strerror or exc}") from None
-    if not os.access(out_dir, os.W_OK):
-        raise ReportError(f"--out: cannot write to {out_dir!r}: permission denied")
+    check_writable_folder(out_dir, "--out")
 
 
 def build_report(sources: list[Source], out_dir: str, args) -> dict[str, Any]:
@@ -119,6 +118,10 @@ def _build_report(sources: list[Source], out_dir: str, args) -> dict[str, Any]:
     records.sort(key=lambda r: (r.start_time, r.run_id))
     org = organise(records)
     reference = org.find_train(args.reference)
+    # a name given must have training runs; the default may lack them (report.md then notes it)
+    if reference is None and args.reference_given:
+        learners = ", ".join(org.algorithms("train")) or "none"
+        raise ReportError(f"--reference: {args.reference!r} has no training runs; learners: {learners}")
     if args.fig2_algorithm is not None and not args.no_fig2:
         fig2_record(org, args.fig2_algorithm)  # a bad name fails here, before anything is written
     prepare_out_dir(out_dir)

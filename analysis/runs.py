@@ -14,12 +14,14 @@ written before parents existed) are left out of the records.
 
 from __future__ import annotations
 
+import argparse
 import ast
 import fnmatch
 import json
 import logging
 import math
 import os
+import tempfile
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -84,6 +86,28 @@ class RunRecord:
         return math.isfinite(self.ee)
 
 
+def nonempty_path(text: str) -> str:
+    """An argparse type for a path flag: an empty one (--out "") would silently mean the default."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("empty path")
+    return text
+
+
+def check_writable_folder(folder: str, flag: str) -> None:
+    """Create `folder` if missing, then write and remove a file in it; ReportError naming `flag`
+    when either fails. A real write, because os.access says yes to root even where writing fails
+    (a read-only mount, /proc)."""
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError as exc:
+        raise ReportError(f"{flag}: cannot create the folder {folder!r}: {exc.strerror or exc}") from None
+    try:
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-test-"):
+            pass
+    except OSError as exc:
+        raise ReportError(f"{flag}: cannot write to the folder {folder!r}: {exc.strerror or exc}") from None
+
+
 def _quiet_mlflow() -> None:
     # Fail fast on an unreachable server instead of retrying for minutes (user settings win).
     os.environ.setdefault("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")
@@ -114,6 +138,11 @@ def connect(tracking_uri: str):
     """An MlflowClient that has answered once; ReportError naming the URI otherwise."""
     _quiet_mlflow()
     path = sqlite_path(tracking_uri)
+    if path is not None and os.path.isdir(path):
+        raise ReportError(
+            f"--tracking-uri: {tracking_uri!r} names the directory {os.path.abspath(path)}; "
+            "expected an MLflow sqlite database file, e.g. sqlite:///mlflow.db"
+        )
     if tracking_uri.startswith("sqlite:") and path is not None and not os.path.isfile(path):
         raise ReportError(
             f"tracking URI {tracking_uri!r} is unreachable: database file {os.path.abspath(path)} does not exist"

@@ -424,7 +424,7 @@ def test_animate_error_paths_one_line(tmp_path, capsys):
         (["--policy", "greedy", "--out", str(folder)], "is a folder"),
         (["--policy", "greedy", "--out", str(blocker / "x.gif")], "cannot create the folder"),
         (["--policy", "greedy", "--out", str(tmp_path / "x.png")], "expected a .gif"),
-        (["--policy", str(tmp_path), "--out", str(tmp_path / "y.gif")], "not a valid RLlib checkpoint"),
+        (["--policy", str(tmp_path), "--out", str(tmp_path / "y.gif")], "is not an RLlib checkpoint"),
         (["--policy", "greedy", "--seed", "x", "--out", str(tmp_path / "z.gif")], "--seed"),
     ]
     for argv, needle in cases:
