@@ -50,17 +50,10 @@ def resolve_policy(policy: str, n_eds: int | None, n_uavs: int | None, seed: int
     if policy in BASELINES:
         cfg = ScenarioConfig.from_dict(overrides)
         return make_baseline(policy, cfg, seed=seed), cfg
-    if not os.path.isdir(policy):
-        raise UsageError(
-            f"--policy: {policy!r} is neither a baseline ({', '.join(BASELINES)}) nor an existing checkpoint directory"
-        )
-    if not os.path.isfile(os.path.join(policy, "rllib_checkpoint.json")):
-        # checked before RLlib, which logs warnings and guesses before it gives up (as evaluate does)
-        inner = sorted(d for d in os.listdir(policy) if d.startswith("checkpoint_"))
-        hint = f"; it holds checkpoints, the latest is {os.path.join(policy, inner[-1])}" if inner else ""
-        raise UsageError(f"--policy: {policy!r} is not an RLlib checkpoint (no rllib_checkpoint.json){hint}")
     from uavlora_rllib.config_errors import ConfigError
-    from uavlora_rllib.evaluate import load_checkpoint_policy
+    from uavlora_rllib.evaluate import check_checkpoint_dir, load_checkpoint_policy
+
+    check_checkpoint_dir(policy)
 
     try:
         return load_checkpoint_policy(policy, overrides)

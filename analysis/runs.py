@@ -21,11 +21,10 @@ import json
 import logging
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field
 from typing import Any
 
-from uavlora_rllib.cli_args import UsageError
+from uavlora_rllib.cli_args import UsageError, write_problem
 
 SUMMARY_KIND = "summary"
 GRID_KIND = "grid"  # run_schema.KIND_GRID: the grid's parent run, which holds the report's files
@@ -101,11 +100,9 @@ def check_writable_folder(folder: str, flag: str) -> None:
         os.makedirs(folder, exist_ok=True)
     except OSError as exc:
         raise ReportError(f"{flag}: cannot create the folder {folder!r}: {exc.strerror or exc}") from None
-    try:
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-test-"):
-            pass
-    except OSError as exc:
-        raise ReportError(f"{flag}: cannot write to the folder {folder!r}: {exc.strerror or exc}") from None
+    problem = write_problem(folder)
+    if problem:
+        raise ReportError(f"{flag}: cannot write to the folder {folder!r}: {problem}")
 
 
 def _quiet_mlflow() -> None:

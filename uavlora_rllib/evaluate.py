@@ -172,6 +172,21 @@ def checkpoint_fit_problem(trained: ScenarioConfig, scenario: ScenarioConfig) ->
     )
 
 
+def check_checkpoint_dir(path: str) -> None:
+    """UsageError naming --policy unless `path` is an RLlib checkpoint directory (checked here: RLlib itself
+    logs warnings and guesses before it gives up)."""
+    if not os.path.exists(path):
+        raise UsageError(
+            f"--policy: {path!r} is neither a baseline ({', '.join(BASELINES)}) nor an existing checkpoint path"
+        )
+    if not os.path.isdir(path):
+        raise UsageError(f"--policy: checkpoint path {path!r} is not a directory")
+    if not os.path.isfile(os.path.join(path, "rllib_checkpoint.json")):
+        inner = sorted(d for d in os.listdir(path) if d.startswith("checkpoint_"))
+        hint = f"; it holds checkpoints, the latest is {os.path.join(path, inner[-1])}" if inner else ""
+        raise UsageError(f"--policy: {path!r} is not an RLlib checkpoint (no rllib_checkpoint.json){hint}")
+
+
 def _resolve(args: argparse.Namespace):
     overrides = {k: v for k, v in (("n_eds", args.n_eds), ("n_uavs", args.n_uavs)) if v is not None}
     if args.objective is not None and args.policy not in ("greedy", "optimal"):
@@ -184,17 +199,7 @@ def _resolve(args: argparse.Namespace):
         base = _load_yaml_scenario(args.scenario_yaml) if args.scenario_yaml else {}
         cfg = ScenarioConfig.from_dict({**base, **overrides})
         return make_baseline(args.policy, cfg, seed=args.seed, objective=args.objective or "ee"), cfg
-    if not os.path.exists(args.policy):
-        raise UsageError(
-            f"--policy: {args.policy!r} is neither a baseline ({', '.join(BASELINES)}) nor an existing checkpoint path"
-        )
-    if not os.path.isdir(args.policy):
-        raise UsageError(f"--policy: checkpoint path {args.policy!r} is not a directory")
-    if not os.path.isfile(os.path.join(args.policy, "rllib_checkpoint.json")):
-        # (checked here: RLlib itself logs warnings and guesses before it gives up)
-        inner = sorted(d for d in os.listdir(args.policy) if d.startswith("checkpoint_"))
-        hint = f"; it holds checkpoints, the latest is {os.path.join(args.policy, inner[-1])}" if inner else ""
-        raise UsageError(f"--policy: {args.policy!r} is not an RLlib checkpoint (no rllib_checkpoint.json){hint}")
+    check_checkpoint_dir(args.policy)
     if args.scenario_yaml:
         overrides = {**_load_yaml_scenario(args.scenario_yaml), **overrides}
     return load_checkpoint_policy(args.policy, overrides, explore=args.execution == "sampled", seed=args.seed)
