@@ -18,9 +18,10 @@ $(STAMP): pyproject.toml constraints.txt
 install: $(STAMP)
 
 # Main job on the embedded default: the smoke grid (all algorithms + baselines, local MLflow
-# on SQLite), then the report with the paper's figures and tables in reports/smoke/.
+# on SQLite), then the report with the paper's figures and tables in reports/smoke/. Run again, it
+# continues the grid where it stopped (--resume: a finished one reruns nothing) and redraws the report.
 demo: install
-	$(PY) -m uavlora_rllib.tune tune_configs/smoke.yaml
+	$(PY) -m uavlora_rllib.tune tune_configs/smoke.yaml $(if $(wildcard ray_results/smoke),--resume)
 	$(PY) -m analysis.report --experiment smoke --tracking-uri sqlite:///mlflow.db --out reports/smoke
 
 # Lint, format and types, zero findings (configured in pyproject.toml): ruff's linter and its

@@ -232,6 +232,18 @@ def organise(records: list[RunRecord]) -> Organised:
                 f"{where}: its runs differ in {mixed}; they are averaged together (check the joined experiments)"
             )
     org = Organised(cells, warnings, records)
+    for scenario in org.scenarios():  # a share divides by the reference: both must see the same episodes
+        by_count: dict[str, set[str]] = defaultdict(set)
+        for cell in org.cells_of(scenario):
+            for r in cell.runs:
+                by_count[r.params.get("eval.episodes", "<unset>")].add(cell.algorithm)
+        if len(by_count) > 1:
+            groups = "; ".join(f"{n}: {', '.join(sorted(names))}" for n, names in sorted(by_count.items()))
+            warnings.append(
+                f"V={scenario[0]} U={scenario[1]}: its runs were evaluated on different numbers of episodes "
+                f"(eval.episodes {groups}), so its shares of the reference compare different episodes "
+                "(check the joined experiments)"
+            )
     for key in sorted(cells):
         cell, ref = cells[key], org.reference(key[:2])
         unmatched = [s for s in cell.seeds if s not in org.matched_seeds(cell)] if ref is not None else []

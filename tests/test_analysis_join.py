@@ -369,5 +369,14 @@ def test_cells_joining_different_budgets_warn():
         )
 
     org = organise([rec(0, "1000", "a"), rec(1, "1000", "a"), rec(2, "2000", "b")])
+    # one run per cell, but the learner and the reference evaluated on different episodes: also named
+    learner, ref = rec(0, "1000", "a"), rec(1, "1000", "b")
+    learner.params["eval.episodes"], ref.params["eval.episodes"] = "2", "5"
+    ref.kind, ref.algorithm, ref.seed = "baseline", "optimal", "0"
+    warned = organise([learner, ref]).warnings
+    assert any(
+        "V=10 U=2: its runs were evaluated on different numbers of episodes (eval.episodes 2: mappo; 5: optimal)" in w
+        for w in warned
+    ), warned
     assert any("differ in stop.env_steps (1000 / 2000)" in w for w in org.warnings), org.warnings
     assert not any("differ" in w for w in organise([rec(0, "1000", "a"), rec(1, "1000", "b")]).warnings)

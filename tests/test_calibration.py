@@ -199,7 +199,7 @@ def test_another_machines_calibration_is_used_and_said_once(tmp_path, calib_file
         f"note: measured on another machine (Some Other CPU 9000, 64 CPUs); this one is "
         f"{calibration.describe_machine(calibration.this_machine())}"
     ]
-    assert "grid: 0.50 CPU-hours" in out and "wall-clock: about 0.08 h on 6 CPUs" in out
+    assert "grid: 0.50 CPU-hours" in out and "wall-clock: about 0.08 h (5.0 min) on 6 CPUs" in out
 
 
 def test_evaluation_time_is_scaled_by_episodes(tmp_path, calib_file):

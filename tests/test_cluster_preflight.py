@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import socket
 import subprocess
 import sys
 import tempfile
@@ -75,7 +76,7 @@ def test_infeasible_bundles_are_named():
     assert cluster.infeasible([{"CPU": 1.0}], []) == "the cluster has no alive node"
 
 
-def test_address_flags_are_checked_first(tmp_path, capsys, monkeypatch):
+def _grid(tmp_path):
     path = tmp_path / "g.yaml"
     path.write_text(
         yaml.safe_dump(
@@ -91,6 +92,11 @@ def test_address_flags_are_checked_first(tmp_path, capsys, monkeypatch):
             }
         )
     )
+    return path
+
+
+def test_address_flags_are_checked_first(tmp_path, capsys, monkeypatch):
+    path = _grid(tmp_path)
     assert tune_cli.main([str(path), "--address", "auto", "--num-cpus", "2"]) == 2
     assert "--num-cpus: only for a local Ray" in capsys.readouterr().err
     # ray:// without the client extra: named before any connection attempt
@@ -139,3 +145,18 @@ def test_infeasible_trial_fails_before_any_baseline(tmp_path):
     assert last.startswith("error: resources: a trial can never start") and "fits no node" in last
     assert not (tmp_path / "mlflow.db").exists()
     assert not (tmp_path / "ray_results" / "big").exists()
+
+
+def test_an_address_where_nothing_listens_is_one_line_at_once(tmp_path, capsys):
+    """Ray itself retries a silent GCS address for about 14 minutes; the driver says so in one line first."""
+    with socket.socket() as probe:  # a port that was free a moment ago: nothing listens there
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    for address in (f"127.0.0.1:{port}", f"ray://127.0.0.1:{port}"):
+        assert tune_cli.main([str(_grid(tmp_path)), "--address", address]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"error: --address {address}: cannot connect to the Ray cluster (nothing answers at "), (
+            err
+        )
+        assert err.count("\n") == 1
+    assert not (tmp_path / "m.db").exists()

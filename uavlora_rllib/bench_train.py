@@ -144,7 +144,8 @@ def main(argv: list[str] | None = None) -> int:
 
     from uavlora_rllib.experiment.training_rate import measure_training
 
-    ray.init(num_cpus=args.num_cpus, include_dashboard=False, log_to_driver=False)
+    # "local": a private Ray even where `ray start` runs a cluster on this machine (a bare init attaches to it)
+    ray.init(address="local", num_cpus=args.num_cpus, include_dashboard=False, log_to_driver=False)
     try:
         m = measure_training(entry, scenario, hparams, resources, args.seed, args.iterations)
     finally:

@@ -121,10 +121,16 @@ def load_checkpoint_policy(
     decentralised greedy policy for that scenario (evaluation.Policy), or with explore=True its
     sampled one (actions drawn from the trained distribution, seeded by `seed`).
     """
+    import ray
     from ray.rllib.algorithms.algorithm import Algorithm
 
     from uavlora_rllib.algorithms.common.registry import entry_for_algorithm
+    from uavlora_rllib.experiment import cluster
+    from uavlora_rllib.experiment.quiet import quiet_known_warnings
 
+    quiet_known_warnings()  # RLlib's notices on restoring, which need no action (experiment/quiet.py)
+    if not ray.is_initialized():  # a private local Ray, not RLlib's bare ray.init(), which would attach to
+        cluster.connect(None, None)  # a `ray start` cluster on this machine, and start a dashboard
     try:
         algo = Algorithm.from_checkpoint(os.path.abspath(path))
     except Exception as exc:  # RLlib raises many kinds for a directory that is not its checkpoint
@@ -165,10 +171,16 @@ def checkpoint_fit_problem(trained: ScenarioConfig, scenario: ScenarioConfig) ->
     ]
     t_u, t_obs, t_act = spaces(trained)
     u, obs, act = spaces(scenario)
+    quota = ""
+    if trained.quota != scenario.quota and "max_eds_per_uav" not in differ:  # derived from n_eds / n_uavs
+        quota = (
+            f"; the quota max_eds_per_uav, ceil(1.5 V / U) unless set, moved {trained.quota} -> {scenario.quota}: "
+            f"keep it with --scenario-yaml holding max_eds_per_uav: {trained.quota}"
+        )
     return (
         f"was trained for {t_u} UAVs with observations {t_obs} and actions {t_act}; this scenario has "
         f"{u} UAVs, observations {obs} and actions {act} (scenario fields that differ: {', '.join(differ)}); "
-        "allowed: changes that keep n_uavs, the quota max_eds_per_uav, action_mode, sf_set, tp_dbm and bw_khz"
+        f"allowed: changes that keep n_uavs, the quota max_eds_per_uav, action_mode, sf_set, tp_dbm and bw_khz{quota}"
     )
 
 

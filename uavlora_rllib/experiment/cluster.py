@@ -18,7 +18,9 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import socket
 import time
+import urllib.parse
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -112,6 +114,30 @@ def check_address_args(address: str | None, num_cpus: int | None) -> None:
 
 
 CLIENT_START_TRIES = 3  # ray:// connects tried while the head's client server is still starting
+# seconds a TCP connect to --address may take before the address counts as wrong: Ray itself retries a silent
+# GCS address about 20 times at ~40 s each (RAY_NUM_REDIS_GET_RETRIES), some 14 minutes, before it gives up
+REACH_TIMEOUT_S = 5.0
+
+
+def check_reachable(address: str) -> None:
+    """ConfigError naming --address unless something accepts a TCP connection at its HOST:PORT (`auto`,
+    or an address without a port, is left to Ray)."""
+    try:
+        parts = urllib.parse.urlsplit(address if "://" in address else f"//{address}")
+        host, port = parts.hostname, parts.port
+    except ValueError:  # a port that is not a number: Ray names the address
+        return
+    if not host or port is None:
+        return
+    try:
+        with socket.create_connection((host, port), timeout=REACH_TIMEOUT_S):
+            pass
+    except OSError as exc:
+        raise ConfigError(
+            f"--address {address}: cannot connect to the Ray cluster (nothing answers at {host}:{port} within "
+            f"{REACH_TIMEOUT_S:g} s: {exc.strerror or type(exc).__name__}); check the address (`ray status` on the "
+            "head prints it)"
+        ) from None
 
 
 def connect(address: str | None, num_cpus: int | None) -> None:
@@ -129,6 +155,7 @@ def connect(address: str | None, num_cpus: int | None) -> None:
         # cluster on this machine (and then refuse num_cpus)
         ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, runtime_env=runtime_env)
         return
+    check_reachable(address)
     try:
         for attempt in range(CLIENT_START_TRIES):
             try:

@@ -184,6 +184,11 @@ def _ranges(indices: list[int]) -> str:
     return ", ".join(str(lo) if lo == hi else f"{lo}-{hi}" for lo, hi in runs)
 
 
+def _minutes(hours: float) -> str:
+    """' (N min)' after a figure in hours that would print as 0.0x, else ''."""
+    return f" ({hours * 60:.1f} min)" if hours < 0.1 else ""
+
+
 def report_lines(cost: GridCost, grid, grid_file: str, cpus: float, cpus_given: bool) -> list[str]:
     """The dry run's cost section."""
     lines = [f"cost estimate (calibration {cost.path}, version {cost.version}):"]
@@ -207,7 +212,8 @@ def report_lines(cost: GridCost, grid, grid_file: str, cpus: float, cpus_given: 
             ]
         )
     lines.append(
-        f"grid: {trial_h + base_h:.2f} CPU-hours = {sum(r.trials for r in cost.rows)} trials {trial_h:.2f} "
+        f"grid: {trial_h + base_h:.2f} CPU-hours{_minutes(trial_h + base_h)} = {sum(r.trials for r in cost.rows)} "
+        f"trials {trial_h:.2f} "
         f"(wall x {cost.cpus_per_trial:g} CPUs each) + baselines {base_h:.2f}"
     )
     if cost.approximate:
@@ -226,7 +232,7 @@ def report_lines(cost: GridCost, grid, grid_file: str, cpus: float, cpus_given: 
     else:
         capped = grid.max_concurrent_trials is not None and slots == grid.max_concurrent_trials
         lines.append(
-            f"wall-clock: about {wall / 3600:.2f} h on {where} ({slots} trial(s) at once"
+            f"wall-clock: about {wall / 3600:.2f} h{_minutes(wall / 3600)} on {where} ({slots} trial(s) at once"
             f"{', max_concurrent_trials' if capped else ''}; the baselines beside them)"
         )
     return lines

@@ -92,6 +92,8 @@ def _run_locked(
     t_start = time.perf_counter()
     try:
         _preflight(grid)
+        if args.address and "://" not in storage:  # (after connecting: a failed connect stays one line)
+            print(f"note: on a cluster, storage {storage} must be a path shared by every node", file=sys.stderr)
         tracker = _open_tracker(grid, grid_file, uri)
         pool = _start_baselines(grid, tracker)
         tuner = tuner_for(grid, specs, storage, uri, grid_file, exp_path, tracker.commit, args.resume and restorable)
@@ -136,8 +138,6 @@ def _check_resume(args: argparse.Namespace, exp_path: str, storage: str) -> bool
             f"note: no Tune state at {exp_path} yet (the grid stopped before Tune started): starting the trials",
             file=sys.stderr,
         )
-    if args.address and "://" not in storage:
-        print(f"note: on a cluster, storage {storage} must be a path shared by every node", file=sys.stderr)
     return restorable
 
 
