@@ -94,7 +94,7 @@ def test_bad_input_is_one_error_naming_the_field(make, kwargs, field):
         assert "allowed: None" in msg
 
 
-@pytest.mark.parametrize("seed", [-1, 2**32, "a", 1.5, True])
+@pytest.mark.parametrize("seed", [-1, "a", 1.5, True])
 @pytest.mark.parametrize(
     "make",
     [
@@ -104,8 +104,9 @@ def test_bad_input_is_one_error_naming_the_field(make, kwargs, field):
     ],
 )
 def test_a_bad_reset_seed_is_one_error_naming_seed(make, seed):
-    with pytest.raises(ConfigError, match=r"^seed: expected an integer in \[0, 4294967295\] or None, got "):
+    with pytest.raises(ConfigError, match=r"^seed: expected a non-negative integer or None, got "):
         make().reset(seed=seed)
+    make().reset(seed=2**40)  # any size, as NumPy's SeedSequence (the evaluation's seeds pass 2^32)
 
 
 def test_the_team_env_refuses_fractional_actions_rather_than_truncating():

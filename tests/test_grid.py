@@ -169,6 +169,11 @@ BAD = [
         r"algorithms\.coma\.critic_hidden\.1: Input should be greater than or equal to 1",
     ),
     (
+        "vdn_hypernetwork_width",
+        {"plugins": [], "algorithms": {"vdn": {"hypernet_embed_dim": 8}}},
+        r"algorithms\.vdn: hypernet_embed_dim: unused by VDN \(it mixes by a sum, no hypernetworks\); leave it out",
+    ),
+    (
         "huge_torch_threads",
         {"resources": {"torch_threads": 10**6}},
         r"resources\.torch_threads: Input should be less than or equal to 1024",

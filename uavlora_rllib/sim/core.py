@@ -28,7 +28,6 @@ from typing import Any
 
 import numpy as np
 
-from uavlora_rllib.cli_args import SEED_MAX
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.sim import physics
 from uavlora_rllib.sim.actions import ActionDecoder
@@ -43,12 +42,13 @@ MAX_ENVS = 100_000  # scenarios one BatchCore steps at once: far above any use, 
 
 
 def check_seed(seed: Any, name: str = "seed") -> int | None:
-    """A reset seed as an int in [0, SEED_MAX] or None; ConfigError naming `name` otherwise (NumPy's own
-    message, 'expected non-negative integer', names no field)."""
+    """A reset seed as a non-negative int or None; ConfigError naming `name` otherwise (NumPy's own message,
+    'expected non-negative integer', names no field). No upper bound: SeedSequence takes any size, and the
+    evaluation's seeds (EVAL_SEED_BASE + seed x 10,000 + k) pass 2^32 for a grid's large seeds."""
     if seed is None:
         return None
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed <= SEED_MAX:
-        raise ConfigError(f"{name}: expected an integer in [0, {SEED_MAX}] or None, got {seed!r}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ConfigError(f"{name}: expected a non-negative integer or None, got {seed!r}")
     return int(seed)
 
 

@@ -191,6 +191,13 @@ class VDNHParams(QMIXHParams):
 
     updates_per_episode: float = _updates_per_episode(1.0)
 
+    @model_validator(mode="after")
+    def _no_hypernetworks(self) -> VDNHParams:
+        default = QMIXHParams.__pydantic_fields__["hypernet_embed_dim"].default
+        if self.hypernet_embed_dim != default:  # VDN sums the utilities: a width it never builds is a mistake
+            raise ValueError("hypernet_embed_dim: unused by VDN (it mixes by a sum, no hypernetworks); leave it out")
+        return self
+
 
 declare("qmix", QMIXHParams, ACTION_MODES)
 declare("vdn", VDNHParams, ACTION_MODES)
