@@ -13,6 +13,7 @@ from uavlora_rllib.algorithms.common.registry import Resources, declare
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
 ACTION_MODES = ("per_uav", "per_device")
+HYPERNET_EMBED_DIM = 64  # QMIX's default hypernetwork width; VDN, which has none, refuses any other
 
 
 def _updates_per_episode(default: float):
@@ -103,7 +104,7 @@ class QMIXHParams:
         "agents' exploration causes (hysteretic Q-learning; OW-QMIX's weighting) (docs/model.md#qmix-and-vdn-per-device)",
     )
     hypernet_embed_dim: int = Field(
-        default=64,
+        default=HYPERNET_EMBED_DIM,
         ge=1,
         le=MAX_WIDTH,
         description="hidden width of the 2-layer weight hypernetworks [units]; unused by VDN",
@@ -193,8 +194,9 @@ class VDNHParams(QMIXHParams):
 
     @model_validator(mode="after")
     def _no_hypernetworks(self) -> VDNHParams:
-        default = QMIXHParams.__pydantic_fields__["hypernet_embed_dim"].default
-        if self.hypernet_embed_dim != default:  # VDN sums the utilities: a width it never builds is a mistake
+        if (
+            self.hypernet_embed_dim != HYPERNET_EMBED_DIM
+        ):  # VDN sums the utilities: a width it never builds is a mistake
             raise ValueError("hypernet_embed_dim: unused by VDN (it mixes by a sum, no hypernetworks); leave it out")
         return self
 
