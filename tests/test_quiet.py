@@ -22,6 +22,10 @@ def test_known_messages_are_dropped_and_others_kept(caplog):
             "Trainable.setup took 15.2 seconds. If your trainable is slow to initialize, consider setting "
             "reuse_actors=True to reduce actor creation overheads."
         )
+        logging.getLogger("ray.tune.tune").warning(
+            "Experiment has been interrupted, but the most recent state was saved.\n"
+            'Resume experiment with: Tuner.restore(path="/x/smoke", trainable=...)'
+        )
         cfg_logger.warning("Some other config problem")
         logging.getLogger("ray._common.deprecation").warning("DeprecationWarning: `foo` has been deprecated.")
     assert [r.getMessage() for r in caplog.records] == [

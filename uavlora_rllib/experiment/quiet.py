@@ -14,6 +14,9 @@ exactly enough that a new, different message from the same logger still shows.
   TensorBoard logger dropping tuple-valued hyperparameters (the MLflow params keep them),
   and "Trainable.setup took N s ... consider setting reuse_actors=True" (the grid does; the
   time is RLlib building the algorithm).
+* Tune's "Resume experiment with: Tuner.restore(...)" after an interrupt: the driver prints the
+  grid's own resume command (`tune GRID.yaml --resume`), which also continues the MLflow runs and
+  the baselines; Tuner.restore alone would not.
 
 Installed in the driver, in every trial (`UavLoraTrainable.setup`) and, through Ray's
 ``worker_process_setup_hook``, in every other worker process of the job (env runners).
@@ -31,6 +34,7 @@ _LOG_MESSAGES = (
     ("ray.tune.utils.util", "Install gputil for GPU system monitoring"),
     ("ray.tune.logger.tensorboardx", "Removed the following hyperparameter values"),
     ("ray.tune.trainable.trainable", "consider setting reuse_actors=True"),
+    ("ray.tune.tune", "Resume experiment with: Tuner.restore"),
 )
 
 
