@@ -206,6 +206,7 @@ def test_list_hparams_documents_every_field(name, capsys):
     for f in fields:
         assert f"\n{f.name} (" in text, f.name
     assert "(no description)" not in text and text.count("default ") == len(fields)
+    assert "FieldInfo" not in text and "Annotated" not in text  # types as written, constraints in the descriptions
     assert tune.main(["--list-hparams", "no_such_algo"]) == 2
     assert "--list-hparams: unknown algorithm 'no_such_algo'" in capsys.readouterr().err
 

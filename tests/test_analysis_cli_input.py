@@ -266,3 +266,7 @@ def test_bench_script_runs_with_good_arguments(script, bench_inputs):
     assert proc.returncode == 0 and proc.stderr == "", proc.stderr
     rows = out.read_text().splitlines()
     assert rows and all('"res":{"env_steps_per_s": 1.0}' in r for r in rows)
+    out.unlink()  # a PY relative to the project root still runs in each checkout (the runs cd there)
+    proc = _bench(script, [bench_inputs["old"], str(out)], os.path.relpath(bench_inputs["py"], ROOT))
+    assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+    assert all('"res":{"env_steps_per_s": 1.0}' in r for r in out.read_text().splitlines())

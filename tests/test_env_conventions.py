@@ -109,6 +109,15 @@ def test_a_bad_reset_seed_is_one_error_naming_seed(make, seed):
     make().reset(seed=2**40)  # any size, as NumPy's SeedSequence (the evaluation's seeds pass 2^32)
 
 
+def test_the_vector_env_takes_a_seed_per_scenario():
+    vec = uavlora_rllib.envs.team.gym_vector_env(num_envs=2, **SMALL)
+    first, _ = vec.reset(seed=[3, 7])  # Gymnasium's vector API: int | list[int] | None
+    again, _ = vec.reset(seed=[3, 7])
+    assert np.array_equal(first, again)
+    with pytest.raises(ConfigError, match=r"^seed: expected a non-negative integer or None, got -7"):
+        vec.reset(seed=[3, -7])
+
+
 def test_the_team_env_refuses_fractional_actions_rather_than_truncating():
     env = uavlora_rllib.envs.team.gym_env(**SMALL)
     env.reset(seed=0)

@@ -242,7 +242,7 @@ def test_checkpoint_fit_check():
     # a quota derived from V (ceil(1.5 V / U): 8 at V=10, 15 at V=20) is named, with how to keep it
     derived = ScenarioConfig(n_eds=10, n_uavs=2)
     problem = checkpoint_fit_problem(derived, derived.replace(n_eds=20))
-    assert problem and "moved 8 -> 15: keep it with --scenario-yaml holding max_eds_per_uav: 8" in problem, problem
+    assert problem and "moved 8 -> 15: keep it by setting max_eds_per_uav: 8 in the scenario" in problem, problem
 
 
 @pytest.mark.slow

@@ -23,9 +23,10 @@ import sys
 
 import yaml
 
-from uavlora_rllib.algorithms.common.registry import MAX_ENVS_PER_RUNNER, MAX_TORCH_THREADS
+from uavlora_rllib.algorithms.common.registry import MAX_TORCH_THREADS
 from uavlora_rllib.cli_args import SEED_MAX, Parser, UsageError, fail, int_in
 from uavlora_rllib.experiment.grid import UniqueKeyLoader
+from uavlora_rllib.sim.scenario import MAX_ENVS
 
 T_MAX = 2_000_000
 
@@ -67,7 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--envs-per-runner",
-        type=int_in(1, MAX_ENVS_PER_RUNNER),
+        type=int_in(1, MAX_ENVS),
         default=8,
         help="scenarios sampled at once per env runner, in one BatchCore (default 8)",
     )

@@ -130,7 +130,13 @@ def load_checkpoint_policy(
 
     quiet_known_warnings()  # RLlib's notices on restoring, which need no action (experiment/quiet.py)
     if not ray.is_initialized():  # a private local Ray, not RLlib's bare ray.init(), which would attach to
-        cluster.connect(None, None)  # a `ray start` cluster on this machine, and start a dashboard
+        try:  # a `ray start` cluster on this machine, and start a dashboard
+            cluster.connect(None, None)
+        except Exception as exc:  # (RAY_TMPDIR unwritable, no free port, ...)
+            first = (str(exc).strip().splitlines() or [""])[0]
+            raise ConfigError(
+                f"--policy: cannot start a local Ray to restore {path!r}: {type(exc).__name__}: {first}"
+            ) from None
     try:
         algo = Algorithm.from_checkpoint(os.path.abspath(path))
     except Exception as exc:  # RLlib raises many kinds for a directory that is not its checkpoint
@@ -175,7 +181,7 @@ def checkpoint_fit_problem(trained: ScenarioConfig, scenario: ScenarioConfig) ->
     if trained.quota != scenario.quota and "max_eds_per_uav" not in differ:  # derived from n_eds / n_uavs
         quota = (
             f"; the quota max_eds_per_uav, ceil(1.5 V / U) unless set, moved {trained.quota} -> {scenario.quota}: "
-            f"keep it with --scenario-yaml holding max_eds_per_uav: {trained.quota}"
+            f"keep it by setting max_eds_per_uav: {trained.quota} in the scenario (evaluate: --scenario-yaml)"
         )
     return (
         f"was trained for {t_u} UAVs with observations {t_obs} and actions {t_act}; this scenario has "

@@ -159,10 +159,13 @@ class UavLoraTeamVectorEnv(gym.vector.VectorEnv):
                 infos["_" + key] = live.copy()
         return infos
 
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        """seed s: scenario i gets s + i, and later episodes children of SeedSequence(s); None
-        continues that stream (Gymnasium's seeding contract; fresh entropy before any seed)."""
-        if check_seed(seed) is not None:
+    def reset(self, *, seed: int | list[int] | None = None, options: dict | None = None):
+        """seed s: scenario i gets s + i, and later episodes children of SeedSequence(s); a list (Gymnasium's
+        vector API): one seed per scenario, later episodes children of SeedSequence(list); None continues that
+        stream (Gymnasium's seeding contract; fresh entropy before any seed)."""
+        for s in seed if isinstance(seed, (list, tuple, np.ndarray)) else [seed]:
+            check_seed(s)
+        if seed is not None:
             self._seeds = np.random.SeedSequence(seed)
             obs = self.core.reset(seed)
         else:

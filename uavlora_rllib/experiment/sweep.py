@@ -323,10 +323,11 @@ def check_sweep(grid: Any, spaces: Mapping[str, Mapping[str, SearchSpace]], inte
             f"{needs_metric[0]}: needs periodic evaluation of the greedy policy (its metric is {METRIC}); "
             "evaluation.interval_env_steps is 0; allowed: null (budget / 20) or a positive number of env steps"
         )
-    if needs_metric and interval >= grid.stop.env_steps:  # the metric would first be measured at the very end
+    # a scheduler acts on the metric during a trial (a search algorithm only reads the final evaluation's)
+    if grid.scheduler is not None and interval >= grid.stop.env_steps:
         raise ConfigError(
             f"evaluation.interval_env_steps: {interval} is not below stop.env_steps ({grid.stop.env_steps}), so "
-            f"the {needs_metric[0]} never sees {METRIC} before a trial ends; allowed: null (budget / 20) or fewer "
+            f"the scheduler never sees {METRIC} before a trial ends; allowed: null (budget / 20) or fewer "
             "env steps than the budget"
         )
     if grid.num_samples > 1 and not any(spaces.values()) and grid.search_alg is None:

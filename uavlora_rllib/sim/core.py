@@ -34,11 +34,10 @@ from uavlora_rllib.sim.actions import ActionDecoder
 from uavlora_rllib.sim.links import Links, LinkStage, default_link_stage, pair_channels
 from uavlora_rllib.sim.mobility import GaussMarkovMobility
 from uavlora_rllib.sim.observation import Observer, obs_dim, state_dim
-from uavlora_rllib.sim.scenario import ScenarioConfig
+from uavlora_rllib.sim.scenario import MAX_ENVS, ScenarioConfig
 from uavlora_rllib.sim.scoring import SlotScorer
 
 Seed = int | np.random.SeedSequence | None  # one scenario's seed (None: from the unseeded stream)
-MAX_ENVS = 100_000  # scenarios one BatchCore steps at once: far above any use, below an allocation from a typo
 
 
 def check_seed(seed: Any, name: str = "seed") -> int | None:

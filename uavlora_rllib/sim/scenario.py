@@ -29,6 +29,10 @@ from pydantic.dataclasses import dataclass
 
 from uavlora_rllib.config_errors import build
 
+# Most scenarios one BatchCore steps at once (an env runner's num_envs_per_env_runner, a vector env's num_envs):
+# far above any use, and below an allocation from a typo.
+MAX_ENVS = 100_000
+
 # The paper's Table "SNR rho_thr(Psi, W) in dB" (Yu et al., IEEE Access 2020): SF -> BW(kHz) -> dB.
 SNR_THRESHOLD_TABLE_DB: dict[int, dict[int, float]] = {
     7: {125: -7.5, 250: -9.0, 500: -11.0},

@@ -10,6 +10,7 @@ set -u
 [ $# -eq 2 ] || { echo "usage: bench_coma_pair.sh OLD_CHECKOUT OUT.jsonl" >&2; exit 2; }
 OLD=$1 OUT=$2 HERE=$(pwd) PY=${PY:-$(pwd)/.venv/bin/python}
 [ -f "$PY" ] && [ -x "$PY" ] || { echo "no python at $PY: set PY=/path/to/.venv/bin/python" >&2; exit 2; }
+PY=$(cd "$(dirname "$PY")" && pwd)/$(basename "$PY")  # absolute: the runs cd into each checkout
 [ -d "$OLD" ] || { echo "OLD_CHECKOUT: no directory $OLD" >&2; exit 2; }
 [ -d "$OLD/uavlora_rllib" ] || { echo "OLD_CHECKOUT: $OLD is not a checkout of this project (no uavlora_rllib/)" >&2; exit 2; }
 [ -d "$HERE/uavlora_rllib" ] || { echo "run from this project's root (no uavlora_rllib/ in $HERE)" >&2; exit 2; }
@@ -17,7 +18,7 @@ OLD=$1 OUT=$2 HERE=$(pwd) PY=${PY:-$(pwd)/.venv/bin/python}
 for v in this old old this; do
   dir=$HERE; [ $v = old ] && dir=$OLD
   load=$(cut -d' ' -f1 /proc/loadavg)
-  line=$(cd "$dir" && $PY -m uavlora_rllib.bench_train coma --n-eds 60 --n-uavs 8 --iterations 2 --torch-threads 1 \
+  line=$(cd "$dir" && "$PY" -m uavlora_rllib.bench_train coma --n-eds 60 --n-uavs 8 --iterations 2 --torch-threads 1 \
     --num-cpus 1 --json 2>/dev/null | grep '^{' | tail -1)
   echo "{\"ver\":\"$v\",\"load\":\"$load\",\"t\":\"$(date +%T)\",\"res\":${line:-null}}" >>"$OUT"
 done

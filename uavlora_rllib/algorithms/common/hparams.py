@@ -5,6 +5,7 @@ themselves live in each algorithm's `hparams.py`, so that a grid's validation, `
 
 from __future__ import annotations
 
+import typing
 from typing import Annotated, Any, Literal
 
 from pydantic import Field
@@ -77,12 +78,23 @@ def check_per_ed_heads(actor_heads: str | None, actor_agent_heads: bool, scenari
         )
 
 
+def type_name(ann: Any) -> str:
+    """A field's type as written in Python (`tuple[int, ...]`), its constraints (Annotated metadata) left out:
+    the field's description states them."""
+    origin, args = typing.get_origin(ann), typing.get_args(ann)
+    if origin is Annotated:
+        return type_name(args[0])
+    if isinstance(ann, type) and not args:
+        return ann.__name__
+    if origin is tuple and args:
+        return "tuple[" + ", ".join("..." if a is Ellipsis else type_name(a) for a in args) + "]"
+    return str(ann).replace("typing.", "")
+
+
 def describe_hparams(cls: type[Any]) -> str:
     """One block per field: name, type and default, then its description (--list-hparams)."""
     lines = []
     for name, info in cls.__pydantic_fields__.items():  # pydantic's FieldInfo of each field, in order
-        ann = info.annotation
-        typ = ann.__name__ if isinstance(ann, type) else str(ann).replace("typing.", "")
-        lines.append(f"{name} ({typ}, default {info.default!r})")
+        lines.append(f"{name} ({type_name(info.annotation)}, default {info.default!r})")
         lines.append(f"    {info.description or '(no description)'}")
     return "\n".join(lines)

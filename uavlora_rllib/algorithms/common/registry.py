@@ -27,6 +27,7 @@ from pydantic import Field
 from pydantic.dataclasses import dataclass as typed_dataclass
 
 from uavlora_rllib.config_errors import ConfigError, build
+from uavlora_rllib.sim.scenario import MAX_ENVS
 
 if TYPE_CHECKING:
     from ray.rllib.algorithms import Algorithm, AlgorithmConfig
@@ -63,9 +64,7 @@ LearnerPrecision = Literal["float32", "bfloat16"]
 # Most remote env runners or learners one trial may ask for: each is a bundle of the trial's placement
 # group (`Resources.bundles`), so a count from a typo (10**9) would be built as a list before Ray saw it.
 MAX_ACTORS_PER_TRIAL = 4096
-# Most scenarios one env runner steps at once (one BatchCore) and most torch threads a process asks for;
-# as bench_train's flags.
-MAX_ENVS_PER_RUNNER = 100_000
+# Most torch threads a process asks for (bench_train's flag too).
 MAX_TORCH_THREADS = 1024
 
 
@@ -80,7 +79,7 @@ class Resources:
         description="remote env runners; 0: sample in the trial's own process",
     )
     num_envs_per_env_runner: int = Field(
-        default=16, ge=1, le=MAX_ENVS_PER_RUNNER, description="scenarios per env runner, all in one BatchCore"
+        default=16, ge=1, le=MAX_ENVS, description="scenarios per env runner, all in one BatchCore"
     )
     num_cpus_per_env_runner: float = Field(default=1.0, gt=0, description="CPUs reserved per remote env runner")
     num_learners: int = Field(
