@@ -235,6 +235,14 @@ BAD_SWEEPS = [
 ]
 
 
+def test_a_search_alg_may_evaluate_only_at_the_end(tmp_path, capsys):
+    """Optuna reads a trial's final evaluation, so an interval as long as the budget is a valid search
+    (the scheduler's check, which needs the metric during a trial, does not apply)."""
+    data = sweep_grid(tmp_path, search_alg={"type": "optuna"}, evaluation={"episodes": 1, "interval_env_steps": 200})
+    rc, out, err = cli([write(tmp_path, data), "--dry-run"], capsys)
+    assert rc == 0, err
+
+
 @pytest.mark.parametrize(
     "extra,message", BAD_SWEEPS, ids=[m.split(":")[0] + str(i) for i, (_, m) in enumerate(BAD_SWEEPS)]
 )
