@@ -35,13 +35,13 @@ from typing import Any
 from analysis.runs import (
     ReportError,
     _quiet_mlflow,
+    check_out_file,
     check_writable_folder,
     connect,
-    nonempty_path,
     resolve_sources,
     sqlite_path,
 )
-from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in
+from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in, nonempty_path
 
 FORMAT = "uavlora-rllib/mlflow-archive"
 VERSION = 1
@@ -132,14 +132,6 @@ def export_experiment(tracking_uri: str, experiment: str, out: str, max_artifact
         if os.path.exists(tmp):
             os.remove(tmp)
     return archive
-
-
-def check_out(path: str) -> None:
-    """ReportError naming --out unless `path` can become the archive file (not a folder; its
-    folder created and writable), so that a bad path fails before the export, not after it."""
-    if os.path.isdir(path):
-        raise ReportError(f"--out: {path} is a directory; expected a file name")
-    check_writable_folder(os.path.dirname(os.path.abspath(path)), "--out")
 
 
 def check_store(tracking_uri: str) -> None:
@@ -266,7 +258,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = build_parser().parse_args(argv)
         if args.command == "export":
             out = args.out or f"{args.experiment}.mlflow.json.gz"
-            check_out(out)
+            check_out_file(out)  # before the export, not after it
             data = export_experiment(args.tracking_uri, args.experiment, out, args.max_artifact_kb * 1024)
             left = sum(len(r["artifacts_left_out"]) for r in data["runs"])
             print(

@@ -54,8 +54,8 @@ from collections.abc import Sequence
 
 from analysis.report_files import build_report
 from analysis.report_mlflow import log_summary
-from analysis.runs import ReportError, Source, nonempty_path, resolve_sources
-from uavlora_rllib.cli_args import Parser, UsageError, fail, float_in, int_in, seed
+from analysis.runs import ReportError, Source, resolve_sources
+from uavlora_rllib.cli_args import Parser, UsageError, fail, float_in, int_in, nonempty_path, seed
 
 DEFAULT_REFERENCE = "mappo"
 # Fig. 3a interpolates every run's curves onto a grid of --points env steps: 10^5 is far more than

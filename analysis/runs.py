@@ -14,7 +14,6 @@ written before parents existed) are left out of the records.
 
 from __future__ import annotations
 
-import argparse
 import ast
 import fnmatch
 import json
@@ -85,13 +84,6 @@ class RunRecord:
         return math.isfinite(self.ee)
 
 
-def nonempty_path(text: str) -> str:
-    """An argparse type for a path flag: an empty one (--out "") would silently mean the default."""
-    if not text.strip():
-        raise argparse.ArgumentTypeError("empty path")
-    return text
-
-
 def check_writable_folder(folder: str, flag: str) -> None:
     """Create `folder` if missing, then write and remove a file in it; ReportError naming `flag`
     when either fails. A real write, because os.access says yes to root even where writing fails
@@ -103,6 +95,14 @@ def check_writable_folder(folder: str, flag: str) -> None:
     problem = write_problem(folder)
     if problem:
         raise ReportError(f"{flag}: cannot write to the folder {folder!r}: {problem}")
+
+
+def check_out_file(path: str, flag: str = "--out") -> None:
+    """ReportError naming `flag` unless `path` can become an output file (not a folder; its folder created and
+    writable): checked before the work that writes it."""
+    if os.path.isdir(path):
+        raise ReportError(f"{flag}: {path} is a directory; expected a file name")
+    check_writable_folder(os.path.dirname(os.path.abspath(path)), flag)
 
 
 def _quiet_mlflow() -> None:

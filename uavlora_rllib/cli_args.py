@@ -103,3 +103,10 @@ def write_problem(folder: str) -> str | None:
             return None
     except OSError as exc:
         return exc.strerror or str(exc)
+
+
+def nonempty_path(text: str) -> str:
+    """A path flag's value: an empty one (--out "") would silently mean the default."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("empty path")
+    return text

@@ -15,7 +15,7 @@ import numpy as np
 from pettingzoo import ParallelEnv
 
 from uavlora_rllib.config_errors import ConfigError
-from uavlora_rllib.sim.actions import ActionError, per_device_action_len
+from uavlora_rllib.sim.actions import ActionError, as_integers, per_device_action_len
 from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.sim.observation import obs_dim, state_dim
 from uavlora_rllib.sim.scenario import ScenarioConfig
@@ -138,9 +138,7 @@ class _SingleScenario:
             # Reject (rather than silently truncate or crash on) wrong sizes and non-integer values.
             if value.dtype.kind not in "iuf" or value.size != int(np.prod(shape)):
                 raise ActionError(f"action of {a}: expected {what}, got {value.dtype} of shape {value.shape}")
-            if value.dtype.kind == "f" and not (np.isfinite(value).all() and (value == np.round(value)).all()):
-                raise ActionError(f"action of {a}: expected {what}, got non-integer values {value.tolist()}")
-            rows.append(value.astype(np.int64).reshape(shape))
+            rows.append(as_integers(value, f"action of {a}", what).astype(np.int64).reshape(shape))
         return np.stack(rows)[None]
 
     def global_state(self) -> np.ndarray:

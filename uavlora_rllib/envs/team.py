@@ -41,8 +41,8 @@ from uavlora_rllib.envs.parallel import (
     scenario_with,
     state_space,
 )
-from uavlora_rllib.sim.actions import ActionError, per_device_action_len
-from uavlora_rllib.sim.core import BatchCore, check_n_envs, check_seed
+from uavlora_rllib.sim.actions import as_integers, per_device_action_len
+from uavlora_rllib.sim.core import BatchCore, check_n_envs
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
 TEAM_ENV_NAME = "uavlora_team"  # its name in Tune's registry (registered by envs.multi_agent, which imports Ray)
@@ -64,17 +64,6 @@ def team_action_space(cfg: ScenarioConfig) -> gym.spaces.MultiDiscrete:
 
 def _obs32(obs: np.ndarray) -> np.ndarray:
     return np.clip(obs, -1.0, 1.0).astype(np.float32)
-
-
-def team_actions(action: Any) -> np.ndarray:
-    """The team action as integers: whole-valued floats (a policy's output) are cast, other floats refused
-    (a cast would truncate them silently); the core checks shape and range."""
-    arr = np.asarray(action)
-    if arr.dtype.kind == "f":
-        if not (np.isfinite(arr).all() and (arr == np.round(arr)).all()):
-            raise ActionError(f"action: expected integers, got non-integer values {arr.tolist()}")
-        return arr.astype(np.int64)
-    return arr
 
 
 class UavLoraTeamEnv(gym.Env):
@@ -106,14 +95,14 @@ class UavLoraTeamEnv(gym.Env):
         self._last_metrics: dict[str, float] = {}
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        super().reset(seed=check_seed(seed))
-        obs = self.core.reset(seed)
+        obs = self.core.reset(seed)  # checks the seed (a ConfigError naming it), before gymnasium's own message
+        super().reset(seed=seed)
         self._last_metrics = {}
         self._show_human()
         return _obs32(obs[0]), {STATE_KEY: self.core.state()[0].astype(np.float32)}
 
     def step(self, action):
-        res = self.core.step(team_actions(action)[None])
+        res = self.core.step(as_integers(np.asarray(action), "action", "integers")[None])
         info = {k: float(v[0]) for k, v in res.metrics.items()}
         self._last_metrics = dict(info)
         self._show_human()
@@ -163,18 +152,16 @@ class UavLoraTeamVectorEnv(gym.vector.VectorEnv):
         """seed s: scenario i gets s + i, and later episodes children of SeedSequence(s); a list (Gymnasium's
         vector API): one seed per scenario, later episodes children of SeedSequence(list); None continues that
         stream (Gymnasium's seeding contract; fresh entropy before any seed)."""
-        for s in seed if isinstance(seed, (list, tuple, np.ndarray)) else [seed]:
-            check_seed(s)
         if seed is not None:
+            obs = self.core.reset(seed)  # checks each seed, before SeedSequence's own message
             self._seeds = np.random.SeedSequence(seed)
-            obs = self.core.reset(seed)
         else:
             obs = self.core.reset(list(self._seeds.spawn(self.num_envs)))
         self._needs_reset[:] = False
         return _obs32(obs), self._infos(None, np.zeros(self.num_envs, dtype=bool))
 
     def step(self, actions):
-        actions = team_actions(actions)
+        actions = as_integers(np.asarray(actions), "action", "integers")
         restart = self._needs_reset.copy()
         if restart.any():
             # NEXT_STEP autoreset: these scenarios ignore their action and start a new episode.

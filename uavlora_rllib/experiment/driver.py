@@ -8,6 +8,7 @@ import os
 import sys
 import time
 
+from uavlora_rllib.cli_args import write_problem
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.experiment import cluster
 from uavlora_rllib.experiment.grid import GridConfig, TrialSpec, baseline_runs, trial_count, trials
@@ -40,12 +41,11 @@ def check_storage_writable(storage: str) -> None:
         return
     try:
         os.makedirs(storage, exist_ok=True)
-        probe = os.path.join(storage, f".write-test-{os.getpid()}")
-        with open(probe, "w"):
-            pass
-        os.unlink(probe)
     except OSError as exc:
         raise ConfigError(f"storage: cannot write to {storage}: {exc.strerror or exc}") from None
+    problem = write_problem(storage)
+    if problem:
+        raise ConfigError(f"storage: cannot write to {storage}: {problem}")
 
 
 def run_grid(grid: GridConfig, grid_file: str, args: argparse.Namespace) -> int:

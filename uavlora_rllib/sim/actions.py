@@ -24,6 +24,16 @@ class ActionError(ValueError):
     """An action outside its space; the message names the agent and the allowed range."""
 
 
+def as_integers(value: np.ndarray, label: str, what: str) -> np.ndarray:
+    """`value` as integers: whole-valued floats (a policy's output) are cast; other floats raise ActionError
+    naming `label` (a cast would truncate them silently); range and shape are check_range's."""
+    if value.dtype.kind != "f":
+        return value
+    if not (np.isfinite(value).all() and (value == np.round(value)).all()):
+        raise ActionError(f"{label}: expected {what}, got non-integer values {value.tolist()}")
+    return value.astype(np.int64)
+
+
 def per_device_action_len(cfg: ScenarioConfig) -> int:
     return 2 * cfg.quota + 1
 

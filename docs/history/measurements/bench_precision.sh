@@ -5,16 +5,7 @@
 #
 #   git worktree add /tmp/wt6f 6f5d51a
 #   PY=$(pwd)/.venv/bin/python bash docs/history/measurements/bench_precision.sh /tmp/wt6f bench_precision.jsonl
-set -u
-# bad arguments stop here with one line and exit 2, before any run (a run cannot report them: its row is null)
-[ $# -eq 2 ] || { echo "usage: bench_precision.sh OLD_CHECKOUT OUT.jsonl" >&2; exit 2; }
-OLD=$1 OUT=$2 HERE=$(pwd) PY=${PY:-$(pwd)/.venv/bin/python}
-[ -f "$PY" ] && [ -x "$PY" ] || { echo "no python at $PY: set PY=/path/to/.venv/bin/python" >&2; exit 2; }
-PY=$(cd "$(dirname "$PY")" && pwd)/$(basename "$PY")  # absolute: the runs cd into each checkout
-[ -d "$OLD" ] || { echo "OLD_CHECKOUT: no directory $OLD" >&2; exit 2; }
-[ -d "$OLD/uavlora_rllib" ] || { echo "OLD_CHECKOUT: $OLD is not a checkout of this project (no uavlora_rllib/)" >&2; exit 2; }
-[ -d "$HERE/uavlora_rllib" ] || { echo "run from this project's root (no uavlora_rllib/ in $HERE)" >&2; exit 2; }
-{ : >>"$OUT"; } 2>/dev/null || { echo "OUT.jsonl: cannot append to $OUT" >&2; exit 2; }
+. "$(dirname "$0")/bench_args.sh"  # OLD, OUT, HERE, PY, checked
 run() { # version algorithm U mode round
   local dir=$HERE extra="" line
   [ "$1" = old ] && dir=$OLD
