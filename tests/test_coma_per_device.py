@@ -14,7 +14,7 @@ import torch
 from ray.rllib.core import DEFAULT_MODULE_ID
 from ray.rllib.core.columns import Columns
 
-from uavlora_rllib.algorithms.coma.branching import BRANCH_LOGP, BranchLayout, taken
+from uavlora_rllib.algorithms.coma.branching import BRANCH_LOGP
 from uavlora_rllib.algorithms.coma.coma import COMAHParams
 from uavlora_rllib.algorithms.coma.coma_learner import (
     SAMPLED_LOGP,
@@ -36,6 +36,7 @@ from uavlora_rllib.algorithms.coma.coma_module import (
     counterfactual_advantage,
 )
 from uavlora_rllib.algorithms.common import registry
+from uavlora_rllib.algorithms.common.action_head import BranchLayout, taken
 from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE
 from uavlora_rllib.algorithms.common.config import hparams_model_config
 from uavlora_rllib.config_errors import ConfigError

@@ -13,7 +13,7 @@ from typing import Any
 from ray import tune
 
 from uavlora_rllib.algorithms.common import registry
-from uavlora_rllib.algorithms.common.threads import set_torch_threads
+from uavlora_rllib.algorithms.common.torch_process import setup_torch_process
 from uavlora_rllib.experiment import cluster
 from uavlora_rllib.experiment.grid import import_plugins
 from uavlora_rllib.experiment.trial_clock import TrialClock
@@ -34,7 +34,7 @@ class UavLoraTrainable(tune.Trainable):
         self.cfg = cfg
         import_plugins(cfg.get("plugins", []))
         resources = registry.Resources(**cfg["resources"])
-        set_torch_threads(resources.torch_threads)
+        setup_torch_process(resources.torch_threads)
         self.entry = registry.get(cfg["algorithm"])
         self.scenario = ScenarioConfig.from_dict(cfg["scenario"])
         # overrides as Tune resolved them: sampled values (and PBT's mutations, which reach a

@@ -79,11 +79,11 @@ def measure_training(
     iteration (with `warmup_until_learning`, more until the learner has updated, as a replay
     algorithm only learns once its buffer fills), then time `iterations` iterations.
     `after(algo)` runs on the trained algorithm before it stops (e.g. to time an evaluation)."""
-    from uavlora_rllib.algorithms.common.threads import set_torch_threads
+    from uavlora_rllib.algorithms.common.torch_process import setup_torch_process
 
     if iterations < 1:
         raise ValueError(f"iterations: must be >= 1, got {iterations}")
-    set_torch_threads(resources.torch_threads)
+    setup_torch_process(resources.torch_threads)
     t0 = time.perf_counter()
     algo = entry.algorithm_config(scenario, hparams, resources, seed).build_algo()
     build_s = time.perf_counter() - t0

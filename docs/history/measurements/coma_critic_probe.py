@@ -26,7 +26,8 @@ import sys
 import numpy as np
 import torch
 
-from uavlora_rllib.algorithms.coma.branching import BranchLayout, BranchQCritic, taken
+from uavlora_rllib.algorithms.coma.branching import BranchQCritic
+from uavlora_rllib.algorithms.common.action_head import BranchLayout, taken
 from uavlora_rllib.baselines.slots import AllocationScorer, Slots
 from uavlora_rllib.envs.team import team_action_space
 from uavlora_rllib.sim.core import BatchCore

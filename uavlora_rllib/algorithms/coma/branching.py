@@ -13,9 +13,10 @@ critic marginalises one branch at a time (docs/model.md#coma-per-device; Foerste
 all other branches of u and all other UAVs' actions held at the taken ones. The policy gradient
 sums A_{u,l} grad log pi_{u,l}(a_{u,l}) over the branches.
 
-Padded layout: the values of the branches of one UAV sit in a [L, W] grid, W = max(row); entry
-(l, c) with c >= n_l is padding (probability 0, Q 0), so every branch of every UAV is one slice
-of one tensor and the baseline of all of them is one `counterfactual_advantage` call.
+Padded layout (common/action_head.BranchLayout): the values of the branches of one UAV sit in a
+[L, W] grid, W = max(row); entry (l, c) with c >= n_l is padding (probability 0, Q 0), so every
+branch of every UAV is one slice of one tensor and the baseline of all of them is one
+`counterfactual_advantage` call.
 """
 
 from __future__ import annotations
@@ -26,49 +27,11 @@ import numpy as np
 import torch
 from torch import nn
 
+from uavlora_rllib.algorithms.common.action_head import BranchLayout
+
 # Env-runner output and train-batch column: log pi_{u,l}(a_{u,l}) of the sampling policy per
 # branch, [B, T, U, L]; the denominator of the per-branch ratio when a batch is reused.
 BRANCH_LOGP = "coma_branch_logp"
-
-
-class BranchLayout(nn.Module):
-    """Where each branch's values live in a UAV's flat logits / one-hot vector of sum(row)
-    entries, and the padded [L, W] grid the per-branch tensors use (see the module docstring).
-    Holds only constant, non-persistent buffers (nothing in the state dict)."""
-
-    starts: torch.Tensor
-    index: torch.Tensor
-    valid: torch.Tensor
-    sizes: torch.Tensor
-
-    def __init__(self, row: Sequence[int]):
-        super().__init__()
-        self.row = [int(n) for n in row]
-        self.n_branches, self.width = len(self.row), max(self.row)
-        starts = np.concatenate([[0], np.cumsum(self.row)[:-1]])
-        values = np.arange(self.width)
-        valid = values[None, :] < np.asarray(self.row)[:, None]  # [L, W]
-        index = starts[:, None] + np.minimum(values[None, :], np.asarray(self.row)[:, None] - 1)
-        self.register_buffer("starts", torch.as_tensor(starts, dtype=torch.long), persistent=False)  # [L]
-        self.register_buffer("index", torch.as_tensor(index, dtype=torch.long), persistent=False)  # [L, W]
-        self.register_buffer("valid", torch.as_tensor(valid), persistent=False)  # [L, W] bool
-        self.register_buffer("sizes", torch.as_tensor(self.row, dtype=torch.float32), persistent=False)  # [L]
-
-    def log_probs(self, logits: torch.Tensor) -> torch.Tensor:
-        """Logits [..., sum(row)] -> per-branch log-probabilities [..., L, W] (log-softmax within
-        each branch, the same distributions as ActionHead's; padding -inf)."""
-        padded = logits[..., self.index].masked_fill(~self.valid, float("-inf"))
-        return torch.log_softmax(padded, dim=-1)
-
-    def entropy(self, log_probs: torch.Tensor) -> torch.Tensor:
-        """Per-branch entropies [..., L] of `log_probs` [..., L, W] (padding contributes 0)."""
-        safe = log_probs.masked_fill(~self.valid, 0.0)
-        return -(log_probs.exp() * safe).sum(-1)
-
-
-def taken(values: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-    """values [..., n] at the taken index actions [...] -> [...] (per UAV or per branch)."""
-    return torch.gather(values, -1, actions.long().unsqueeze(-1)).squeeze(-1)
 
 
 class BranchQCritic(nn.Module):

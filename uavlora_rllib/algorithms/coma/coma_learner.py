@@ -43,7 +43,7 @@ from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 from ray.rllib.policy.sample_batch import MultiAgentBatch
 from ray.rllib.utils.annotations import override
 
-from uavlora_rllib.algorithms.coma.branching import BRANCH_LOGP, taken
+from uavlora_rllib.algorithms.coma.branching import BRANCH_LOGP
 from uavlora_rllib.algorithms.coma.coma_module import (
     ACTIONS,
     BOOTSTRAP,
@@ -57,6 +57,7 @@ from uavlora_rllib.algorithms.coma.coma_module import (
     counterfactual_advantage,
     td_lambda_targets,
 )
+from uavlora_rllib.algorithms.common.action_head import taken
 from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE
 from uavlora_rllib.algorithms.common.target_learner import TargetNetworkLearner
 

@@ -40,12 +40,13 @@ from ray.rllib.core.rl_module.torch import TorchRLModule
 from ray.rllib.utils.annotations import override
 from torch import nn
 
-from uavlora_rllib.algorithms.coma.branching import BRANCH_LOGP, BranchLayout, BranchQCritic, taken
+from uavlora_rllib.algorithms.coma.branching import BRANCH_LOGP, BranchQCritic
+from uavlora_rllib.algorithms.common.action_head import ActionHead, taken
 from uavlora_rllib.algorithms.common.actor_module import RecurrentActorForward
-from uavlora_rllib.algorithms.common.agent_net import ActionHead, RecurrentAgentNet
+from uavlora_rllib.algorithms.common.agent_net import RecurrentAgentNet
 from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE
 from uavlora_rllib.algorithms.common.per_ed_actor import make_actor
-from uavlora_rllib.algorithms.common.threads import set_torch_threads
+from uavlora_rllib.algorithms.common.torch_process import setup_torch_process
 
 # Batch columns of the learner's episode batch (coma_learner.episode_batch): obs
 # [B, T + 1, U, obs_dim], actions [B, T, U] int64, rewards [B, T], GLOBAL_STATE [B, T + 1, S].
@@ -268,7 +269,7 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
     @override(TorchRLModule)
     def setup(self) -> None:
         mc = self.model_config
-        set_torch_threads(mc["torch_threads"])
+        setup_torch_process(mc["torch_threads"])
         self.n_agents, self.obs_dim = self.observation_space.shape
         self.gamma = float(mc["gamma"])  # 0: the critic's target is the reward, the target critic unread
         nvec = np.asarray(self.action_space.nvec)
@@ -314,7 +315,7 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
         self.use_obs = bool(mc["critic_use_obs"])
         self.branch_fraction = float(mc["critic_branch_fraction"])
         self.head = ActionHead(nvec[0].tolist())
-        self.layout = BranchLayout(self.head.nvec)
+        self.layout = self.head.layout
         self.actor = make_actor(
             self.obs_dim,
             self.n_agents,
@@ -452,9 +453,13 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
         if not self.per_device:
             return super()._forward_exploration(batch, **kwargs)
         logits, state = self.actor_logits(batch)
-        actions, logp = self.head.sample(logits)
-        branch_logp = taken(self.layout.log_probs(logits), actions)
-        return {Columns.ACTIONS: actions, Columns.ACTION_LOGP: logp, BRANCH_LOGP: branch_logp, Columns.STATE_OUT: state}
+        actions, branch_logp = self.head.sample_branches(logits)
+        return {
+            Columns.ACTIONS: actions,
+            Columns.ACTION_LOGP: branch_logp.sum(-1),
+            BRANCH_LOGP: branch_logp,
+            Columns.STATE_OUT: state,
+        }
 
     def episode_logits(self, obs: torch.Tensor) -> torch.Tensor:
         """Actor logits [B, T+1, U, n_logits] over whole episodes obs [B, T+1, U, d], the GRU

@@ -1,4 +1,4 @@
-"""The one recurrent agent network of every algorithm, and the per-agent action heads.
+"""The one recurrent agent network of every algorithm.
 
 `RecurrentAgentNet` maps each UAV's LOCAL observation row, with a GRU carrying the UAV's
 history, to one output vector per UAV: action logits (MAPPO/IPPO actors, COMA's actor) or
@@ -22,15 +22,12 @@ Shapes: observations [B, T, U, obs_dim], GRU state [B, U, gru_hidden], output [B
 * `agent_heads=True` (shared only): each UAV also adds its own linear map of the GRU output
   to the shared output, a cheap way to let identical UAVs act differently (COMA uses it).
 
-`ActionHead` turns logits into per-agent distributions: one categorical per UAV (per_uav:
-Discrete(90)) or a product of categoricals per UAV (per_device: [n_sf, n_tp] * quota + [n_bw]).
-Log-probabilities and entropies are summed over a UAV's components but kept per UAV ([..., U]).
+Its logits become per-agent distributions in common/action_head.py.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Any, cast
+from typing import cast
 
 import numpy as np
 import torch
@@ -205,44 +202,3 @@ class RecurrentAgentNet(nn.Module):
             h = n + zg * (h - n)
             ys.append(h)
         return torch.stack(ys, dim=2), h
-
-
-class ActionHead:
-    """Per-agent (multi-)categorical distributions over logits [..., U, sum(nvec)]."""
-
-    def __init__(self, nvec: Sequence[int]):
-        self.nvec = [int(n) for n in nvec]
-        self.multi = len(self.nvec) > 1
-        self.n_logits = sum(self.nvec)
-
-    def _split(self, logits: torch.Tensor) -> list[torch.Tensor]:
-        return list(torch.split(logits, self.nvec, dim=-1))
-
-    def sample(self, logits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Random actions ([..., U] or [..., U, L]) and their per-agent logp [..., U]."""
-        acts: list[torch.Tensor] = []
-        logp: Any = 0.0  # a tensor from the first component on
-        for part in self._split(logits):
-            lp = torch.log_softmax(part, dim=-1)
-            a = torch.multinomial(lp.exp().reshape(-1, part.shape[-1]), 1).reshape(part.shape[:-1])
-            acts.append(a)
-            logp = logp + lp.gather(-1, a.unsqueeze(-1)).squeeze(-1)
-        return (torch.stack(acts, dim=-1) if self.multi else acts[0]), logp
-
-    def greedy(self, logits: torch.Tensor) -> torch.Tensor:
-        """The most likely action per agent (component): argmax of each logit group."""
-        acts = [part.argmax(dim=-1) for part in self._split(logits)]
-        return torch.stack(acts, dim=-1) if self.multi else acts[0]
-
-    def logp_and_entropy(self, logits: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per-agent log-probability [..., U] of actions [..., U] or [..., U, L], and per-agent
-        entropy [..., U] (both summed over an agent's components), from one log-softmax."""
-        actions = actions.long()
-        logp: Any = 0.0  # tensors from the first component on
-        ent: Any = 0.0
-        for k, part in enumerate(self._split(logits)):
-            lp = torch.log_softmax(part, dim=-1)
-            a = actions[..., k] if self.multi else actions
-            logp = logp + lp.gather(-1, a.unsqueeze(-1)).squeeze(-1)
-            ent = ent - (lp.exp() * lp).sum(-1)
-        return logp, ent

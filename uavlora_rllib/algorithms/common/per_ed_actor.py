@@ -32,8 +32,6 @@ ACTOR_HEADS = ("flat", "per_slot", "shared")  # flat: RecurrentAgentNet's one ou
 class PerEDActor(nn.Module):
     """obs [B, T, U, 4 quota + 3], h [B, U, H] -> logits [B, T, U, (n_sf + n_tp) quota + n_bw], h_T."""
 
-    slot_onehot: torch.Tensor
-
     def __init__(
         self,
         obs_dim: int,
@@ -61,14 +59,14 @@ class PerEDActor(nn.Module):
             obs_dim, n_agents, fc_hidden, fc_hidden=fc_hidden, gru_hidden=gru_hidden, share=share
         )
         groups = 1 if share else n_agents
-        in_r = OBS_ROW + (quota if self.shared else 0)
-        self.slot_heads = BranchHeads(groups, 1 if self.shared else quota, fc_hidden, in_r, fc_hidden, n_sf + n_tp)
+        self.slot_heads = BranchHeads(
+            groups, 1 if self.shared else quota, fc_hidden, OBS_ROW, fc_hidden, n_sf + n_tp, self.shared * quota
+        )
         self.bw_head = BranchHeads(groups, 1, fc_hidden, 0, fc_hidden, n_bw)
         with torch.no_grad():
             for head in (self.slot_heads, self.bw_head):
                 head.w2.mul_(out_gain)
                 head.b2.zero_()
-        self.register_buffer("slot_onehot", torch.eye(quota), persistent=False)
 
     def initial_state(self, batch: int | None = None) -> torch.Tensor:
         return self.torso.initial_state(batch)
@@ -76,10 +74,7 @@ class PerEDActor(nn.Module):
     def forward(self, obs: torch.Tensor, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         f, h_out = self.torso(obs, h)
         f = torch.relu(f)
-        rows = slot_rows(obs, self.quota)  # [B, T, U, K, 4]
-        if self.shared:
-            rows = torch.cat((rows, self.slot_onehot.expand(*rows.shape[:-2], -1, -1)), dim=-1)
-        slot_logits = self.slot_heads(f, rows, self.quota)  # [B, T, U, K, n_sf + n_tp]
+        slot_logits = self.slot_heads(f, slot_rows(obs, self.quota), self.quota)  # [B, T, U, K, n_sf + n_tp]
         bw_logits = self.bw_head(f).squeeze(-2)  # [B, T, U, n_bw]
         # float32 under autocast too (common/precision.py)
         return torch.cat((slot_logits.flatten(-2), bw_logits), dim=-1).float(), h_out

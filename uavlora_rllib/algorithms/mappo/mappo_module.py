@@ -35,12 +35,12 @@ from ray.rllib.core.rl_module.torch import TorchRLModule
 from ray.rllib.utils.annotations import override
 from torch import nn
 
+from uavlora_rllib.algorithms.common.action_head import ActionHead
 from uavlora_rllib.algorithms.common.actor_module import RecurrentActorForward
-from uavlora_rllib.algorithms.common.agent_net import ActionHead
 from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE
 from uavlora_rllib.algorithms.common.hparams import resolve_actor_heads
 from uavlora_rllib.algorithms.common.per_ed_actor import make_actor
-from uavlora_rllib.algorithms.common.threads import set_torch_threads
+from uavlora_rllib.algorithms.common.torch_process import setup_torch_process
 from uavlora_rllib.algorithms.common.value_norm import ValueNorm
 
 
@@ -87,7 +87,7 @@ class MAPPOTorchRLModule(RecurrentActorForward, TorchRLModule, ValueFunctionAPI,
     @override(TorchRLModule)
     def setup(self):
         mc = self.model_config
-        set_torch_threads(mc["torch_threads"])
+        setup_torch_process(mc["torch_threads"])
         n_agents, obs_dim = self.observation_space.shape
         nvec = np.asarray(self.action_space.nvec)
         self.n_agents, self.obs_dim = int(n_agents), int(obs_dim)

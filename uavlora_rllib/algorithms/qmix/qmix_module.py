@@ -43,7 +43,7 @@ from torch import nn
 
 from uavlora_rllib.algorithms.common.agent_net import RecurrentAgentNet
 from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE, HIDDEN
-from uavlora_rllib.algorithms.common.threads import set_torch_threads
+from uavlora_rllib.algorithms.common.torch_process import setup_torch_process
 from uavlora_rllib.algorithms.common.value_norm import ValueNorm
 
 Q_ALL = "q_all"  # [B, T+1, U, A] online Qs over the whole sequence
@@ -129,7 +129,7 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
     @override(TorchRLModule)
     def setup(self) -> None:
         mc = self.model_config
-        set_torch_threads(mc["torch_threads"])
+        setup_torch_process(mc["torch_threads"])
         self.n_agents = int(mc["n_agents"])
         self.n_actions = int(mc["n_actions"])
         self.gru_hidden = int(mc["gru_hidden"])

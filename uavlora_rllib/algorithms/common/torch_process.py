@@ -1,0 +1,49 @@
+"""Per-process settings of every process that runs torch for a trial: the trial's own process
+(tune's trainable, the bench CLIs) and, through their RLModule's setup, remote env runners and
+learners.
+
+* torch's intra-op thread count, the trial's `Resources.torch_threads`: torch's own default (one
+  thread per core) oversubscribes the CPUs that several such processes share.
+* glibc's allocator keeps freed memory for reuse. By default it hands every block above 128 kB to
+  the kernel (mmap) and back on free, so each fresh activation or gradient tensor of an update
+  (30 MB for a per-ED head at V=60/U=8) is zeroed page by page on first touch, which cost as much
+  as the arithmetic on it. Keeping them is what jemalloc or tcmalloc would do (PyTorch's CPU
+  tuning advice); the process then holds its peak memory (docs/cluster.md#memory). Left to the
+  user where they set MALLOC_* or GLIBC_TUNABLES themselves, and off other C libraries.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import sys
+
+# glibc's mallopt parameters (malloc.h)
+_M_TRIM_THRESHOLD = -1  # bytes free at the heap's top before it is given back
+_M_MMAP_MAX = -4  # blocks served by mmap at once (0: none, all from the reusable heap)
+_TRIM_NEVER = 2**31 - 1  # mallopt takes an int
+
+
+def setup_torch_process(threads: int | None) -> None:
+    """Use `threads` intra-op threads in this process (None or 0: leave torch's setting) and keep
+    freed memory for reuse (`retain_freed_memory`)."""
+    retain_freed_memory()
+    if threads:
+        import torch
+
+        torch.set_num_threads(int(threads))
+
+
+def retain_freed_memory() -> bool:
+    """Tell glibc's malloc to serve large blocks from its heap and never trim it (see the module
+    docstring). True where it took effect; idempotent."""
+    if not sys.platform.startswith("linux") or "GLIBC_TUNABLES" in os.environ:
+        return False
+    if any(k.startswith("MALLOC_") for k in os.environ):
+        return False
+    libc = ctypes.CDLL(None)
+    if not hasattr(libc, "gnu_get_libc_version"):  # another C library (musl, ...)
+        return False
+    mallopt = libc.mallopt
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    return bool(mallopt(_M_MMAP_MAX, 0)) and bool(mallopt(_M_TRIM_THRESHOLD, _TRIM_NEVER))
