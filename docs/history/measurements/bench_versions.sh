@@ -1,0 +1,42 @@
+#!/bin/bash
+# BENCHMARKS.md "Training cost vs U": bench_train's env steps/s of several checkouts, interleaved in two rounds
+# (the order reversed in round 2), one JSON line per run appended to OUT.
+#
+#   git worktree add /tmp/wt6f 6f5d51a; git worktree add /tmp/wtprev PREV
+#   PY=$(pwd)/.venv/bin/python bash docs/history/measurements/bench_versions.sh out.jsonl old=/tmp/wt6f prev=/tmp/wtprev new=.
+#
+# CASES (env, optional): "algo U mode" triples separated by commas; a case skips a checkout named old for
+# qmix/vdn per_device (6f5d51a has no per_device form of them).
+set -u
+[ $# -ge 2 ] || { echo "usage: $(basename "$0") OUT.jsonl NAME=CHECKOUT..." >&2; exit 2; }
+OUT=$1; shift
+PY=${PY:-$(pwd)/.venv/bin/python}
+[ -f "$PY" ] && [ -x "$PY" ] || { echo "no python at $PY: set PY=/path/to/.venv/bin/python" >&2; exit 2; }
+PY=$(cd "$(dirname "$PY")" && pwd)/$(basename "$PY")
+for spec in "$@"; do
+  dir=${spec#*=}
+  [ "$dir" != "$spec" ] && [ -d "$dir/uavlora_rllib" ] || { echo "NAME=CHECKOUT: $spec is not NAME=a checkout of this project" >&2; exit 2; }
+done
+{ : >>"$OUT"; } 2>/dev/null || { echo "OUT.jsonl: cannot append to $OUT" >&2; exit 2; }
+CASES=${CASES:-"mappo 8 per_device,qmix 8 per_device,mappo 8 per_uav,qmix 8 per_uav,mappo 2 per_device,qmix 2 per_uav"}
+run() { # name dir algo U mode round
+  local line
+  line=$(cd "$2" && "$PY" -m uavlora_rllib.bench_train "$3" --n-eds 60 --n-uavs "$4" --iterations 3 --torch-threads 1 \
+    --action-mode "$5" --json 2>/dev/null | grep '^{' | tail -1)
+  echo "{\"ver\":\"$1\",\"commit\":\"$(git -C "$2" rev-parse --short HEAD)\",\"algo\":\"$3\",\"U\":$4,\"mode\":\"$5\",\"round\":$6,\"load\":\"$(cut -d' ' -f1 /proc/loadavg)\",\"res\":${line:-null}}" >>"$OUT"
+}
+IFS=, read -ra cases <<<"$CASES"
+forward=("$@") backward=()
+for ((i = $#; i >= 1; i--)); do backward+=("${!i}"); done
+for round in 1 2; do
+  specs=("${forward[@]}")
+  [ $round = 2 ] && specs=("${backward[@]}")
+  for case in "${cases[@]}"; do
+    set -- $case
+    for spec in "${specs[@]}"; do
+      name=${spec%%=*}
+      [ "$name" = old ] && [ "$3" = per_device ] && [ "$1" != mappo ] && [ "$1" != ippo ] && continue
+      run "$name" "${spec#*=}" "$1" "$2" "$3" $round
+    done
+  done
+done
