@@ -4,6 +4,7 @@ code 2, before any long work (a simulation, an export, a training run). No Ray, 
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -270,3 +271,43 @@ def test_bench_script_runs_with_good_arguments(script, bench_inputs):
     proc = _bench(script, [bench_inputs["old"], str(out)], os.path.relpath(bench_inputs["py"], ROOT))
     assert proc.returncode == 0 and proc.stderr == "", proc.stderr
     assert all('"res":{"env_steps_per_s": 1.0}' in r for r in out.read_text().splitlines())
+
+
+def test_bench_versions_script_checks_its_arguments(bench_inputs):
+    tmp, py, old = bench_inputs["tmp"], bench_inputs["py"], bench_inputs["old"]
+    out = str(tmp / "out.jsonl")
+    usage = "usage: bench_versions.sh OUT.jsonl NAME=CHECKOUT..."
+    cases = [
+        ([], py, usage),
+        ([out], py, usage),
+        ([out, old], py, f"NAME=CHECKOUT: {old} is not"),  # no NAME=
+        ([out, f"a={tmp / 'missing'}"], py, "NAME=CHECKOUT: a="),
+        ([out, f"a={tmp}"], py, "NAME=CHECKOUT: a="),  # a folder that is not a checkout of the project
+        ([str(tmp), f"a={old}"], py, f"OUT.jsonl: cannot append to {tmp}"),
+        ([out, f"a={old}"], str(tmp / "no_python"), "no python at"),
+    ]
+    for args, python, needle in cases:
+        proc = _bench("bench_versions.sh", args, python)
+        assert proc.returncode == 2, (args, proc.returncode, proc.stderr)
+        assert proc.stderr.count("\n") == 1 and needle in proc.stderr, (args, proc.stderr)
+        assert not os.path.exists(out), args  # nothing ran
+
+
+def test_bench_versions_script_interleaves_and_reverses(bench_inputs, monkeypatch):
+    tmp, old = bench_inputs["tmp"], bench_inputs["old"]
+    out = tmp / "out.jsonl"
+    monkeypatch.setenv("CASES", "mappo 8 per_uav,qmix 8 per_device")
+    proc = _bench("bench_versions.sh", [str(out), f"old={old}", f"new={old}"], bench_inputs["py"])
+    assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+    rows = [json.loads(line) for line in out.read_text().splitlines()]
+    # old is skipped for qmix per_device (6f5d51a has no such form); round 2 runs the checkouts in reverse
+    got = [(r["round"], r["algo"], r["ver"]) for r in rows]
+    assert got == [
+        (1, "mappo", "old"),
+        (1, "mappo", "new"),
+        (1, "qmix", "new"),
+        (2, "mappo", "new"),
+        (2, "mappo", "old"),
+        (2, "qmix", "new"),
+    ]
+    assert all(r["res"] == {"env_steps_per_s": 1.0} and r["commit"] == "none" for r in rows)

@@ -23,7 +23,7 @@ run() { # name dir algo U mode round
   local line
   line=$(cd "$2" && "$PY" -m uavlora_rllib.bench_train "$3" --n-eds 60 --n-uavs "$4" --iterations 3 --torch-threads 1 \
     --action-mode "$5" --json 2>/dev/null | grep '^{' | tail -1)
-  echo "{\"ver\":\"$1\",\"commit\":\"$(git -C "$2" rev-parse --short HEAD)\",\"algo\":\"$3\",\"U\":$4,\"mode\":\"$5\",\"round\":$6,\"load\":\"$(cut -d' ' -f1 /proc/loadavg)\",\"res\":${line:-null}}" >>"$OUT"
+  echo "{\"ver\":\"$1\",\"commit\":\"$(git -C "$2" rev-parse --short HEAD 2>/dev/null || echo none)\",\"algo\":\"$3\",\"U\":$4,\"mode\":\"$5\",\"round\":$6,\"load\":\"$(cut -d' ' -f1 /proc/loadavg)\",\"res\":${line:-null}}" >>"$OUT"
 }
 IFS=, read -ra cases <<<"$CASES"
 forward=("$@") backward=()
