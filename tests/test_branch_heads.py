@@ -32,17 +32,17 @@ def _reference(heads: BranchHeads, x: torch.Tensor, r: torch.Tensor | None, k: i
 @pytest.mark.parametrize("groups", [1, U])
 @pytest.mark.parametrize(
     "form",
-    ["shared_with_slot_ids", "shared", "per_branch", "no_rows"],
+    ["shared_with_slot_ids", "shared", "per_branch", "no_rows", "per_branch_no_rows"],
 )
 def test_batched_heads_are_the_per_head_mlp(groups, form):
     torch.manual_seed(0)
-    branches = K if form == "per_branch" else 1
-    in_r = 0 if form == "no_rows" else IN_R
+    branches = K if form.startswith("per_branch") else 1
+    in_r = 0 if form.endswith("no_rows") else IN_R
     heads = BranchHeads(groups, branches, IN_X, in_r, HID, OUT, K if form == "shared_with_slot_ids" else 0)
     assert heads.w1.shape == (groups, branches, IN_X + in_r + heads.slot_ids, HID)
     k = 1 if form == "no_rows" else K
     x = torch.randn(U, B, T, IN_X).permute(1, 2, 0, 3).requires_grad_()  # agent-major, as the GRU's output
-    r = None if form == "no_rows" else torch.randn(B, T, U, K, IN_R)
+    r = None if form.endswith("no_rows") else torch.randn(B, T, U, K, IN_R)
     weight = torch.randn(B, T, U, k, OUT)
     results = []
     for fn in (heads, lambda *a: _reference(heads, *a)):
@@ -59,3 +59,32 @@ def test_batched_heads_are_the_per_head_mlp(groups, form):
 def test_slot_ids_need_one_head_for_all_branches():
     with pytest.raises(ValueError, match="slot_ids"):
         BranchHeads(1, K, IN_X, IN_R, HID, OUT, K)
+
+
+@pytest.mark.parametrize("form", ["shared_with_slot_ids", "per_branch"])
+def test_under_bfloat16_autocast_the_output_and_its_bias_stay_float32(form):
+    """The products run in bfloat16 but the last layer's bias is added in float32: the differences
+    between a branch's outputs (what an argmax, a log-softmax or a dueling mean reads) keep their
+    float32 accuracy even when a large bias would round them to bfloat16's spacing (0.125 at 30)."""
+    torch.manual_seed(1)
+    per_branch = form == "per_branch"
+    heads = BranchHeads(U, K if per_branch else 1, IN_X, IN_R, HID, OUT, 0 if per_branch else K)
+    with torch.no_grad():
+        heads.b2 += 30.0
+    x, r = torch.randn(B, T, U, IN_X), torch.randn(B, T, U, K, IN_R)
+    want = heads(x, r, K)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        got = heads(x, r, K)
+    assert got.dtype == torch.float32
+    centred = [y - y.mean(-1, keepdim=True) for y in (got, want)]
+    assert (centred[0] - centred[1]).abs().max() < 0.03
+
+
+def test_a_wrong_branch_count_is_one_clear_error():
+    x, r = torch.randn(B, T, U, IN_X), torch.randn(B, T, U, K, IN_R)
+    with pytest.raises(ValueError, match="k: 4 branches asked of heads with branches=5"):
+        BranchHeads(1, K, IN_X, IN_R, HID, OUT)(x, r[..., :4, :], 4)
+    with pytest.raises(ValueError, match="k: 4 branches asked of heads with slot_ids=5"):
+        BranchHeads(1, 1, IN_X, IN_R, HID, OUT, K)(x, r[..., :4, :], 4)
+    with pytest.raises(ValueError, match=r"r: expected \[..., 5, 4\], got \(3, 4, 3, 5, 3\)"):
+        BranchHeads(1, 1, IN_X, IN_R, HID, OUT)(x, r[..., :3], K)

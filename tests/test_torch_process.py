@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import ctypes
+import os
+import shutil
 import subprocess
 import sys
 
@@ -27,25 +30,56 @@ print(took, info.hblkhd >> 20, after.arena >= 64 << 20)
 """
 
 
-def _probe(mode: str, env: dict[str, str] | None = None) -> list[str]:
+def _clean_env(**extra: str) -> dict[str, str]:
+    """This process's environment without the allocator settings a machine may carry."""
+    keep = {
+        k: v for k, v in os.environ.items() if not k.startswith("MALLOC_") and k not in ("GLIBC_TUNABLES", "LD_PRELOAD")
+    }
+    return {**keep, **extra}
+
+
+def _probe(mode: str, env: dict[str, str]) -> list[str]:
     out = subprocess.run([sys.executable, "-c", _PROBE, mode], capture_output=True, text=True, check=True, env=env)
     return out.stdout.split()
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator")
+def _has_mallinfo2() -> bool:
+    return sys.platform.startswith("linux") and hasattr(ctypes.CDLL(None), "mallinfo2")
+
+
+glibc_233 = pytest.mark.skipif(not _has_mallinfo2(), reason="glibc >= 2.33 (mallinfo2)")
+
+
+@glibc_233
 def test_large_blocks_come_from_the_heap_and_stay_there():
     """By default a 64 MiB block is mmap'd (and unmapped on free); after retain_freed_memory it
     comes from the heap, which keeps it once freed."""
-    assert _probe("default") == ["None", "64", "False"]
-    assert _probe("retain") == ["True", "0", "True"]
+    assert _probe("default", _clean_env()) == ["None", "64", "False"]
+    assert _probe("retain", _clean_env()) == ["True", "0", "True"]
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator")
-@pytest.mark.parametrize("var", ["MALLOC_ARENA_MAX", "GLIBC_TUNABLES"])
-def test_a_users_own_allocator_settings_are_left_alone(var, monkeypatch):
-    import os
-
-    env = {**os.environ, var: "2" if var.startswith("MALLOC") else "glibc.malloc.trim_threshold=1"}
-    assert _probe("retain", env)[:2] == ["False", "64"]
-    monkeypatch.setenv(var, env[var])
+@glibc_233
+@pytest.mark.parametrize("var, value", [("MALLOC_ARENA_MAX", "2"), ("GLIBC_TUNABLES", "glibc.malloc.trim_threshold=1")])
+def test_a_users_own_allocator_settings_are_left_alone(var, value, monkeypatch):
+    assert _probe("retain", _clean_env(**{var: value}))[:2] == ["False", "64"]
+    monkeypatch.setenv(var, value)
     assert torch_process.retain_freed_memory() is False
+
+
+@glibc_233
+def test_tunables_of_other_glibc_parts_do_not_count():
+    assert _probe("retain", _clean_env(GLIBC_TUNABLES="glibc.pthread.rseq=0"))[:2] == ["True", "0"]
+
+
+@glibc_233
+@pytest.mark.skipif(shutil.which("cc") is None, reason="needs a C compiler to build a preloaded malloc")
+def test_a_preloaded_allocator_is_left_alone(tmp_path):
+    """With another malloc preloaded (as jemalloc or tcmalloc would be), glibc's settings would
+    change nothing: retain_freed_memory says so."""
+    src = tmp_path / "shim.c"
+    src.write_text(
+        "#include <stddef.h>\nextern void *__libc_malloc(size_t);\nvoid *malloc(size_t n) { return __libc_malloc(n); }\n"
+    )
+    lib = tmp_path / "libshim.so"
+    subprocess.run(["cc", "-shared", "-fPIC", "-o", str(lib), str(src)], check=True, capture_output=True)
+    assert _probe("retain", _clean_env(LD_PRELOAD=str(lib)))[0] == "False"

@@ -1,4 +1,4 @@
-"""BENCHMARKS.md "Training cost vs U": GFLOP/s of MAPPO's actor update at V=60/U=8 (19 windows x 32 slots,
+"""docs/history/benchmarks-2026.md "Training cost vs U, float32 and bfloat16": GFLOP/s of MAPPO's actor update at V=60/U=8 (19 windows x 32 slots,
 8 stacked per-agent GRU nets) against one-thread sgemm on wide products, interleaved in one process; each in
 float32 and with bfloat16 products (the update under `resources.learner_precision: bfloat16`'s autocast, a
 bfloat16 mm), docs/model.md#learner-precision.

@@ -1,5 +1,5 @@
 #!/bin/bash
-# BENCHMARKS.md "Training cost vs U": bench_train's env steps/s of OLD (a worktree of the baseline commit),
+# docs/history/benchmarks-2026.md "Training cost vs U, float32 and bfloat16": bench_train's env steps/s of OLD (a worktree of the baseline commit),
 # this checkout in float32 and this checkout with bfloat16 products, interleaved in two rounds (the order reversed in
 # round 2), one JSON line per run appended to OUT.
 #

@@ -41,7 +41,7 @@ from ray.rllib.utils.annotations import override
 from torch import nn
 
 from uavlora_rllib.algorithms.coma.branching import BRANCH_LOGP, BranchQCritic
-from uavlora_rllib.algorithms.common.action_head import ActionHead, taken
+from uavlora_rllib.algorithms.common.action_head import ActionHead, BranchLayout, taken
 from uavlora_rllib.algorithms.common.actor_module import RecurrentActorForward
 from uavlora_rllib.algorithms.common.agent_net import RecurrentAgentNet
 from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE
@@ -266,6 +266,11 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
     action_factors (per_uav only), torch_threads. The action space picks the mode: nvec [U]
     per_uav, [U, L] per_device."""
 
+    @property
+    def layout(self) -> BranchLayout:
+        """The padded [L, W] branch grid of the actor's action head (per_device)."""
+        return self.head.layout
+
     @override(TorchRLModule)
     def setup(self) -> None:
         mc = self.model_config
@@ -315,7 +320,6 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
         self.use_obs = bool(mc["critic_use_obs"])
         self.branch_fraction = float(mc["critic_branch_fraction"])
         self.head = ActionHead(nvec[0].tolist())
-        self.layout = self.head.layout
         self.actor = make_actor(
             self.obs_dim,
             self.n_agents,

@@ -16,6 +16,7 @@ from ray.rllib.core.columns import Columns
 from ray.rllib.core.rl_module.rl_module import RLModule
 from ray.rllib.utils.annotations import override
 
+from uavlora_rllib.algorithms.common.action_head import ActionHead
 from uavlora_rllib.algorithms.common.columns import HIDDEN
 
 
@@ -25,7 +26,7 @@ class RecurrentActorForward:
     # set by the module's setup()
     n_agents: int
     actor: Any  # a RecurrentAgentNet
-    head: Any  # an ActionHead
+    head: ActionHead
 
     @override(RLModule)
     def get_initial_state(self) -> dict[str, Any]:

@@ -24,13 +24,15 @@ class BranchHeads(nn.Module):
     for each of `groups` agents (1: shared by all agents; 1 branch: shared by all branches). The
     first layer's input is split into a per-agent part x [B, T, U, in_x] (the same for every
     branch), an optional per-branch part r [B, T, U, K, in_r] and, with `slot_ids` = K (one head
-    for all K branches), the one-hot of the branch; x is never copied K times and the one-hot
-    never built (its columns are a per-branch bias of the first layer: the same function).
+    for all K branches), the one-hot of the branch, never built (its columns are a per-branch
+    bias of the first layer: the same function). A head shared by the branches reads x's product
+    once per agent; one head per branch reads x once per branch (its own weights).
 
     All agents and branches run as batched products on one hidden tensor [U K, B T, hidden], the
-    rows' product summed onto the rest and its ReLU in place (a per-ED head's hidden layer is K
-    times the GRU's: passes over memory, not products, are what it costs;
-    docs/model.md#mappo-and-ippo-per-device)."""
+    rows' product added in the same call and the ReLU then in place (a per-ED head's hidden layer
+    is K times the GRU's: passes over memory, not products, are what it costs;
+    docs/model.md#mappo-and-ippo-per-device). The last layer's bias is added after its product,
+    so under bfloat16 autocast the output is float32 (common/precision.py)."""
 
     def __init__(self, groups: int, branches: int, in_x: int, in_r: int, hidden: int, n_out: int, slot_ids: int = 0):
         super().__init__()
@@ -51,9 +53,14 @@ class BranchHeads(nn.Module):
         """x [B, T, U, in_x], r [B, T, U, k, in_r] or None -> [B, T, U, k, n_out]."""
         b, t, u, in_x = x.shape
         n, n_out, hid = b * t, self.w2.shape[-1], self.w2.shape[-2]
-        per_branch = self.w1.shape[1] > 1  # one head per branch (then k == branches)
+        per_branch = self.w1.shape[1] > 1  # one head per branch
+        for name, want in (("branches", self.w1.shape[1] if per_branch else k), ("slot_ids", self.slot_ids or k)):
+            if k != want:
+                raise ValueError(f"k: {k} branches asked of heads with {name}={want}")
+        if r is not None and r.shape[-2:] != (k, self.in_r):
+            raise ValueError(f"r: expected [..., {k}, {self.in_r}], got {tuple(r.shape)}")
         w1, b1, w2, b2 = (p.expand(u, -1, *p.shape[2:]) for p in (self.w1, self.b1, self.w2, self.b2))
-        xa = x.permute(2, 0, 1, 3).reshape(u, n, in_x)  # agent-major rows (a view of the GRU's output)
+        xa = x.permute(2, 0, 1, 3).reshape(u, n, in_x)  # agent-major rows (a view of a stacked torso's output)
         if per_branch:  # [U K, N, H]: agent u's branch-k head on every row
             pre = torch.baddbmm(
                 b1.reshape(u * k, 1, hid),
@@ -63,7 +70,8 @@ class BranchHeads(nn.Module):
         else:  # the x part once per agent, then broadcast over the branches
             a = torch.baddbmm(b1, xa, w1[:, 0, :in_x]).unsqueeze(1)  # [U, 1, N, H]
             if self.slot_ids:
-                a = a + w1[:, 0, in_x + self.in_r :].unsqueeze(2)  # + branch k's one-hot column: [U, K, N, H]
+                slot_bias = w1[:, 0, in_x + self.in_r :].unsqueeze(2).to(a.dtype)  # branch k's one-hot column
+                a = a + slot_bias  # [U, K, N, H]
             pre = a.expand(u, k, n, hid).reshape(u * k, n, hid)
         if r is None:
             h = torch.relu(pre)
@@ -72,7 +80,7 @@ class BranchHeads(nn.Module):
             w_r = w1[:, :, in_x : in_x + self.in_r].expand(u, k, -1, -1).reshape(u * k, self.in_r, hid)
             h = torch.baddbmm(pre, rows, w_r).relu_()
         if per_branch:
-            out = torch.baddbmm(b2.reshape(u * k, 1, n_out), h, w2.reshape(u * k, hid, n_out))
+            out = torch.bmm(h, w2.reshape(u * k, hid, n_out)) + b2.reshape(u * k, 1, n_out)
         else:
-            out = torch.baddbmm(b2, h.view(u, k * n, hid), w2[:, 0])
+            out = torch.bmm(h.view(u, k * n, hid), w2[:, 0]) + b2
         return out.view(u, k, b, t, n_out).permute(2, 3, 0, 1, 4)

@@ -60,7 +60,13 @@ class PerEDActor(nn.Module):
         )
         groups = 1 if share else n_agents
         self.slot_heads = BranchHeads(
-            groups, 1 if self.shared else quota, fc_hidden, OBS_ROW, fc_hidden, n_sf + n_tp, quota if self.shared else 0
+            groups,
+            1 if self.shared else quota,
+            fc_hidden,
+            OBS_ROW,
+            fc_hidden,
+            n_sf + n_tp,
+            slot_ids=quota if self.shared else 0,
         )
         self.bw_head = BranchHeads(groups, 1, fc_hidden, 0, fc_hidden, n_bw)
         with torch.no_grad():

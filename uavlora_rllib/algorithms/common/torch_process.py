@@ -1,6 +1,7 @@
 """Per-process settings of every process that runs torch for a trial: the trial's own process
 (tune's trainable, the bench CLIs) and, through their RLModule's setup, remote env runners and
-learners.
+learners (and any other process that builds one of the package's RLModules: evaluation, the
+analysis tools that load a checkpoint).
 
 * torch's intra-op thread count, the trial's `Resources.torch_threads`: torch's own default (one
   thread per core) oversubscribes the CPUs that several such processes share.
@@ -9,7 +10,8 @@ learners.
   (30 MB for a per-ED head at V=60/U=8) is zeroed page by page on first touch, which cost as much
   as the arithmetic on it. Keeping them is what jemalloc or tcmalloc would do (PyTorch's CPU
   tuning advice); the process then holds its peak memory (docs/cluster.md#memory). Left to the
-  user where they set MALLOC_* or GLIBC_TUNABLES themselves, and off other C libraries.
+  user where they set MALLOC_* or glibc.malloc tunables themselves, or preload another allocator,
+  and off other C libraries.
 """
 
 from __future__ import annotations
@@ -37,13 +39,16 @@ def setup_torch_process(threads: int | None) -> None:
 def retain_freed_memory() -> bool:
     """Tell glibc's malloc to serve large blocks from its heap and never trim it (see the module
     docstring). True where it took effect; idempotent."""
-    if not sys.platform.startswith("linux") or "GLIBC_TUNABLES" in os.environ:
+    if not sys.platform.startswith("linux") or "glibc.malloc." in os.environ.get("GLIBC_TUNABLES", ""):
         return False
     if any(k.startswith("MALLOC_") for k in os.environ):
         return False
-    libc = ctypes.CDLL(None)
-    if not hasattr(libc, "gnu_get_libc_version"):  # another C library (musl, ...)
+    process = ctypes.CDLL(None)  # the symbols this process resolves
+    if not hasattr(process, "gnu_get_libc_version"):  # another C library (musl, ...)
         return False
+    libc = ctypes.CDLL("libc.so.6")
+    if ctypes.cast(process.malloc, ctypes.c_void_p).value != ctypes.cast(libc.malloc, ctypes.c_void_p).value:
+        return False  # malloc is another allocator's (jemalloc, tcmalloc via LD_PRELOAD)
     mallopt = libc.mallopt
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
     return bool(mallopt(_M_MMAP_MAX, 0)) and bool(mallopt(_M_TRIM_THRESHOLD, _TRIM_NEVER))
