@@ -7,17 +7,15 @@
 #
 # CASES (env, optional): "algo U mode" triples separated by commas; a case skips a checkout named old for
 # qmix/vdn per_device (6f5d51a has no per_device form of them).
-set -u
-[ $# -ge 2 ] || { echo "usage: $(basename "$0") OUT.jsonl NAME=CHECKOUT..." >&2; exit 2; }
+. "$(dirname "$0")/bench_checks.sh"  # NAME, HERE, bench_fail, bench_python (PY), bench_out
+[ $# -ge 2 ] || bench_fail "usage: $NAME OUT.jsonl NAME=CHECKOUT..."
 OUT=$1; shift
-PY=${PY:-$(pwd)/.venv/bin/python}
-[ -f "$PY" ] && [ -x "$PY" ] || { echo "no python at $PY: set PY=/path/to/.venv/bin/python" >&2; exit 2; }
-PY=$(cd "$(dirname "$PY")" && pwd)/$(basename "$PY")
+bench_python
 for spec in "$@"; do
   dir=${spec#*=}
-  [ "$dir" != "$spec" ] && [ -d "$dir/uavlora_rllib" ] || { echo "NAME=CHECKOUT: $spec is not NAME=a checkout of this project" >&2; exit 2; }
+  [ "$dir" != "$spec" ] && [ -d "$dir/uavlora_rllib" ] || bench_fail "NAME=CHECKOUT: $spec is not NAME=a checkout of this project"
 done
-{ : >>"$OUT"; } 2>/dev/null || { echo "OUT.jsonl: cannot append to $OUT" >&2; exit 2; }
+bench_out "$OUT"
 CASES=${CASES:-"mappo 8 per_device,qmix 8 per_device,mappo 8 per_uav,qmix 8 per_uav,mappo 2 per_device,qmix 2 per_uav"}
 run() { # name dir algo U mode round
   local line

@@ -437,13 +437,13 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
         """The actor's side of the loss: (pi, logp, entropy) of logits [B, T, U, n_logits] at the
         taken actions. per_uav: pi [B, T, U, A], logp [B, T, U]; per_device: per branch,
         pi [B, T, U, L, W] (padding 0), logp [B, T, U, L]. entropy [B, T, U] per UAV (per_device:
-        summed over its branches, the entropy of the product policy)."""
-        if self.per_device:
-            log_probs = self.layout.log_probs(logits)
-            return log_probs.exp(), taken(log_probs, actions), self.layout.entropy(log_probs).sum(-1)
-        logp_all = torch.log_softmax(logits, dim=-1)
-        pi = logp_all.exp()
-        return pi, torch.gather(logp_all, -1, actions.unsqueeze(-1)).squeeze(-1), -(pi * logp_all).sum(-1)
+        summed over its branches, the entropy of the product policy). Both from the action head's
+        branch grid (per_uav: one branch)."""
+        log_probs = self.layout.log_probs(logits)  # [B, T, U, L, W]
+        branch_actions = actions if self.per_device else actions.unsqueeze(-1)
+        pi, logp = log_probs.exp(), taken(log_probs, branch_actions)
+        entropy = self.layout.entropy(log_probs).sum(-1)
+        return (pi, logp, entropy) if self.per_device else (pi.squeeze(-2), logp.squeeze(-1), entropy)
 
     def per_agent(self, x: torch.Tensor) -> torch.Tensor:
         """Per-branch terms [..., U, L] summed to per-UAV terms [..., U] (per_device); per_uav

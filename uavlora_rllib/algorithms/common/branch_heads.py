@@ -54,9 +54,10 @@ class BranchHeads(nn.Module):
         b, t, u, in_x = x.shape
         n, n_out, hid = b * t, self.w2.shape[-1], self.w2.shape[-2]
         per_branch = self.w1.shape[1] > 1  # one head per branch
-        for name, want in (("branches", self.w1.shape[1] if per_branch else k), ("slot_ids", self.slot_ids or k)):
-            if k != want:
-                raise ValueError(f"k: {k} branches asked of heads with {name}={want}")
+        if per_branch and k != self.w1.shape[1]:
+            raise ValueError(f"k: {k} branches asked of heads with branches={self.w1.shape[1]}")
+        if self.slot_ids and k != self.slot_ids:
+            raise ValueError(f"k: {k} branches asked of heads with slot_ids={self.slot_ids}")
         if r is not None and r.shape[-2:] != (k, self.in_r):
             raise ValueError(f"r: expected [..., {k}, {self.in_r}], got {tuple(r.shape)}")
         w1, b1, w2, b2 = (p.expand(u, -1, *p.shape[2:]) for p in (self.w1, self.b1, self.w2, self.b2))
