@@ -23,10 +23,22 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text(encoding="utf-8")
-# `python -m ...` up to the end of the line or the closing backtick of inline code
-COMMANDS = sorted(
-    c for c in set(re.findall(r"(python -m [^`\n]+)", README)) if "<name>" not in c
-)  # not a generic mention
+
+
+def _commands(text: str) -> set[str]:
+    """`python -m ...` lines of fenced code blocks, and inline code spans read whole (a span may wrap a line)."""
+    fenced = re.findall(r"^```[^\n]*\n(.*?)^```", text, re.M | re.S)
+    lines = {line.strip() for block in fenced for line in block.splitlines() if line.strip().startswith("python -m ")}
+    prose = re.sub(r"^```[^\n]*\n.*?^```", "", text, flags=re.M | re.S)
+    spans = {
+        " ".join(span[span.index("python -m ") :].split())
+        for span in re.findall(r"`([^`]+)`", prose)
+        if "python -m " in span
+    }
+    return {c for c in lines | spans if "<name>" not in c}  # not a generic mention
+
+
+COMMANDS = sorted(_commands(README))
 MAKE_TARGETS = sorted(set(re.findall(r"^make (\w+)", README, re.M)))
 ENV = {**os.environ, "PYTHONWARNINGS": "ignore", "RAY_ADDRESS": "local"}
 
@@ -43,6 +55,11 @@ def _help(module: str, sub: str | None) -> str:
     proc = subprocess.run(argv, capture_output=True, text=True, env=ENV, cwd=ROOT, timeout=180)
     assert proc.returncode == 0, f"{' '.join(argv[1:])}: exit {proc.returncode}\n{proc.stderr[-2000:]}"
     return proc.stdout
+
+
+def test_a_wrapped_inline_command_is_read_whole():
+    text = "Try (`python -m m --a\n  1 --b`, `ray job submit -- python -m n`), then\n```bash\npython -m m --c 2\n```\n"
+    assert _commands(text) == {"python -m m --a 1 --b", "python -m n", "python -m m --c 2"}
 
 
 def test_the_readme_shows_commands():
