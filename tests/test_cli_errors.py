@@ -29,7 +29,7 @@ def _one_line(err: str) -> bool:
         (
             # the same plugin's own builder and plain PPO learner: bfloat16 would be ignored, so it is refused
             ["stock_ppo", "--learner-precision", "bfloat16"],
-            "resources.learner_precision: 'bfloat16' needs a learner built on common/precision.py's PrecisionLearner",
+            "resources.learner_precision: 'bfloat16' needs a learner built on common/learner.py's UavLoraLearner",
         ),
         (["mappo", "--set", "lr"], "--set: expected key=value, got 'lr'"),
         (["mappo", "--set", "lr=1", "lr=2"], "--set: 'lr' given twice"),

@@ -101,14 +101,14 @@ def test_a_learner_without_precision_is_refused_bfloat16():
     with pytest.raises(ConfigError, match=r"^resources\.learner_precision: 'bfloat16' needs .*allowed: 'float32'$"):
         entry.algorithm_config(TINY, mappo.hparams({}), bf16, 0)
     entry.algorithm_config(TINY, mappo.hparams({}), registry.Resources(), 0)  # float32: fine
-    mappo.algorithm_config(TINY, mappo.hparams({}), bf16, 0)  # a PrecisionLearner: fine
+    mappo.algorithm_config(TINY, mappo.hparams({}), bf16, 0)  # a UavLoraLearner: fine
 
 
 TINY = ScenarioConfig(n_eds=10, n_uavs=2, episode_len=10, action_mode="per_device")
 
 
 @pytest.mark.parametrize("precision", ["bfloat16", "float32"])
-@pytest.mark.parametrize("name", registry.built_in())  # PrecisionLearners all (test plugins are not)
+@pytest.mark.parametrize("name", registry.built_in())  # UavLoraLearners all (test plugins are not)
 def test_every_learner_updates_under_its_precision(ray_session, name, precision):
     entry = registry.get(name)
     resources = registry.Resources(num_envs_per_env_runner=4, learner_precision=precision)

@@ -161,14 +161,7 @@ class COMATorchLearner(TargetNetworkLearner):
         module = self.module[module_id]
         hp = self.config.hparams
         for name, net, lr in ((ACTOR_OPT, module.actor, hp.lr_actor), (CRITIC_OPT, module.critic, hp.lr_critic)):
-            params = list(net.parameters())
-            self.register_optimizer(
-                module_id=module_id,
-                optimizer_name=name,
-                optimizer=torch.optim.Adam(params),
-                params=params,
-                lr_or_lr_schedule=lr,
-            )
+            self.register_adam(module_id, list(net.parameters()), lr, name=name)
 
     @override(TorchLearner)
     def compute_loss_for_module(self, *, module_id, config, batch: dict[str, Any], fwd_out: dict[str, Any]):

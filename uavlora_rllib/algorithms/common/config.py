@@ -88,7 +88,7 @@ class HParamsConfig(abc.ABC):
                 **dataclasses.asdict(hparams),
                 **resolved,
                 "torch_threads": self.torch_threads,
-                "learner_precision": learner_precision,  # read by the learner (common/precision.py)
+                "learner_precision": learner_precision,  # read by the learner (common/learner.py)
             }
         )
         return self

@@ -11,23 +11,9 @@ Acting on the env runners is untouched (float32).
 
 from __future__ import annotations
 
-from typing import Any
-
 import torch
-from ray.rllib.core.learner.learner import Learner
-from ray.rllib.core.learner.torch.torch_learner import TorchLearner
-from ray.rllib.utils.annotations import override
 
 
 def autocast_for(precision: str, device: torch.device) -> torch.autocast:
     """The autocast context of `precision` on `device`: bfloat16 products, or disabled (float32)."""
     return torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bfloat16")
-
-
-class PrecisionLearner(TorchLearner):
-    """A TorchLearner whose updates run in the trial's `learner_precision` (model_config)."""
-
-    @override(Learner)
-    def update(self, *args: Any, **kwargs: Any) -> Any:
-        with autocast_for(self.config.model_config["learner_precision"], torch.device(self.device)):
-            return super().update(*args, **kwargs)

@@ -173,15 +173,15 @@ class AlgorithmEntry(AlgorithmSpec):
         self, scenario: ScenarioConfig, hparams: Any, resources: Resources, seed: int
     ) -> AlgorithmConfig:
         """The trial's AlgorithmConfig from `build`, refused (ConfigError) when its learner cannot run
-        `resources.learner_precision`: only a PrecisionLearner applies bfloat16 (docs/model.md#learner-precision),
+        `resources.learner_precision`: only a UavLoraLearner applies bfloat16 (docs/model.md#learner-precision),
         and a plugin's plain learner would otherwise train in float32 without a word."""
-        from uavlora_rllib.algorithms.common.precision import PrecisionLearner
+        from uavlora_rllib.algorithms.common.learner import UavLoraLearner
 
         config = self.build(scenario, hparams, resources, seed)
-        if resources.learner_precision != "float32" and not issubclass(config.learner_class, PrecisionLearner):
+        if resources.learner_precision != "float32" and not issubclass(config.learner_class, UavLoraLearner):
             raise ConfigError(
                 f"resources.learner_precision: {resources.learner_precision!r} needs a learner built on "
-                f"common/precision.py's PrecisionLearner, and algorithm {self.name!r}'s "
+                f"common/learner.py's UavLoraLearner, and algorithm {self.name!r}'s "
                 f"{config.learner_class.__name__} is not; allowed: 'float32'"
             )
         return config

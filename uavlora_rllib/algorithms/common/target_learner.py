@@ -13,10 +13,10 @@ from ray.rllib.core.rl_module.apis import TargetNetworkAPI
 from ray.rllib.utils.annotations import override
 from ray.rllib.utils.torch_utils import update_target_network
 
-from uavlora_rllib.algorithms.common.precision import PrecisionLearner
+from uavlora_rllib.algorithms.common.learner import UavLoraLearner
 
 
-class TargetNetworkLearner(PrecisionLearner):
+class TargetNetworkLearner(UavLoraLearner):
     """Makes every module's target networks after the build; moves them on request."""
 
     @override(TorchLearner)

@@ -44,7 +44,7 @@ from ray.rllib.evaluation.postprocessing import Postprocessing
 from ray.rllib.utils.annotations import override
 
 from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE, VF_PREDS
-from uavlora_rllib.algorithms.common.precision import PrecisionLearner
+from uavlora_rllib.algorithms.common.learner import UavLoraLearner
 
 
 class AddGlobalStateToBatch(ConnectorV2):
@@ -142,7 +142,7 @@ class PerAgentGAE(ConnectorV2):
         return batch
 
 
-class MAPPOTorchLearner(PrecisionLearner):
+class MAPPOTorchLearner(UavLoraLearner):
     """Per-agent clipped PPO with a (central or local) critic. Settings: the typed
     `config.hparams` (MAPPOHParams: value_clip) and the PPOConfig fields MAPPOConfig sets from
     it (clip_param, vf_loss_coeff, entropy_coeff, gamma, lambda_, grad_clip, lr); the critic
@@ -166,15 +166,7 @@ class MAPPOTorchLearner(PrecisionLearner):
 
     @override(TorchLearner)
     def configure_optimizers_for_module(self, module_id, config=None) -> None:
-        # RLlib's default Adam, but with the multi-tensor ("foreach") step: on CPU torch picks
-        # the per-parameter loop, many small ops per minibatch update.
-        params = self.get_parameters(self.module[module_id])
-        self.register_optimizer(
-            module_id=module_id,
-            optimizer=torch.optim.Adam(params, foreach=True),
-            params=params,
-            lr_or_lr_schedule=config.lr,
-        )
+        self.register_adam(module_id, self.get_parameters(self.module[module_id]), config.lr)
 
     @override(TorchLearner)
     def compute_loss_for_module(self, *, module_id, config, batch: dict[str, Any], fwd_out: dict[str, Any]):

@@ -61,14 +61,8 @@ class QMIXTorchLearner(TargetNetworkLearner):
 
     @override(TorchLearner)
     def configure_optimizers_for_module(self, module_id, config=None) -> None:
-        module = self.module[module_id]
-        params = [p for p in module.parameters() if p.requires_grad]  # agent net + mixer
-        self.register_optimizer(
-            module_id=module_id,
-            optimizer=torch.optim.Adam(params),
-            params=params,
-            lr_or_lr_schedule=config.lr,
-        )
+        params = [p for p in self.module[module_id].parameters() if p.requires_grad]  # agent net + mixer
+        self.register_adam(module_id, params, config.lr)
 
     @override(TorchLearner)
     def compute_loss_for_module(self, *, module_id, config, batch: dict[str, Any], fwd_out: dict[str, Any]):
