@@ -20,7 +20,7 @@ import torch
 from ray.rllib.core.learner.learner import DEFAULT_OPTIMIZER, Learner
 from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 from ray.rllib.utils.annotations import override
-from ray.rllib.utils.typing import ParamDict
+from ray.rllib.utils.typing import LearningRateOrSchedule, ParamDict
 
 from uavlora_rllib.algorithms.common.precision import autocast_for
 
@@ -40,9 +40,13 @@ class UavLoraLearner(TorchLearner):
             return super().update(*args, **kwargs)
 
     def register_adam(
-        self, module_id: str, params: Sequence[torch.nn.Parameter], lr: float, name: str = DEFAULT_OPTIMIZER
+        self,
+        module_id: str,
+        params: Sequence[torch.nn.Parameter],
+        lr: LearningRateOrSchedule,
+        name: str = DEFAULT_OPTIMIZER,
     ) -> None:
-        """Register Adam (torch's defaults, fused step) over `params` with learning rate `lr`."""
+        """Register Adam (torch's defaults, fused step) over `params`; `lr` a rate or RLlib's schedule of one."""
         params = list(params)
         self.register_optimizer(
             module_id=module_id,
