@@ -25,21 +25,31 @@ ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text(encoding="utf-8")
 
 
-def _commands(text: str) -> set[str]:
-    """`python -m ...` lines of fenced code blocks, and inline code spans read whole (a span may wrap a line)."""
+def _code(text: str) -> list[str]:
+    """The README's code: each line of a fenced block (a backslash continuation joined, a trailing
+    `# comment` dropped) and each inline code span read whole (a span may wrap a line)."""
     fenced = re.findall(r"^```[^\n]*\n(.*?)^```", text, re.M | re.S)
-    lines = {line.strip() for block in fenced for line in block.splitlines() if line.strip().startswith("python -m ")}
+    lines = [
+        " ".join(re.split(r"\s#", line)[0].split())
+        for block in fenced
+        for line in block.replace("\\\n", " ").splitlines()
+    ]
     prose = re.sub(r"^```[^\n]*\n.*?^```", "", text, flags=re.M | re.S)
-    spans = {
-        " ".join(span[span.index("python -m ") :].split())
-        for span in re.findall(r"`([^`]+)`", prose)
-        if "python -m " in span
-    }
-    return {c for c in lines | spans if "<name>" not in c}  # not a generic mention
+    spans = [" ".join(span.split()) for span in re.findall(r"`([^`]+)`", prose)]
+    return [c for c in lines + spans if c]
+
+
+def _commands(text: str) -> set[str]:
+    """Every `python -m ...` of the README's code, from `python` on (also after `ray job submit --`)."""
+    return {c[c.index("python -m ") :] for c in _code(text) if "python -m " in c and "<name>" not in c}
+
+
+def _make_targets(text: str) -> set[str]:
+    return {m.group(1) for c in _code(text) if (m := re.match(r"make ([\w-]+)", c))}
 
 
 COMMANDS = sorted(_commands(README))
-MAKE_TARGETS = sorted(set(re.findall(r"^make (\w+)", README, re.M)))
+MAKE_TARGETS = sorted(_make_targets(README))
 ENV = {**os.environ, "PYTHONWARNINGS": "ignore", "RAY_ADDRESS": "local"}
 
 
@@ -58,8 +68,13 @@ def _help(module: str, sub: str | None) -> str:
 
 
 def test_a_wrapped_inline_command_is_read_whole():
-    text = "Try (`python -m m --a\n  1 --b`, `ray job submit -- python -m n`), then\n```bash\npython -m m --c 2\n```\n"
-    assert _commands(text) == {"python -m m --a 1 --b", "python -m n", "python -m m --c 2"}
+    text = (
+        "Try (`python -m m --a\n  1 --b`, `ray job submit -- python -m n`), `make\ntest-slow`, then\n"
+        "```bash\npython -m m --c 2   # a comment naming python -m x\nray job submit -- python -m m \\\n  --d 3\n"
+        "make demo  # note\n```\n"
+    )
+    assert _commands(text) == {"python -m m --a 1 --b", "python -m n", "python -m m --c 2", "python -m m --d 3"}
+    assert _make_targets(text) == {"test-slow", "demo"}
 
 
 def test_the_readme_shows_commands():

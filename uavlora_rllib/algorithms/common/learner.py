@@ -2,17 +2,18 @@
 
 * Each update runs in the trial's number format, `resources.learner_precision`
   (common/precision.py, docs/model.md#learner-precision).
-* `register_adam` builds every network's Adam one way: torch's fused step, one kernel per
-  parameter for all of Adam's arithmetic (on the CPU torch otherwise loops over the parameters).
-* `apply_gradients` decides whether every gradient is finite with ONE fused max-norm over all of
-  them; RLlib's own method tests each parameter twice, four element-wise passes each. Only
-  when that norm is not finite does RLlib's method run, so NaN/inf gradients are handled as in
-  RLlib (set to zero, with its warnings).
+* `register_adam` builds every network's Adam one way: torch's fused implementation (on the CPU
+  torch otherwise loops over the parameters, several small operations each). A checkpoint
+  restores an optimiser's param groups with their flags, so `set_state` makes them fused again.
+* `apply_gradients` decides whether the gradients are finite with one 2-norm over all of them
+  (torch's foreach norm); RLlib's own method tests each parameter twice, four element-wise
+  passes each. It takes its own path only where RLlib's method would end the same way: every
+  gradient present and finite, every other parameter without a gradient, no gradient scaler or
+  torch lr scheduler. Anything else runs RLlib's method (NaN/inf zeroed, with its warnings).
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -20,15 +21,17 @@ import torch
 from ray.rllib.core.learner.learner import DEFAULT_OPTIMIZER, Learner
 from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 from ray.rllib.utils.annotations import override
-from ray.rllib.utils.typing import LearningRateOrSchedule, ParamDict
+from ray.rllib.utils.typing import LearningRateOrSchedule, ParamDict, StateDict
 
 from uavlora_rllib.algorithms.common.precision import autocast_for
 
 
-def all_finite(tensors: Sequence[torch.Tensor]) -> bool:
-    """True iff no element of `tensors` is NaN or +-inf: their max-norm is finite (it never
-    overflows, and NaN propagates through it)."""
-    return bool(torch.isfinite(torch.nn.utils.get_total_norm(tensors, norm_type=math.inf)))
+def surely_finite(tensors: Sequence[torch.Tensor]) -> bool:
+    """True only if no element of `tensors` is NaN or +-inf: their 2-norm is finite (NaN and inf
+    propagate into it). False also where finite elements square beyond float range: a caller
+    then tests element by element. The 2-norm: torch's foreach kernel, much faster than the max-norm's."""
+    tensors = [t for t in tensors if t.numel()]
+    return not tensors or bool(torch.isfinite(torch.nn.utils.get_total_norm(tensors)))
 
 
 class UavLoraLearner(TorchLearner):
@@ -56,17 +59,45 @@ class UavLoraLearner(TorchLearner):
             lr_or_lr_schedule=lr,
         )
 
+    @override(Learner)
+    def set_state(self, state: StateDict) -> None:
+        super().set_state(state)
+        for opt in self._adams():  # a checkpoint written before Adam was fused restores its loop
+            for group in opt.param_groups:
+                group["fused"], group["foreach"] = True, None
+                for p in group["params"]:  # the fused step reads `step` as float32 on the parameter's device
+                    if "step" in opt.state.get(p, {}):
+                        opt.state[p]["step"] = torch.as_tensor(
+                            opt.state[p]["step"], dtype=torch.float32, device=p.device
+                        )
+
+    def _adams(self) -> list[torch.optim.Adam]:
+        """The optimisers `register_adam` built."""
+        return [
+            opt
+            for module_id in self._module_optimizers
+            for _name, opt in self.get_optimizers_for_module(module_id)
+            if isinstance(opt, torch.optim.Adam) and opt.defaults.get("fused")
+        ]
+
     @override(TorchLearner)
     def apply_gradients(self, gradients_dict: ParamDict) -> None:
-        grads = [g for g in gradients_dict.values() if g is not None]
-        # A gradient scaler or a torch lr scheduler (RLlib experimental settings) steps inside
-        # RLlib's method: those learners keep it whole.
-        plain = self._grad_scalers is None and self._lr_scheduler_classes is None
-        if not (plain and grads and all_finite(grads)):
+        grads = list(gradients_dict.values())
+        # RLlib's method steps every optimiser unchanged when each gradient it is given is finite and
+        # each parameter it is not given has no gradient (its per-optimiser test reads those too); a
+        # gradient scaler or torch lr scheduler (RLlib's experimental settings) steps inside it.
+        same_end = (
+            self._grad_scalers is None
+            and self._lr_scheduler_classes is None
+            and bool(grads)
+            and all(g is not None for g in grads)
+            and all(p.grad is None for pid, p in self._params.items() if pid not in gradients_dict)
+            and surely_finite(grads)  # False: RLlib's method tests each gradient
+        )
+        if not same_end:
             super().apply_gradients(gradients_dict)
             return
-        # What RLlib's method does once every gradient is finite (the same private fields).
-        for pid, grad in gradients_dict.items():
+        for pid, grad in gradients_dict.items():  # what RLlib's method does then (the same private fields)
             self._params[pid].grad = grad
         for module_id in self._module_optimizers:
             for _name, optim in self.get_optimizers_for_module(module_id):
