@@ -62,7 +62,8 @@ class UavLoraLearner(TorchLearner):
     @override(Learner)
     def set_state(self, state: StateDict) -> None:
         super().set_state(state)
-        for opt in self._adams():  # a checkpoint written before Adam was fused restores its loop
+        adams = (o for o in self._optimizers() if isinstance(o, torch.optim.Adam) and o.defaults.get("fused"))
+        for opt in adams:  # register_adam's; a checkpoint written before Adam was fused restores its loop
             for group in opt.param_groups:
                 group["fused"], group["foreach"] = True, None
                 for p in group["params"]:  # the fused step reads `step` as float32 on the parameter's device
@@ -71,14 +72,9 @@ class UavLoraLearner(TorchLearner):
                             opt.state[p]["step"], dtype=torch.float32, device=p.device
                         )
 
-    def _adams(self) -> list[torch.optim.Adam]:
-        """The optimisers `register_adam` built."""
-        return [
-            opt
-            for module_id in self._module_optimizers
-            for _name, opt in self.get_optimizers_for_module(module_id)
-            if isinstance(opt, torch.optim.Adam) and opt.defaults.get("fused")
-        ]
+    def _optimizers(self) -> list[torch.optim.Optimizer]:
+        """Every registered optimiser, in RLlib's order (the one its apply_gradients steps them in)."""
+        return [opt for mid in self._module_optimizers for _name, opt in self.get_optimizers_for_module(mid)]
 
     @override(TorchLearner)
     def apply_gradients(self, gradients_dict: ParamDict) -> None:
@@ -99,6 +95,5 @@ class UavLoraLearner(TorchLearner):
             return
         for pid, grad in gradients_dict.items():  # what RLlib's method does then (the same private fields)
             self._params[pid].grad = grad
-        for module_id in self._module_optimizers:
-            for _name, optim in self.get_optimizers_for_module(module_id):
-                optim.step()
+        for optim in self._optimizers():
+            optim.step()
