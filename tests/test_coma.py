@@ -106,6 +106,26 @@ def test_critic_without_rows_is_the_mlp_on_its_concatenated_rows(overrides):
         torch.testing.assert_close(grads[0][1][k], grads[1][1][k], atol=1e-6, rtol=1e-5, msg=k)
 
 
+@pytest.mark.parametrize("n_agents", [2, 3, 5])
+def test_others_action_sum_is_the_summed_gather_with_its_gradient(n_agents):
+    """_OthersActionSum (the critic's other-agent term) has embedding_bag's values and gradient over
+    the [N U, U - 1] indices it replaces; float64 gradcheck of its hand-written backward."""
+    from uavlora_rllib.algorithms.coma.coma_module import _OthersActionSum
+
+    gen = torch.Generator().manual_seed(n_agents)
+    n, n_actions, hid = 7, 4, 3
+    table = torch.randn((n_agents - 1) * n_actions, hid, dtype=torch.float64, generator=gen, requires_grad=True)
+    actions = torch.randint(0, n_actions, (n, n_agents), generator=gen)
+    others = [[k for k in range(n_agents) if k != u] for u in range(n_agents)]
+    index = torch.tensor([[p * n_actions + int(a[k]) for p, k in enumerate(row)] for a in actions for row in others])
+    want = torch.nn.functional.embedding_bag(index, table, mode="sum")
+    got = _OthersActionSum.apply(table, actions)
+    torch.testing.assert_close(got, want)
+    g = torch.randn(n * n_agents, hid, dtype=torch.float64, generator=gen)
+    torch.testing.assert_close(torch.autograd.grad(got, table, g)[0], torch.autograd.grad(want, table, g)[0])
+    assert torch.autograd.gradcheck(lambda t: _OthersActionSum.apply(t, actions), (table,))
+
+
 def test_factor_onehot_matches_the_simulators_decoding():
     from uavlora_rllib.sim.actions import decode_joint_action
 
@@ -205,6 +225,40 @@ def trained(ray_session):
         yield {"algo": algo, "entry": entry, "scenario": scenario, "results": results}
     finally:
         algo.stop()
+
+
+def test_each_update_hands_its_critic_steps_targets_to_its_joint_step(ray_session, monkeypatch):
+    """COMA.update_learners: the TD(lambda) targets that train_critic returns reach the joint step of
+    the same update as its batch's TD_TARGETS column (so the target critic is evaluated once per update)."""
+    from uavlora_rllib.algorithms.coma.coma_learner import COMATorchLearner
+    from uavlora_rllib.algorithms.coma.coma_module import TD_TARGETS
+
+    handed, seen = [], []
+    train_critic, loss = COMATorchLearner.train_critic, COMATorchLearner.compute_loss_for_module
+
+    def spy_train_critic(self, batch):
+        handed.append(train_critic(self, batch))
+        return handed[-1]
+
+    def spy_loss(self, *, module_id, config, batch, fwd_out):
+        seen.append(batch[TD_TARGETS].numpy().copy() if TD_TARGETS in batch else None)
+        return loss(self, module_id=module_id, config=config, batch=batch, fwd_out=fwd_out)
+
+    monkeypatch.setattr(COMATorchLearner, "train_critic", spy_train_critic)
+    monkeypatch.setattr(COMATorchLearner, "compute_loss_for_module", spy_loss)
+    entry = registry.get("coma")
+    hparams = entry.hparams({"batch_episodes": 2, "updates_per_iteration": 2, "critic_steps": 1, "critic_hidden": [16]})
+    scenario = ScenarioConfig(n_eds=4, n_uavs=2, episode_len=5)
+    algo = entry.build(scenario, hparams, registry.Resources(num_envs_per_env_runner=2), 0).build_algo()
+    try:
+        algo.train()
+    finally:
+        algo.stop()
+    assert len(handed) == len(seen) == 2
+    for targets, got in zip(handed, seen):
+        assert got is not None and got.shape == (2, 5, 2)
+        np.testing.assert_array_equal(got, targets["default_policy"])
+    assert not np.array_equal(seen[0], seen[1])  # each update's own targets (the target critic moved)
 
 
 @pytest.mark.slow

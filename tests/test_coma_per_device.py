@@ -32,6 +32,7 @@ from uavlora_rllib.algorithms.coma.coma_module import (
     Q_TARGET,
     Q_VALUES,
     REWARDS,
+    TD_TARGETS,
     COMATorchRLModule,
     counterfactual_advantage,
 )
@@ -450,6 +451,42 @@ def test_critic_steps_lower_the_td_error(learner, fraction):
         learner.train_critic(multi)
     module.branch_fraction = 1.0
     assert td_error() < before
+
+
+@pytest.mark.parametrize("fraction", [1.0, 0.3])
+def test_the_joint_step_trains_on_the_critic_steps_targets(learner, fraction):
+    """train_critic returns the TD(lambda) targets its steps trained on where they cover every critic
+    row: those of the target critic with the same bootstrap draw. Given them (TD_TARGETS, as
+    COMA.update_learners hands them over), the joint step leaves the target critic unevaluated and its
+    critic loss is against them. On a subset of rows (fraction < 1) nothing is handed over."""
+    from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
+
+    learner, scenario = learner
+    module = learner.module[DEFAULT_MODULE_ID].unwrapped()
+    module.branch_fraction = fraction
+    try:
+        batch = _learner_batch(module, scenario)
+        multi = MultiAgentBatch({DEFAULT_MODULE_ID: SampleBatch({k: v.numpy() for k, v in batch.items()})}, 10)
+        hp = learner.config.hparams
+        torch.manual_seed(5)
+        handed = learner.train_critic(multi)
+        if fraction < 1.0:
+            assert handed == {}
+            return
+        torch.manual_seed(5)  # the same bootstrap draw (fraction 1 draws no rows)
+        want = critic_targets(
+            batch[REWARDS] * hp.reward_scale, module.target_terms(batch), batch[ACTIONS], hp.gamma, hp.td_lambda
+        )
+        targets = torch.as_tensor(handed[DEFAULT_MODULE_ID])
+        torch.testing.assert_close(targets, want)
+        given = {**batch, TD_TARGETS: targets + 1.0}  # shifted: the loss must read these, not its own
+        fwd = module.forward_train(given)
+        assert Q_TARGET not in fwd and BOOTSTRAP not in fwd
+        learner.compute_loss_for_module(module_id=DEFAULT_MODULE_ID, config=None, batch=given, fwd_out=fwd)
+        want_loss = ((taken(fwd[Q_ROWS], batch[ACTIONS]) - given[TD_TARGETS]) ** 2).mean()
+        assert float(learner.metrics.peek((DEFAULT_MODULE_ID, "critic_loss"))) == pytest.approx(float(want_loss))
+    finally:
+        module.branch_fraction = 1.0
 
 
 def test_sampled_advantage_by_hand():

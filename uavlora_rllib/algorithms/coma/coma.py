@@ -37,7 +37,7 @@ from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 from ray.rllib.utils.annotations import override
 
 from uavlora_rllib.algorithms.coma.coma_learner import COMATorchLearner, episode_batch
-from uavlora_rllib.algorithms.coma.coma_module import COMATorchRLModule
+from uavlora_rllib.algorithms.coma.coma_module import TD_TARGETS, COMATorchRLModule
 from uavlora_rllib.algorithms.coma.hparams import NAME, COMAHParams
 from uavlora_rllib.algorithms.common.config import HParamsConfig
 from uavlora_rllib.algorithms.common.episode_algorithm import EpisodeAlgorithm
@@ -108,9 +108,20 @@ class COMA(EpisodeAlgorithm):
         joint actor + critic update, so that the actor's advantage comes from the critic that
         has seen the batch."""
         if self.config.hparams.critic_steps:
-            for result in self.learner_group.foreach_learner(lambda learner: learner.train_critic(batch)):
+            results = list(self.learner_group.foreach_learner(lambda learner: learner.train_critic(batch)))
+            for result in results:
                 if not result.ok:  # a remote learner's error (a local one raises here directly)
                     raise result.get()
+            # every learner trained on the whole batch against the same target critic: the first one's
+            # TD(lambda) targets become the joint step's (its module then skips the target critic)
+            targets = results[0].get()
+            batch = MultiAgentBatch(
+                {
+                    mid: SampleBatch({**b, TD_TARGETS: targets[mid]}) if mid in targets else b
+                    for mid, b in batch.policy_batches.items()
+                },
+                env_steps=batch.env_steps(),
+            )
         return super().update_learners(batch, timesteps)
 
 

@@ -54,6 +54,7 @@ from uavlora_rllib.algorithms.coma.coma_module import (
     Q_TARGET,
     Q_VALUES,
     REWARDS,
+    TD_TARGETS,
     counterfactual_advantage,
     td_lambda_targets,
 )
@@ -131,14 +132,17 @@ class COMATorchLearner(TargetNetworkLearner):
         super().build()
         self.updates = 0  # joint updates so far: the warm-up and the hard target period count them
 
-    def train_critic(self, batch: MultiAgentBatch) -> None:
+    def train_critic(self, batch: MultiAgentBatch) -> dict[str, np.ndarray]:
         """`critic_steps` critic-only gradient steps on `batch` before its joint update, so that
         the actor's advantage comes from a critic that has already seen the batch (the paper
         trains the critic first). TD(lambda) targets are fixed: the target critic does not
         move within a batch. Each step goes through the Learner's compute_gradients /
         postprocess_gradients (grad clipping) / apply_gradients; the actor gets no gradient,
-        so its optimizer leaves it as it is."""
+        so its optimizer leaves it as it is. Returns each module's targets [B, T, *rows] where
+        they cover every critic row (all but per_device with critic_branch_fraction < 1): the
+        joint step of the same update trains on them (TD_TARGETS)."""
         hp = self.config.hparams
+        out = {}
         for module_id, columns in batch.policy_batches.items():
             module = self.module[module_id].unwrapped()
             cols = {k: torch.as_tensor(np.asarray(v)).to(self.device) for k, v in columns.items()}
@@ -148,13 +152,17 @@ class COMATorchLearner(TargetNetworkLearner):
             # the target critic's side only (fixed for the batch): the critic itself is evaluated per step below
             fwd = module.target_terms({**cols, CRITIC_ROWS: rows})
             targets = critic_targets(cols[REWARDS] * hp.reward_scale, fwd, row_actions, hp.gamma, hp.td_lambda)
-            obs, state = cols[OBS][:, : actions.shape[1]], cols[GLOBAL_STATE][:, : actions.shape[1]]
+            # copied once for the critic_steps evaluations (a slice of the T + 1 slots would be copied by each)
+            obs, state = (cols[k][:, : actions.shape[1]].contiguous() for k in (OBS, GLOBAL_STATE))
             for _ in range(hp.critic_steps):
                 q = module.critic_q(module.critic, state, obs, actions, rows)
                 loss = ((taken(q, row_actions) - targets) ** 2).mean()
                 grads = self.compute_gradients({module_id: loss})
                 self.apply_gradients(self.postprocess_gradients({k: g for k, g in grads.items() if g is not None}))
             self.metrics.log_value((module_id, "critic_loss_before_joint_step"), loss.detach(), window=1)
+            if rows is None:
+                out[module_id] = targets.detach().contiguous().cpu().numpy()
+        return out
 
     @override(TorchLearner)
     def configure_optimizers_for_module(self, module_id, config=None) -> None:
@@ -175,7 +183,10 @@ class COMATorchLearner(TargetNetworkLearner):
         # the update's random subset: Q_ROWS, Q_TARGET [B, T, K, W])
         row_actions = module.row_values(actions, fwd_out[CRITIC_ROWS])
         # [B, T, U], [B, T, U, L] or [B, T, K]
-        targets = critic_targets(rewards, fwd_out, row_actions, hp.gamma, hp.td_lambda).detach()
+        if TD_TARGETS in batch and fwd_out[CRITIC_ROWS] is None:  # the critic steps' own (train_critic)
+            targets = batch[TD_TARGETS]
+        else:
+            targets = critic_targets(rewards, fwd_out, row_actions, hp.gamma, hp.td_lambda).detach()
         q_taken = taken(fwd_out[Q_ROWS], row_actions)
         critic_loss = ((q_taken - targets) ** 2).mean()
         # Actor: counterfactual advantage with the (detached) critic, per UAV (per branch).

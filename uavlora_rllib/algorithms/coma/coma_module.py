@@ -63,6 +63,10 @@ BOOTSTRAP = "coma_bootstrap"  # [B, U] target-critic value of the final state, e
 # then on these rows only ([B, T, K, W], [B, K]), Q_VALUES on all rows without gradient (the advantage).
 CRITIC_ROWS = "coma_critic_rows"
 Q_ROWS = "coma_q_rows"
+# Batch column [B, T, *rows]: the TD(lambda) targets of every critic row that the update's critic-only
+# steps trained on (coma_learner.train_critic), handed to its joint step (COMA.update_learners): the target
+# critic does not move between them, so it is evaluated once per update. Absent: the joint step computes them.
+TD_TARGETS = "coma_td_targets"
 
 
 # ------------------------------------------------------------------ pure maths (tested by hand)
@@ -113,6 +117,51 @@ def critic_inputs(
     return torch.cat(parts, dim=-1)
 
 
+class _OthersActionSum(torch.autograd.Function):
+    """Row n U + u of [N U, H]: sum over the other agents k != u of table[p(k, u) A + a_k], p(k, u) = k's
+    place among u's others (k, or k - 1 past u); table [(U - 1) A, H], actions [N, U] int64.
+
+    The same function and gradient as embedding_bag(mode="sum") over the [N U, U - 1] indices, at a
+    fraction of its cost with gradient (at U = 8, 2,400 slots: about 24 ms against 2 in forward, 16 in
+    backward, BENCHMARKS.md#training-cost-vs-u): the forward is embedding_bag's gradient-free path, and
+    the backward sums each agent's gradient rows once. Agent k sits at place k in the rows u > k and
+    at place k - 1 in the rows u < k, so table row k A + a_k receives sum_{u > k} g_u, and row
+    (k - 1) A + a_k receives sum_{u < k} g_u: two running sums over the agents and two index_adds of
+    N (U - 1) rows, instead of a sort and a scatter of N U (U - 1) rows."""
+
+    @staticmethod
+    def forward(ctx, table: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        n_agents = actions.shape[1]
+        n_other = n_agents - 1
+        n_actions = table.shape[0] // n_other
+        eye = torch.eye(n_agents, dtype=torch.bool, device=actions.device)
+        others = torch.arange(n_agents, device=actions.device).expand(n_agents, n_agents)[~eye].view(n_agents, n_other)
+        place = torch.arange(n_other, device=actions.device) * n_actions
+        index = actions[:, others] + place  # [N, U, U - 1]: entry j of row u is table row j A + a_k
+        ctx.save_for_backward(actions, place)
+        ctx.n_rows = table.shape[0]
+        # detached: embedding_bag keeps what its own backward would need while its weight requires grad
+        return nn.functional.embedding_bag(index.view(-1, n_other), table.detach(), mode="sum")  # [N U, H]
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor, None]:
+        actions, place = ctx.saved_tensors
+        (n, n_agents), hid = actions.shape, grad.shape[-1]
+        grad = grad.reshape(n, n_agents, hid)
+        after = grad.new_empty(n, n_agents - 1, hid)  # [:, k]: sum_{u > k} g_u, agents k = 0 .. U - 2
+        before = grad.new_empty(n, n_agents - 1, hid)  # [:, k - 1]: sum_{u < k} g_u, agents k = 1 .. U - 1
+        after[:, -1] = grad[:, -1]
+        for k in range(n_agents - 3, -1, -1):
+            torch.add(after[:, k + 1], grad[:, k + 1], out=after[:, k])
+        before[:, 0] = grad[:, 0]
+        for k in range(1, n_agents - 1):
+            torch.add(before[:, k - 1], grad[:, k], out=before[:, k])
+        out = grad.new_zeros(ctx.n_rows, hid)
+        out.index_add_(0, (actions[:, :-1] + place).reshape(-1), after.view(-1, hid))
+        out.index_add_(0, (actions[:, 1:] + place).reshape(-1), before.view(-1, hid))
+        return out, None
+
+
 def first_layer_of_rows(
     first: nn.Linear,
     state: torch.Tensor,
@@ -126,7 +175,7 @@ def first_layer_of_rows(
     Row u's first layer is W_s s + b + sum_{k != u} T_p(k, u)[a_k] + W_id[:, u] + W_o o_u, where
     p(k, u) is k's position among u's others (k, or k - 1 past u) and T_p[a] = W_a,p[:, a] (+ the
     columns of a's SF/TP/BW, `factor_map` [A, F]) is what an other agent at position p adds when it
-    plays a: one summed gather (embedding_bag) per row instead of a product with its one-hot
+    plays a: one summed gather per row (`_OthersActionSum`) instead of a product with its one-hot
     (U - 1) (A + F) columns. Same parameters, same function (docs/model.md#training-defaults)."""
     lead, n_agents = actions.shape[:-1], actions.shape[-1]
     w, s_dim, hid = first.weight, state.shape[-1], first.weight.shape[0]
@@ -139,17 +188,17 @@ def first_layer_of_rows(
         w_act = w_act + torch.einsum("hpf,af->pah", w_fac, factor_map)
         col += n_other * n_fac
     w_ids, col = w[:, col : col + n_agents].t(), col + n_agents  # [U, H]
-    # others[u] = the agents k != u in id order; entry j of row u indexes table row j A + a_k
-    eye = torch.eye(n_agents, dtype=torch.bool, device=actions.device)
-    others = torch.arange(n_agents, device=actions.device).expand(n_agents, n_agents)[~eye].view(n_agents, n_other)
-    flat = actions.long().reshape(-1, n_agents)  # [N, U]
-    index = flat[:, others] + torch.arange(n_other, device=actions.device) * n_actions  # [N, U, U-1]
-    z = nn.functional.embedding_bag(index.reshape(-1, n_other), w_act.reshape(-1, hid), mode="sum")
-    z = z.view(*lead, n_agents, hid) + w_ids
-    z += nn.functional.linear(state, w[:, :s_dim], first.bias).unsqueeze(-2)
-    if obs is not None:
-        z += nn.functional.linear(obs, w[:, col:])
-    return z
+    flat = actions.long().reshape(-1, n_agents)
+    # contiguous: the sum of the permuted slice and the einsum keeps the slice's column-major layout,
+    # and gathering its rows would read memory with a stride of (U - 1) A floats
+    z = _OthersActionSum.apply(w_act.reshape(-1, hid).contiguous(), flat)  # [N U, H], a fresh tensor
+    if obs is not None:  # in place on that tensor, not on a view of it (autograd would copy it back)
+        z.addmm_(obs.reshape(-1, obs.shape[-1]), w[:, col:].t())
+    z = z.view(flat.shape[0], n_agents, hid) + nn.functional.linear(
+        state.reshape(-1, s_dim), w[:, :s_dim], first.bias
+    ).unsqueeze(-2)
+    z += w_ids
+    return z.view(*lead, n_agents, hid)
 
 
 def critic_input_dim(
@@ -484,5 +533,6 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
             with torch.no_grad():
                 q = self.critic_q(self.critic, state, obs_t, actions)
             q_rows = self.critic_q(self.critic, state, obs_t, actions, rows)
-        target = self.target_terms({**batch, CRITIC_ROWS: rows}, logits)
+        given = rows is None and TD_TARGETS in batch  # the critic steps' targets (all rows)
+        target = {} if given else self.target_terms({**batch, CRITIC_ROWS: rows}, logits)
         return {LOGITS: logits, Q_VALUES: q, Q_ROWS: q_rows, CRITIC_ROWS: rows, **target}
