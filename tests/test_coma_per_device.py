@@ -489,6 +489,43 @@ def test_the_joint_step_trains_on_the_critic_steps_targets(learner, fraction):
         module.branch_fraction = 1.0
 
 
+def test_the_joint_step_reuses_the_critic_steps_actor_forward(learner):
+    """train_critic's actor logits (with their graph) are the next forward_train's on the same
+    observations: the same values and actor gradients as a forward of its own. Taken once; other
+    observations or an actor changed in between get a forward of their own."""
+    from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
+
+    learner, scenario = learner
+    module = learner.module[DEFAULT_MODULE_ID].unwrapped()
+    batch = _learner_batch(module, scenario)
+    multi = MultiAgentBatch({DEFAULT_MODULE_ID: SampleBatch({k: v.numpy() for k, v in batch.items()})}, 10)
+    actor = list(module.actor.parameters())
+
+    def joint_step(fwd_batch):
+        torch.manual_seed(2)  # the joint step's bootstrap draw
+        fwd = module.forward_train(fwd_batch)
+        loss = learner.compute_loss_for_module(module_id=DEFAULT_MODULE_ID, config=None, batch=fwd_batch, fwd_out=fwd)
+        return fwd[LOGITS], torch.autograd.grad(loss, actor)
+
+    learner.train_critic(multi)
+    kept = module._kept_logits[1]
+    logits, grads = joint_step(batch)
+    assert logits is kept and kept.requires_grad
+    own, own_grads = joint_step(batch)  # taken once: this forward is its own
+    assert own is not kept
+    torch.testing.assert_close(own, kept)
+    for got, want in zip(grads, own_grads):
+        torch.testing.assert_close(got, want)
+    learner.train_critic(multi)
+    kept = module._kept_logits[1]
+    assert module.forward_train({**batch, OBS: batch[OBS] + 1.0})[LOGITS] is not kept
+    learner.train_critic(multi)
+    kept = module._kept_logits[1]
+    with torch.no_grad():
+        actor[0].add_(0.0)  # an in-place change of the actor (a version bump)
+    assert module.forward_train(batch)[LOGITS] is not kept
+
+
 def test_sampled_advantage_by_hand():
     """G_t - b per row, G_t the mean of the step's targets over the rows trained (each is r_t at gamma 0)."""
     baseline = torch.tensor([[[[1.0, 2.0], [3.0, 4.0]]]])  # [B=1, T=1, U=2, L=2]

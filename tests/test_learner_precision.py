@@ -136,3 +136,38 @@ def test_every_learner_updates_under_its_precision(ray_session, name, precision)
     assert all(np.isfinite(moved)) and max(moved) > 0, f"{name}: the update changed no weight"
     assert not seen[0], "acting (the first forward of an iteration) must stay float32"
     assert any(seen) == (precision == "bfloat16")
+
+
+@pytest.mark.parametrize("precision", ["bfloat16", "float32"])
+def test_comas_critic_only_steps_run_under_the_trials_precision(precision):
+    """COMA's critic-only steps (COMATorchLearner.train_critic, outside RLlib's update) run every forward
+    under the trial's learner_precision, as its joint step does."""
+    from ray.rllib.core import DEFAULT_MODULE_ID
+    from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
+
+    from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE
+    from uavlora_rllib.envs.team import team_action_space, team_observation_space
+
+    scenario = ScenarioConfig(n_eds=4, n_uavs=2, episode_len=5)
+    entry = registry.get("coma")
+    hparams = entry.hparams({"actor_hidden": 16, "gru_hidden": 8, "critic_hidden": [32], "critic_steps": 2})
+    config = entry.build(scenario, hparams, registry.Resources(learner_precision=precision), 0)
+    spaces = {DEFAULT_MODULE_ID: (team_observation_space(scenario), team_action_space(scenario))}
+    learner = config.build_learner(env=None, spaces=spaces)
+    gen = np.random.default_rng(0)
+    obs_dim, state_dim = spaces[DEFAULT_MODULE_ID][0].shape[-1], config.model_config["state_dim"]
+    columns = {
+        "obs": gen.random((2, 6, 2, obs_dim), dtype=np.float32),
+        "actions": gen.integers(0, 90, (2, 5, 2)),
+        "rewards": gen.random((2, 5), dtype=np.float32),
+        GLOBAL_STATE: gen.standard_normal((2, 6, state_dim), dtype=np.float32),
+    }
+    seen: list[bool] = []
+    hook = torch.nn.modules.module.register_module_forward_hook(
+        lambda *_: seen.append(torch.is_autocast_enabled("cpu"))
+    )
+    try:
+        learner.train_critic(MultiAgentBatch({DEFAULT_MODULE_ID: SampleBatch(columns)}, 10))
+    finally:
+        hook.remove()
+    assert seen and all(x == (precision == "bfloat16") for x in seen)

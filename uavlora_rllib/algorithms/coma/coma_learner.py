@@ -23,7 +23,8 @@ K updates.
 updates_per_iteration = K > 1: the algorithm runs K such updates on one batch; from the second on
 the batch is off-policy, so the actor term becomes PPO's clipped surrogate
 min(r A, clip(r, 1 -+ ratio_clip) A) with r = pi_u / pi_u,sampling per UAV and step (gradient
-A grad log pi at r = 1, as COMA's); the critic's targets are recomputed each update.
+A grad log pi at r = 1, as COMA's); the critic's targets are recomputed each update, once: its
+critic-only steps compute them and its joint step trains on the same (TD_TARGETS).
 per_device (branching.py, docs/model.md#coma-per-device): every branch l of every UAV u is a row
 of its own: the critic loss over all rows (u, l) (with critic_branch_fraction < 1 over a random
 subset of them, drawn per update), A_t,u,l with the baseline over pi_u,l, the
@@ -141,6 +142,10 @@ class COMATorchLearner(TargetNetworkLearner):
         so its optimizer leaves it as it is. Returns each module's targets [B, T, *rows] where
         they cover every critic row (all but per_device with critic_branch_fraction < 1): the
         joint step of the same update trains on them (TD_TARGETS)."""
+        with self.precision():  # the trial's learner_precision, as the joint step's
+            return self._train_critic(batch)
+
+    def _train_critic(self, batch: MultiAgentBatch) -> dict[str, np.ndarray]:
         hp = self.config.hparams
         out = {}
         for module_id, columns in batch.policy_batches.items():
@@ -149,8 +154,11 @@ class COMATorchLearner(TargetNetworkLearner):
             actions = cols[ACTIONS].long()
             rows = module.draw_critic_rows()  # this update's critic rows (None: all)
             row_actions = module.row_values(actions, rows)
+            # the actor's logits (the bootstrap's policy), with gradient: the joint step reuses them
+            logits = module.episode_logits(cols[OBS])
+            module.keep_episode_logits(cols[OBS], logits)
             # the target critic's side only (fixed for the batch): the critic itself is evaluated per step below
-            fwd = module.target_terms({**cols, CRITIC_ROWS: rows})
+            fwd = module.target_terms({**cols, CRITIC_ROWS: rows}, logits.detach())
             targets = critic_targets(cols[REWARDS] * hp.reward_scale, fwd, row_actions, hp.gamma, hp.td_lambda)
             # copied once for the critic_steps evaluations (a slice of the T + 1 slots would be copied by each)
             obs, state = (cols[k][:, : actions.shape[1]].contiguous() for k in (OBS, GLOBAL_STATE))

@@ -315,6 +315,9 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
     action_factors (per_uav only), torch_threads. The action space picks the mode: nvec [U]
     per_uav, [U, L] per_device."""
 
+    # (observations, logits, actor parameter versions) kept by keep_episode_logits for the next forward_train
+    _kept_logits: tuple[torch.Tensor, torch.Tensor, tuple[int, ...]] | None = None
+
     @property
     def layout(self) -> BranchLayout:
         """The padded [L, W] branch grid of the actor's action head (per_device)."""
@@ -519,12 +522,35 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
         unrolled from a zero state as the env runners did while sampling."""
         return self.actor(obs, self.actor.initial_state(obs.shape[0]).to(obs.device))[0]
 
+    def keep_episode_logits(self, obs: torch.Tensor, logits: torch.Tensor) -> None:
+        """Keep episode_logits(obs) `logits`, with their autograd graph, for the next forward_train on the
+        same observations: the critic-only steps of an update need the actor's logits for their
+        bootstrap, and its joint step (the actor has not moved in between) reuses them instead of
+        unrolling the GRU again. Taken once; a forward_train on other observations, without
+        gradient or after any change of the actor's parameters computes its own."""
+        self._kept_logits = (obs, logits, self._actor_versions())
+
+    def _actor_versions(self) -> tuple[int, ...]:
+        """The version counters of the actor's parameters (torch bumps one on every in-place change)."""
+        return tuple(p._version for p in self.actor.parameters())
+
+    def _take_kept_logits(self, obs: torch.Tensor) -> torch.Tensor | None:
+        kept, self._kept_logits = self._kept_logits, None
+        if kept is None or not torch.is_grad_enabled():
+            return None
+        kept_obs, logits, versions = kept
+        if kept_obs.shape != obs.shape or versions != self._actor_versions() or not torch.equal(kept_obs, obs):
+            return None
+        return logits
+
     @override(RLModule)
     def _forward_train(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
         """Whole episodes: obs [B, T+1, U, d], actions [B, T, U], global_state [B, T+1, S]."""
         obs, actions, state = batch[OBS], batch[ACTIONS].long(), batch[GLOBAL_STATE]
         steps = actions.shape[1]
-        logits = self.episode_logits(obs)
+        logits = self._take_kept_logits(obs)  # this update's critic-only steps computed them (keep_episode_logits)
+        if logits is None:
+            logits = self.episode_logits(obs)
         state, obs_t = state[:, :steps], obs[:, :steps]
         rows = self.draw_critic_rows()
         if rows is None:  # every row: one pass serves the critic's loss and (detached) the advantage

@@ -39,8 +39,13 @@ class UavLoraLearner(TorchLearner):
 
     @override(Learner)
     def update(self, *args: Any, **kwargs: Any) -> Any:
-        with autocast_for(self.config.model_config["learner_precision"], torch.device(self.device)):
+        with self.precision():
             return super().update(*args, **kwargs)
+
+    def precision(self) -> torch.autocast:
+        """The trial's `learner_precision` as an autocast context: every forward and backward of an
+        update runs in it (update; a learner's own extra steps, such as COMA's critic-only ones, too)."""
+        return autocast_for(self.config.model_config["learner_precision"], torch.device(self.device))
 
     def register_adam(
         self,
