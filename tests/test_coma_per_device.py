@@ -481,12 +481,15 @@ def test_the_joint_step_trains_on_the_critic_steps_targets(learner, fraction):
         torch.testing.assert_close(targets, want)
         given = {**batch, TD_TARGETS: targets + 1.0}  # shifted: the loss must read these, not its own
         fwd = module.forward_train(given)
-        assert Q_TARGET not in fwd and BOOTSTRAP not in fwd
+        assert Q_TARGET not in fwd and BOOTSTRAP not in fwd and fwd[TD_TARGETS] is given[TD_TARGETS]
         learner.compute_loss_for_module(module_id=DEFAULT_MODULE_ID, config=None, batch=given, fwd_out=fwd)
         want_loss = ((taken(fwd[Q_ROWS], batch[ACTIONS]) - given[TD_TARGETS]) ** 2).mean()
-        assert float(learner.metrics.peek((DEFAULT_MODULE_ID, "critic_loss"))) == pytest.approx(float(want_loss))
+        assert float(learner.metrics.peek((DEFAULT_MODULE_ID, "critic_loss"))) == pytest.approx(
+            float(want_loss.detach())
+        )
     finally:
         module.branch_fraction = 1.0
+        module._kept_logits = None  # (the learner is the module's fixture)
 
 
 def test_the_joint_step_reuses_the_critic_steps_actor_forward(learner):

@@ -171,3 +171,34 @@ def test_comas_critic_only_steps_run_under_the_trials_precision(precision):
     finally:
         hook.remove()
     assert seen and all(x == (precision == "bfloat16") for x in seen)
+
+
+@pytest.mark.parametrize("name", registry.built_in())
+def test_the_next_forward_reads_the_stepped_weights(name):
+    """autocast keeps one bfloat16 copy of each weight for its whole region, and an update steps its
+    optimisers several times inside one (minibatches and epochs, COMA's critic-only steps): after the
+    learner's apply_gradients, a product with a stepped weight equals the one a fresh region computes."""
+    from ray.rllib.core import DEFAULT_MODULE_ID
+
+    from uavlora_rllib.envs.team import team_action_space, team_observation_space
+
+    entry = registry.get(name)
+    scenario = ScenarioConfig(n_eds=4, n_uavs=2, episode_len=5)
+    config = entry.algorithm_config(scenario, entry.hparams({}), registry.Resources(learner_precision="bfloat16"), 0)
+    spaces = {DEFAULT_MODULE_ID: (team_observation_space(scenario), team_action_space(scenario))}
+    learner = config.build_learner(env=None, spaces=spaces)
+    optimizers = [opt for _, opt in learner.get_optimizers_for_module(DEFAULT_MODULE_ID)]
+    params = [p for opt in optimizers for group in opt.param_groups for p in group["params"]]
+    for opt in optimizers:
+        for group in opt.param_groups:
+            group["lr"] = 0.5  # a step that moves the weights' bfloat16 values
+    weight = next(p for p in params if p.dim() == 2)
+    x = torch.randn(3, weight.shape[1])
+    with learner.precision():
+        before = torch.nn.functional.linear(x, weight)
+        learner.apply_gradients({learner.get_param_ref(p): torch.ones_like(p) for p in params})
+        after = torch.nn.functional.linear(x, weight)
+    with learner.precision():
+        fresh = torch.nn.functional.linear(x, weight)
+    assert not torch.equal(before, after)
+    torch.testing.assert_close(after, fresh, rtol=0, atol=0)

@@ -106,7 +106,8 @@ class COMA(EpisodeAlgorithm):
     def update_learners(self, batch: MultiAgentBatch, timesteps: dict[str, Any]) -> Any:
         """The critic goes first (as in the paper): its critic-only steps on the batch, then the
         joint actor + critic update, so that the actor's advantage comes from the critic that
-        has seen the batch."""
+        has seen the batch. The joint update's batch carries the critic-only steps' TD(lambda)
+        targets (TD_TARGETS): the target critic has not moved in between."""
         if self.config.hparams.critic_steps:
             results = list(self.learner_group.foreach_learner(lambda learner: learner.train_critic(batch)))
             for result in results:

@@ -24,7 +24,10 @@ updates_per_iteration = K > 1: the algorithm runs K such updates on one batch; f
 the batch is off-policy, so the actor term becomes PPO's clipped surrogate
 min(r A, clip(r, 1 -+ ratio_clip) A) with r = pi_u / pi_u,sampling per UAV and step (gradient
 A grad log pi at r = 1, as COMA's); the critic's targets are recomputed each update, once: its
-critic-only steps compute them and its joint step trains on the same (TD_TARGETS).
+critic-only steps compute them and its joint step trains on the same (TD_TARGETS; with several
+learners each trains on the first one's, which share its target critic), except where the joint
+step draws its own critic rows (per_device, critic_branch_fraction < 1) or there are no critic-only
+steps. Its actor forward is likewise the critic-only steps' (one learner: `keep_episode_logits`).
 per_device (branching.py, docs/model.md#coma-per-device): every branch l of every UAV u is a row
 of its own: the critic loss over all rows (u, l) (with critic_branch_fraction < 1 over a random
 subset of them, drawn per update), A_t,u,l with the baseline over pi_u,l, the
@@ -154,9 +157,14 @@ class COMATorchLearner(TargetNetworkLearner):
             actions = cols[ACTIONS].long()
             rows = module.draw_critic_rows()  # this update's critic rows (None: all)
             row_actions = module.row_values(actions, rows)
-            # the actor's logits (the bootstrap's policy), with gradient: the joint step reuses them
-            logits = module.episode_logits(cols[OBS])
-            module.keep_episode_logits(cols[OBS], logits)
+            # the actor's logits (the bootstrap's policy), with gradient where the joint step reuses them:
+            # with several learners it trains on a share of the batch, other observations than these
+            if self.config.num_learners > 1:
+                with torch.no_grad():
+                    logits = module.episode_logits(cols[OBS])
+            else:
+                logits = module.episode_logits(cols[OBS])
+                module.keep_episode_logits(cols[OBS], logits)
             # the target critic's side only (fixed for the batch): the critic itself is evaluated per step below
             fwd = module.target_terms({**cols, CRITIC_ROWS: rows}, logits.detach())
             targets = critic_targets(cols[REWARDS] * hp.reward_scale, fwd, row_actions, hp.gamma, hp.td_lambda)
@@ -191,8 +199,8 @@ class COMATorchLearner(TargetNetworkLearner):
         # the update's random subset: Q_ROWS, Q_TARGET [B, T, K, W])
         row_actions = module.row_values(actions, fwd_out[CRITIC_ROWS])
         # [B, T, U], [B, T, U, L] or [B, T, K]
-        if TD_TARGETS in batch and fwd_out[CRITIC_ROWS] is None:  # the critic steps' own (train_critic)
-            targets = batch[TD_TARGETS]
+        if TD_TARGETS in fwd_out:  # the critic-only steps' own (train_critic, passed on by forward_train)
+            targets = fwd_out[TD_TARGETS]
         else:
             targets = critic_targets(rewards, fwd_out, row_actions, hp.gamma, hp.td_lambda).detach()
         q_taken = taken(fwd_out[Q_ROWS], row_actions)

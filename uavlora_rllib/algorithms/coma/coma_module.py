@@ -39,6 +39,7 @@ from ray.rllib.core.rl_module.rl_module import RLModule
 from ray.rllib.core.rl_module.torch import TorchRLModule
 from ray.rllib.utils.annotations import override
 from torch import nn
+from torch.autograd.function import once_differentiable
 
 from uavlora_rllib.algorithms.coma.branching import BRANCH_LOGP, BranchQCritic
 from uavlora_rllib.algorithms.common.action_head import ActionHead, BranchLayout, taken
@@ -65,7 +66,9 @@ CRITIC_ROWS = "coma_critic_rows"
 Q_ROWS = "coma_q_rows"
 # Batch column [B, T, *rows]: the TD(lambda) targets of every critic row that the update's critic-only
 # steps trained on (coma_learner.train_critic), handed to its joint step (COMA.update_learners): the target
-# critic does not move between them, so it is evaluated once per update. Absent: the joint step computes them.
+# critic does not move between them, so it is evaluated once per update. forward_train passes it on to
+# the loss where its critic trains every row; otherwise (per_device critic_branch_fraction < 1, or no
+# critic-only steps) it evaluates the target critic itself.
 TD_TARGETS = "coma_td_targets"
 
 
@@ -122,9 +125,9 @@ class _OthersActionSum(torch.autograd.Function):
     place among u's others (k, or k - 1 past u); table [(U - 1) A, H], actions [N, U] int64.
 
     The same function and gradient as embedding_bag(mode="sum") over the [N U, U - 1] indices, at a
-    fraction of its cost with gradient (at U = 8, 2,400 slots: about 24 ms against 2 in forward, 16 in
-    backward, BENCHMARKS.md#training-cost-vs-u): the forward is embedding_bag's gradient-free path, and
-    the backward sums each agent's gradient rows once. Agent k sits at place k in the rows u > k and
+    fraction of its cost with gradient (U = 8, 2,400 slots: embedding_bag's forward and backward took
+    about 24 ms, this one's about 2 + 5; BENCHMARKS.md#training-cost-vs-u): the forward is
+    embedding_bag's gradient-free path, and the backward sums each agent's gradient rows once. Agent k sits at place k in the rows u > k and
     at place k - 1 in the rows u < k, so table row k A + a_k receives sum_{u > k} g_u, and row
     (k - 1) A + a_k receives sum_{u < k} g_u: two running sums over the agents and two index_adds of
     N (U - 1) rows, instead of a sort and a scatter of N U (U - 1) rows."""
@@ -144,6 +147,7 @@ class _OthersActionSum(torch.autograd.Function):
         return nn.functional.embedding_bag(index.view(-1, n_other), table.detach(), mode="sum")  # [N U, H]
 
     @staticmethod
+    @once_differentiable  # (the backward writes into buffers: no second derivative)
     def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor, None]:
         actions, place = ctx.saved_tensors
         (n, n_agents), hid = actions.shape, grad.shape[-1]
@@ -193,7 +197,7 @@ def first_layer_of_rows(
     # and gathering its rows would read memory with a stride of (U - 1) A floats
     z = _OthersActionSum.apply(w_act.reshape(-1, hid).contiguous(), flat)  # [N U, H], a fresh tensor
     if obs is not None:  # in place on that tensor, not on a view of it (autograd would copy it back)
-        z.addmm_(obs.reshape(-1, obs.shape[-1]), w[:, col:].t())
+        z += nn.functional.linear(obs.reshape(-1, obs.shape[-1]), w[:, col:])
     z = z.view(flat.shape[0], n_agents, hid) + nn.functional.linear(
         state.reshape(-1, s_dim), w[:, :s_dim], first.bias
     ).unsqueeze(-2)
@@ -527,7 +531,9 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
         same observations: the critic-only steps of an update need the actor's logits for their
         bootstrap, and its joint step (the actor has not moved in between) reuses them instead of
         unrolling the GRU again. Taken once; a forward_train on other observations, without
-        gradient or after any change of the actor's parameters computes its own."""
+        gradient or after an in-place change of the actor's parameters (their version counters: a
+        change through `.data` is not seen) computes its own. Both calls must run under the same
+        autocast setting: the learner runs each under the trial's precision."""
         self._kept_logits = (obs, logits, self._actor_versions())
 
     def _actor_versions(self) -> tuple[int, ...]:
@@ -559,6 +565,8 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
             with torch.no_grad():
                 q = self.critic_q(self.critic, state, obs_t, actions)
             q_rows = self.critic_q(self.critic, state, obs_t, actions, rows)
-        given = rows is None and TD_TARGETS in batch  # the critic steps' targets (all rows)
-        target = {} if given else self.target_terms({**batch, CRITIC_ROWS: rows}, logits)
+        if rows is None and TD_TARGETS in batch:  # the critic steps' targets cover every row: the loss reads them
+            target = {TD_TARGETS: batch[TD_TARGETS]}
+        else:
+            target = self.target_terms({**batch, CRITIC_ROWS: rows}, logits)
         return {LOGITS: logits, Q_VALUES: q, Q_ROWS: q_rows, CRITIC_ROWS: rows, **target}

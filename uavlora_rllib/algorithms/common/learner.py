@@ -1,7 +1,8 @@
 """The package's TorchLearner, the base of every built-in learner (docs/model.md#the-learner).
 
 * Each update runs in the trial's number format, `resources.learner_precision`
-  (common/precision.py, docs/model.md#learner-precision).
+  (common/precision.py, docs/model.md#learner-precision); every optimiser step drops autocast's
+  bfloat16 copies of the weights, so that the update's next forward reads the stepped ones.
 * `register_adam` builds every network's Adam one way: torch's fused implementation (on the CPU
   torch otherwise loops over the parameters, several small operations each). A checkpoint
   restores an optimiser's param groups with their flags, so `set_state` makes them fused again.
@@ -83,6 +84,14 @@ class UavLoraLearner(TorchLearner):
 
     @override(TorchLearner)
     def apply_gradients(self, gradients_dict: ParamDict) -> None:
+        self._step_optimizers(gradients_dict)
+        # autocast keeps one bfloat16 copy of each weight until its outermost region ends, and one
+        # update steps several times inside it (RLlib's loop over minibatches and epochs, COMA's
+        # critic-only steps): drop the copies, or the next forward would read the weights before this step
+        if torch.is_autocast_enabled(torch.device(self.device).type):
+            torch.clear_autocast_cache()
+
+    def _step_optimizers(self, gradients_dict: ParamDict) -> None:
         grads = list(gradients_dict.values())
         # RLlib's method steps every optimiser unchanged when each gradient it is given is finite and
         # each parameter it is not given has no gradient (its per-optimiser test reads those too); a
