@@ -159,11 +159,10 @@ class COMATorchLearner(TargetNetworkLearner):
             row_actions = module.row_values(actions, rows)
             # the actor's logits (the bootstrap's policy), with gradient where the joint step reuses them:
             # with several learners it trains on a share of the batch, other observations than these
-            if self.config.num_learners > 1:
-                with torch.no_grad():
-                    logits = module.episode_logits(cols[OBS])
-            else:
+            keep = self.config.num_learners <= 1
+            with torch.set_grad_enabled(keep):
                 logits = module.episode_logits(cols[OBS])
+            if keep:
                 module.keep_episode_logits(cols[OBS], logits)
             # the target critic's side only (fixed for the batch): the critic itself is evaluated per step below
             fwd = module.target_terms({**cols, CRITIC_ROWS: rows}, logits.detach())

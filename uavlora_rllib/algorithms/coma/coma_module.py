@@ -124,11 +124,10 @@ class _OthersActionSum(torch.autograd.Function):
     """Row n U + u of [N U, H]: sum over the other agents k != u of table[p(k, u) A + a_k], p(k, u) = k's
     place among u's others (k, or k - 1 past u); table [(U - 1) A, H], actions [N, U] int64.
 
-    The same function and gradient as embedding_bag(mode="sum") over the [N U, U - 1] indices, at a
-    fraction of its cost with gradient (U = 8, 2,400 slots: embedding_bag's forward and backward took
-    about 24 ms, this one's about 2 + 5; BENCHMARKS.md#training-cost-vs-u): the forward is
-    embedding_bag's gradient-free path, and the backward sums each agent's gradient rows once. Agent k sits at place k in the rows u > k and
-    at place k - 1 in the rows u < k, so table row k A + a_k receives sum_{u > k} g_u, and row
+    The same function and gradient as embedding_bag(mode="sum") over the [N U, U - 1] indices, whose
+    path with gradient sorts and scatters all N U (U - 1) of them: here the forward is embedding_bag's
+    gradient-free path, and the backward sums each agent's gradient rows once. Agent k sits at place k
+    in the rows u > k and at place k - 1 in the rows u < k, so table row k A + a_k receives sum_{u > k} g_u, and row
     (k - 1) A + a_k receives sum_{u < k} g_u: two running sums over the agents and two index_adds of
     N (U - 1) rows, instead of a sort and a scatter of N U (U - 1) rows."""
 
