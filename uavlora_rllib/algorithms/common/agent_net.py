@@ -33,6 +33,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from uavlora_rllib.algorithms.common.gru_sequence import gru_sequence, gru_steps
+
 
 class _AgentStack(nn.Module):
     """One agent's layers: Linear+ReLU -> GRU -> [Linear+ReLU] -> Linear."""
@@ -181,8 +183,8 @@ class RecurrentAgentNet(nn.Module):
 
     def _gru(self, z: torch.Tensor, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """U GRUs at once: z [U, B, T, fc], h [U, B, H] -> outputs [U, B, T, H], h_T [U, B, H].
-        nn.GRU's equations and operation order (r, z, n gates; h' = n + z (h - n)); the input
-        projection of all T steps is one batched product, as nn.GRU does on the CPU."""
+        nn.GRU's equations (common/gru_sequence.py); the input projection of all T steps is one
+        batched product, as nn.GRU does on the CPU."""
         u, b, t, f = z.shape
         w_ih, w_hh, b_ih, b_hh = (
             self._stacked(f"gru.{k}_l0") for k in ("weight_ih", "weight_hh", "bias_ih", "bias_hh")
@@ -190,15 +192,7 @@ class RecurrentAgentNet(nn.Module):
         z = z.transpose(1, 2).reshape(u, t * b, f)  # time-major rows, as nn.GRU sums its gradients
         # .float(): under bf16 autocast (learner_precision) the products run in bf16 but the gates and
         # the carried state stay float32, so rounding does not compound over T (a no-op in float32)
-        gi = torch.baddbmm(b_ih.unsqueeze(1), z, w_ih.transpose(1, 2)).float()
-        w_hh_t, b_hh = w_hh.transpose(1, 2), b_hh.unsqueeze(1)
-        ys = []
-        for g in gi.reshape(u, t, b, -1).unbind(1):  # unbind: one backward node for all steps
-            i_r, i_z, i_n = g.chunk(3, -1)
-            h_r, h_z, h_n = torch.baddbmm(b_hh, h, w_hh_t).float().chunk(3, -1)
-            r = torch.sigmoid(i_r + h_r)
-            zg = torch.sigmoid(i_z + h_z)
-            n = torch.tanh(i_n + r * h_n)
-            h = n + zg * (h - n)
-            ys.append(h)
-        return torch.stack(ys, dim=2), h
+        gi = torch.baddbmm(b_ih.unsqueeze(1), z, w_ih.transpose(1, 2)).float().view(u, t, b, -1)
+        recurrence = gru_steps if torch.is_autocast_enabled("cpu") else gru_sequence
+        hs = recurrence(gi, h, w_hh, b_hh)
+        return hs.transpose(1, 2), hs[:, -1]

@@ -12,6 +12,11 @@ analysis tools that load a checkpoint).
   tuning advice); the process then holds its peak memory (docs/cluster.md#memory). Left to the
   user where they set MALLOC_* or glibc.malloc tunables themselves, or preload another allocator,
   and off other C libraries.
+* torch does not fill new tensors with NaN. RLlib's seeding (`set_torch_seed`) turns on
+  `torch.use_deterministic_algorithms`, which by default also fills every `torch.empty` with NaN
+  so that a read of unwritten memory shows; the GRU's sequence buffers (common/gru_sequence.py)
+  and autograd's are written in full before any read, and the fill was ~10% of a MAPPO update at
+  V=60/U=8. Deterministic algorithms stay on.
 """
 
 from __future__ import annotations
@@ -27,12 +32,13 @@ _TRIM_NEVER = 2**31 - 1  # mallopt takes an int
 
 
 def setup_torch_process(threads: int | None) -> None:
-    """Use `threads` intra-op threads in this process (None or 0: leave torch's setting) and keep
-    freed memory for reuse (`retain_freed_memory`)."""
-    retain_freed_memory()
-    if threads:
-        import torch
+    """Use `threads` intra-op threads in this process (None or 0: leave torch's setting), keep
+    freed memory for reuse (`retain_freed_memory`) and leave new tensors unfilled (module docstring)."""
+    import torch.utils.deterministic
 
+    retain_freed_memory()
+    torch.utils.deterministic.fill_uninitialized_memory = False
+    if threads:
         torch.set_num_threads(int(threads))
 
 
