@@ -83,3 +83,22 @@ def test_a_preloaded_allocator_is_left_alone(tmp_path):
     lib = tmp_path / "libshim.so"
     subprocess.run(["cc", "-shared", "-fPIC", "-o", str(lib), str(src)], check=True, capture_output=True)
     assert _probe("retain", _clean_env(LD_PRELOAD=str(lib)))[0] == "False"
+
+
+_FILL_PROBE = """
+import torch
+from uavlora_rllib.algorithms.common.torch_process import setup_torch_process
+torch.use_deterministic_algorithms(True)  # what RLlib's set_torch_seed does
+filled = torch.empty(1 << 12).isnan().all().item()  # the fill's effect (content after it is arbitrary)
+setup_torch_process(1)
+print(filled, torch.utils.deterministic.fill_uninitialized_memory, torch.are_deterministic_algorithms_enabled(),
+      torch.get_num_threads())
+"""
+
+
+def test_new_tensors_stay_unfilled_with_deterministic_algorithms_on():
+    """RLlib's deterministic mode NaN-fills every torch.empty; a trial's process turns only the fill off."""
+    out = subprocess.run(
+        [sys.executable, "-c", _FILL_PROBE], capture_output=True, text=True, check=True, env=_clean_env()
+    )
+    assert out.stdout.split() == ["True", "False", "True", "1"]

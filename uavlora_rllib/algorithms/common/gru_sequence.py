@@ -32,7 +32,7 @@ class _GRUSequence(torch.autograd.Function):
     w_hh [U, 3H, H], b_hh [U, 3H] -> hs [U, T, B, H], the state after each step."""
 
     @staticmethod
-    def forward(ctx, gi, h0, w_hh, b_hh):  # type: ignore[override]
+    def forward(ctx, gi, h0, w_hh, b_hh):
         u, t_len, b, g3 = gi.shape
         hd = g3 // 3
         w_t = w_hh.transpose(1, 2)
@@ -56,7 +56,7 @@ class _GRUSequence(torch.autograd.Function):
 
     @staticmethod
     @once_differentiable
-    def backward(ctx, d_hs):  # type: ignore[override]
+    def backward(ctx, d_hs):
         h0, w_hh, hs, rz, new, gh = ctx.saved_tensors
         u, t_len, b, hd = hs.shape
         h_prev = torch.cat([h0.unsqueeze(1), hs[:, :-1]], 1)  # the state each step started from

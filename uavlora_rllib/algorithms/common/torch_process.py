@@ -37,7 +37,7 @@ def setup_torch_process(threads: int | None) -> None:
     import torch.utils.deterministic
 
     retain_freed_memory()
-    torch.utils.deterministic.fill_uninitialized_memory = False
+    torch.utils.deterministic.fill_uninitialized_memory = False  # type: ignore[attr-defined]  # a module property
     if threads:
         torch.set_num_threads(int(threads))
 
