@@ -189,10 +189,10 @@ class RecurrentAgentNet(nn.Module):
         w_ih, w_hh, b_ih, b_hh = (
             self._stacked(f"gru.{k}_l0") for k in ("weight_ih", "weight_hh", "bias_ih", "bias_hh")
         )
-        z = z.transpose(1, 2).reshape(u, t * b, f)  # time-major rows, as nn.GRU sums its gradients
-        # .float(): under bf16 autocast (learner_precision) the products run in bf16 but the gates and
-        # the carried state stay float32, so rounding does not compound over T (a no-op in float32)
-        gi = torch.baddbmm(b_ih.unsqueeze(1), z, w_ih.transpose(1, 2)).float().view(u, t, b, -1)
-        recurrence = gru_steps if torch.is_autocast_enabled("cpu") else gru_sequence
+        # .to(h.dtype): under bf16 autocast (learner_precision) the products run in bf16 but the gates and
+        # the carried state stay float32, so rounding does not compound over T (a no-op otherwise)
+        gi = torch.baddbmm(b_ih.unsqueeze(1), z.reshape(u, b * t, f), w_ih.transpose(1, 2))
+        gi = gi.to(h.dtype).view(u, b, t, -1)
+        recurrence = gru_steps if torch.is_autocast_enabled(z.device.type) else gru_sequence
         hs = recurrence(gi, h, w_hh, b_hh)
-        return hs.transpose(1, 2), hs[:, -1]
+        return hs, hs[:, :, -1]

@@ -12,11 +12,13 @@ analysis tools that load a checkpoint).
   tuning advice); the process then holds its peak memory (docs/cluster.md#memory). Left to the
   user where they set MALLOC_* or glibc.malloc tunables themselves, or preload another allocator,
   and off other C libraries.
-* torch does not fill new tensors with NaN. RLlib's seeding (`set_torch_seed`) turns on
-  `torch.use_deterministic_algorithms`, which by default also fills every `torch.empty` with NaN
-  so that a read of unwritten memory shows; the GRU's sequence buffers (common/gru_sequence.py)
-  and autograd's are written in full before any read, and the fill was ~10% of a MAPPO update at
-  V=60/U=8. Deterministic algorithms stay on.
+* torch does not fill new memory. RLlib's seeding (`set_torch_seed`) turns on
+  `torch.use_deterministic_algorithms`, which by default also fills all memory torch allocates
+  uninitialised (`torch.empty`, the outputs of ops) with NaN (integers with their maximum), so that
+  a program that reads such memory stays deterministic. Nothing here does
+  (tests/test_gru_sequence.py checks the GRU's buffers with the fill on), and torch's documentation
+  advises turning the fill off for such programs; it is a large share of an update that allocates
+  per-sequence buffers (BENCHMARKS.md#training-cost-vs-u). Deterministic algorithms stay on.
 """
 
 from __future__ import annotations
