@@ -4,7 +4,7 @@
 the losses and their backward) under `torch.autocast`: matrix products take bfloat16 inputs, which
 CPUs with AVX512-BF16 or AMX, and GPUs, multiply several times faster than float32. Everything
 else stays float32: the parameters and the optimiser's state, the GRU's gates and carried state
-(agent_net.py), and every network's output, cast back before a loss reads it, so that
+(gru_sequence.py's `gru_steps`), and every network's output, cast back before a loss reads it, so that
 log-probabilities, PPO ratios and TD errors are not rounded to bfloat16's ~3 significant digits.
 Acting on the env runners is untouched (float32).
 """

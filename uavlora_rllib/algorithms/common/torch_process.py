@@ -17,8 +17,8 @@ analysis tools that load a checkpoint).
   uninitialised (`torch.empty`, the outputs of ops) with NaN (integers with their maximum), so that
   a program that reads such memory stays deterministic. Nothing here does
   (tests/test_gru_sequence.py checks the GRU's buffers with the fill on), and torch's documentation
-  advises turning the fill off for such programs; it is a large share of an update that allocates
-  per-sequence buffers (BENCHMARKS.md#training-cost-vs-u). Deterministic algorithms stay on.
+  advises turning the fill off for such programs: it writes every buffer an update allocates
+  (the GRU's per-sequence ones included) once more before use. Deterministic algorithms stay on.
 """
 
 from __future__ import annotations
