@@ -1,10 +1,11 @@
 """`resources.learner_precision: bfloat16` (docs/model.md#learner-precision).
 
-The networks: under the learner's autocast every network's output comes back float32, close to
-its float32 output (bfloat16 keeps ~3 significant digits of each product's inputs) but not equal
-to it (the products did run in bfloat16). The learners: every built-in algorithm trains one
-iteration with it, its update runs under autocast (and only its update: acting stays float32),
-and its weights move by finite amounts; with float32 nothing runs under autocast.
+The networks: under the learner's precision context every network's output is float32 and close to
+its float32 output (bfloat16 keeps ~3 significant digits of each product's inputs), and differs
+from it where this CPU multiplies in bfloat16 (a probe product tells). The context sets torch's
+float32 product precision and gives the previous one back, also after an error. The learners:
+every built-in algorithm trains with it, its update runs in it (and only its update: acting stays
+float32), and its weights move by finite amounts; with float32 nothing changes the setting.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import torch
 from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.algorithms.common.agent_net import RecurrentAgentNet
 from uavlora_rllib.algorithms.common.per_ed_actor import PerEDActor
-from uavlora_rllib.algorithms.common.precision import autocast_for
+from uavlora_rllib.algorithms.common.precision import matmul_precision
 from uavlora_rllib.algorithms.mappo.mappo_module import Critic
 from uavlora_rllib.algorithms.qmix.branching import BranchingAgentNet
 from uavlora_rllib.algorithms.qmix.qmix_module import QMixer
@@ -55,21 +56,49 @@ def _tensors(out) -> list[torch.Tensor]:
     return [x for x in (out if isinstance(out, tuple) else (out,)) if isinstance(x, torch.Tensor)]
 
 
+def _rounds_in_bfloat16() -> bool:
+    """Does this CPU multiply float32 in bfloat16 under the context? (1 + 2^-10) x 1 loses its 2^-10
+    there. 64 x 64: torch leaves the smallest products (16 x 16 here) in float32."""
+    x = torch.full((64, 64), 1.0 + 2.0**-10)
+    with matmul_precision("bfloat16", CPU):
+        return not torch.equal(x @ torch.eye(64), x)
+
+
+def _reduced() -> bool:
+    return torch.backends.mkldnn.matmul.fp32_precision == "bf16"
+
+
 @pytest.mark.parametrize("name", list(_nets()))
-def test_outputs_are_float32_and_close_under_bfloat16_autocast(name):
+def test_outputs_are_float32_and_close_under_bfloat16(name):
     net, args = _nets()[name]
     reference = _tensors(net(*args))
-    with autocast_for("bfloat16", CPU):
+    with matmul_precision("bfloat16", CPU):
         low = _tensors(net(*args))
-    with autocast_for("float32", CPU):
+    with matmul_precision("float32", CPU):
         same = _tensors(net(*args))
     for ref, x, y in zip(reference, low, same, strict=True):
         assert x.dtype == torch.float32 and y.dtype == torch.float32
-        torch.testing.assert_close(y, ref, rtol=0, atol=0)  # float32: autocast off, the very same numbers
+        torch.testing.assert_close(y, ref, rtol=0, atol=0)  # float32: the very same numbers
         scale = ref.abs().max().item()
         err = (x - ref).abs().max().item()
         assert err <= 0.05 * scale, f"{name}: bfloat16 error {err:.3g} against output scale {scale:.3g}"
-    assert any(not torch.equal(x, ref) for x, ref in zip(low, reference)), f"{name}: autocast did not run in bfloat16"
+    differs = any(not torch.equal(x, ref) for x, ref in zip(low, reference))
+    assert differs == _rounds_in_bfloat16(), f"{name}: the products did not run in this CPU's bfloat16 mode"
+
+
+def test_the_context_sets_the_precision_and_gives_the_previous_one_back():
+    start = torch.backends.mkldnn.matmul.fp32_precision
+    with matmul_precision("float32", CPU):
+        assert torch.backends.mkldnn.matmul.fp32_precision == start
+    with matmul_precision("bfloat16", CPU):
+        assert _reduced()
+        with matmul_precision("bfloat16", CPU):  # nested (COMA's critic-only steps inside an update)
+            assert _reduced()
+        assert _reduced()
+    assert torch.backends.mkldnn.matmul.fp32_precision == start
+    with pytest.raises(RuntimeError, match="inside"), matmul_precision("bfloat16", CPU):
+        raise RuntimeError("inside")
+    assert torch.backends.mkldnn.matmul.fp32_precision == start
 
 
 def test_learner_precision_is_checked_at_the_boundary():
@@ -115,10 +144,8 @@ def test_every_learner_updates_under_its_precision(ray_session, name, precision)
     fields = entry.hparams_cls.__pydantic_fields__
     quick = {k: 2 for k in ("batch_size_episodes", "learning_starts_episodes") if k in fields}  # QMIX/VDN learn at once
     algo = entry.build(TINY, entry.hparams(quick), resources, 0).build_algo()
-    seen: list[bool] = []  # per module forward in this process: was autocast on?
-    hook = torch.nn.modules.module.register_module_forward_hook(
-        lambda *_: seen.append(torch.is_autocast_enabled("cpu"))
-    )
+    seen: list[bool] = []  # per module forward in this process: were float32 products reduced?
+    hook = torch.nn.modules.module.register_module_forward_hook(lambda *_: seen.append(_reduced()))
     try:
         from ray.rllib.core import DEFAULT_MODULE_ID
 
@@ -136,6 +163,7 @@ def test_every_learner_updates_under_its_precision(ray_session, name, precision)
     assert all(np.isfinite(moved)) and max(moved) > 0, f"{name}: the update changed no weight"
     assert not seen[0], "acting (the first forward of an iteration) must stay float32"
     assert any(seen) == (precision == "bfloat16")
+    assert not _reduced(), "the update must give the process its float32 products back"
 
 
 @pytest.mark.parametrize("precision", ["bfloat16", "float32"])
@@ -163,42 +191,9 @@ def test_comas_critic_only_steps_run_under_the_trials_precision(precision):
         GLOBAL_STATE: gen.standard_normal((2, 6, state_dim), dtype=np.float32),
     }
     seen: list[bool] = []
-    hook = torch.nn.modules.module.register_module_forward_hook(
-        lambda *_: seen.append(torch.is_autocast_enabled("cpu"))
-    )
+    hook = torch.nn.modules.module.register_module_forward_hook(lambda *_: seen.append(_reduced()))
     try:
         learner.train_critic(MultiAgentBatch({DEFAULT_MODULE_ID: SampleBatch(columns)}, 10))
     finally:
         hook.remove()
     assert seen and all(x == (precision == "bfloat16") for x in seen)
-
-
-@pytest.mark.parametrize("name", registry.built_in())
-def test_the_next_forward_reads_the_stepped_weights(name):
-    """autocast keeps one bfloat16 copy of each weight for its whole region, and an update steps its
-    optimisers several times inside one (minibatches and epochs, COMA's critic-only steps): after the
-    learner's apply_gradients, a product with a stepped weight equals the one a fresh region computes."""
-    from ray.rllib.core import DEFAULT_MODULE_ID
-
-    from uavlora_rllib.envs.team import team_action_space, team_observation_space
-
-    entry = registry.get(name)
-    scenario = ScenarioConfig(n_eds=4, n_uavs=2, episode_len=5)
-    config = entry.algorithm_config(scenario, entry.hparams({}), registry.Resources(learner_precision="bfloat16"), 0)
-    spaces = {DEFAULT_MODULE_ID: (team_observation_space(scenario), team_action_space(scenario))}
-    learner = config.build_learner(env=None, spaces=spaces)
-    optimizers = [opt for _, opt in learner.get_optimizers_for_module(DEFAULT_MODULE_ID)]
-    params = [p for opt in optimizers for group in opt.param_groups for p in group["params"]]
-    for opt in optimizers:
-        for group in opt.param_groups:
-            group["lr"] = 0.5  # a step that moves the weights' bfloat16 values
-    weight = next(p for p in params if p.dim() == 2)
-    x = torch.randn(3, weight.shape[1])
-    with learner.precision():
-        before = torch.nn.functional.linear(x, weight)
-        learner.apply_gradients({learner.get_param_ref(p): torch.ones_like(p) for p in params})
-        after = torch.nn.functional.linear(x, weight)
-    with learner.precision():
-        fresh = torch.nn.functional.linear(x, weight)
-    assert not torch.equal(before, after)
-    torch.testing.assert_close(after, fresh, rtol=0, atol=0)
