@@ -285,6 +285,7 @@ def test_bench_versions_script_checks_its_arguments(bench_inputs):
         ([out, f"a={tmp}"], py, "NAME=CHECKOUT: a="),  # a folder that is not a checkout of the project
         ([str(tmp), f"a={old}"], py, f"OUT.jsonl: cannot append to {tmp}"),
         ([out, f"a={old}"], str(tmp / "no_python"), "no python at"),
+        ([out, f"a={old}@fp16"], py, "NAME=CHECKOUT@PRECISION: fp16 is not bfloat16"),
     ]
     for args, python, needle in cases:
         proc = _bench("bench_versions.sh", args, python)
@@ -311,3 +312,24 @@ def test_bench_versions_script_interleaves_and_reverses(bench_inputs, monkeypatc
         (2, "qmix", "new"),
     ]
     assert all(r["res"] == {"env_steps_per_s": 1.0} and r["commit"] == "none" for r in rows)
+
+
+def test_bench_versions_script_passes_a_checkouts_precision(bench_inputs, monkeypatch):
+    tmp, old = bench_inputs["tmp"], bench_inputs["old"]
+    stub = tmp / "precision_python"  # reports whether bench_train was asked for bfloat16
+    stub.write_text(
+        '#!/bin/sh\ncase "$*" in *"--learner-precision bfloat16"*) b=true;; *) b=false;; esac\n'
+        'echo "{\\"env_steps_per_s\\": 1.0, \\"bf16\\": $b}"\n'
+    )
+    stub.chmod(0o755)
+    out = tmp / "out.jsonl"
+    monkeypatch.setenv("CASES", "mappo 8 per_uav")
+    proc = _bench("bench_versions.sh", [str(out), f"f32={old}", f"bf16={old}@bfloat16"], str(stub))
+    assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+    rows = [json.loads(line) for line in out.read_text().splitlines()]
+    assert [(r["ver"], r["precision"], r["res"]["bf16"]) for r in rows] == [
+        ("f32", "float32", False),
+        ("bf16", "bfloat16", True),
+        ("bf16", "bfloat16", True),
+        ("f32", "float32", False),
+    ]

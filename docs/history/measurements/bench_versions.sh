@@ -5,6 +5,8 @@
 #   git worktree add /tmp/wt6f 6f5d51a; git worktree add /tmp/wtprev PREV
 #   PY=$(pwd)/.venv/bin/python bash docs/history/measurements/bench_versions.sh out.jsonl old=/tmp/wt6f prev=/tmp/wtprev new=.
 #
+# NAME=CHECKOUT@bfloat16 runs that checkout with --learner-precision bfloat16 (the row's "precision").
+#
 # CASES (env, optional): "algo U mode" triples separated by commas; a case skips a checkout named old for
 # qmix/vdn per_device (6f5d51a has no per_device form of them).
 . "$(dirname "$0")/bench_checks.sh"  # NAME, HERE, bench_fail, bench_python (PY), bench_out
@@ -12,16 +14,19 @@
 OUT=$1; shift
 bench_python
 for spec in "$@"; do
-  dir=${spec#*=}
+  dir=${spec#*=} precision=float32
+  [[ $dir == *@* ]] && precision=${dir##*@} dir=${dir%@*}
   [ "$dir" != "$spec" ] && [ -d "$dir/uavlora_rllib" ] || bench_fail "NAME=CHECKOUT: $spec is not NAME=a checkout of this project"
+  [ "$precision" = float32 ] || [ "$precision" = bfloat16 ] || bench_fail "NAME=CHECKOUT@PRECISION: $precision is not bfloat16"
 done
 bench_out "$OUT"
 CASES=${CASES:-"mappo 8 per_device,qmix 8 per_device,mappo 8 per_uav,qmix 8 per_uav,mappo 2 per_device,qmix 2 per_uav"}
-run() { # name dir algo U mode round
-  local line
-  line=$(cd "$2" && "$PY" -m uavlora_rllib.bench_train "$3" --n-eds 60 --n-uavs "$4" --iterations 3 --torch-threads 1 \
-    --action-mode "$5" --json 2>/dev/null | grep '^{' | tail -1)
-  echo "{\"ver\":\"$1\",\"commit\":\"$(git -C "$2" rev-parse --short HEAD 2>/dev/null || echo none)\",\"algo\":\"$3\",\"U\":$4,\"mode\":\"$5\",\"round\":$6,\"load\":\"$(cut -d' ' -f1 /proc/loadavg)\",\"res\":${line:-null}}" >>"$OUT"
+run() { # name dir[@precision] algo U mode round
+  local line dir=${2%@*} precision=float32 extra=()
+  [[ $2 == *@* ]] && precision=${2##*@} && extra=(--learner-precision "$precision")
+  line=$(cd "$dir" && "$PY" -m uavlora_rllib.bench_train "$3" --n-eds 60 --n-uavs "$4" --iterations 3 --torch-threads 1 \
+    --action-mode "$5" "${extra[@]}" --json 2>/dev/null | grep '^{' | tail -1)
+  echo "{\"ver\":\"$1\",\"commit\":\"$(git -C "$dir" rev-parse --short HEAD 2>/dev/null || echo none)\",\"precision\":\"$precision\",\"algo\":\"$3\",\"U\":$4,\"mode\":\"$5\",\"round\":$6,\"load\":\"$(cut -d' ' -f1 /proc/loadavg)\",\"res\":${line:-null}}" >>"$OUT"
 }
 IFS=, read -ra cases <<<"$CASES"
 forward=("$@") backward=()
