@@ -324,7 +324,7 @@ def test_bench_versions_script_passes_a_checkouts_precision(bench_inputs, monkey
     stub.chmod(0o755)
     out = tmp / "out.jsonl"
     monkeypatch.setenv("CASES", "mappo 8 per_uav")
-    proc = _bench("bench_versions.sh", [str(out), f"f32={old}", f"bf16={old}@bfloat16"], str(stub))
+    proc = _bench("bench_versions.sh", [str(out), f"f32={old}@float32", f"bf16={old}@bfloat16"], str(stub))
     assert proc.returncode == 0 and proc.stderr == "", proc.stderr
     rows = [json.loads(line) for line in out.read_text().splitlines()]
     assert [(r["ver"], r["precision"], r["res"]["bf16"]) for r in rows] == [

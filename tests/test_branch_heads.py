@@ -8,7 +8,6 @@ import pytest
 import torch
 
 from uavlora_rllib.algorithms.common.branch_heads import BranchHeads
-from uavlora_rllib.algorithms.common.precision import matmul_precision
 
 B, T, U, K, IN_X, IN_R, HID, OUT = 3, 4, 3, 5, 8, 4, 16, 7
 
@@ -63,11 +62,10 @@ def test_slot_ids_need_one_head_for_all_branches():
 
 
 @pytest.mark.parametrize("form", ["shared_with_slot_ids", "per_branch"])
-def test_under_bfloat16_the_output_and_its_bias_stay_float32(form):
-    """The products round their inputs to bfloat16 (learner_precision) but the last layer's bias is
-    added in float32: the differences between a branch's outputs (what an argmax, a log-softmax or a
-    dueling mean reads) keep their float32 accuracy even when a large bias would round them to
-    bfloat16's spacing (0.125 at 30)."""
+def test_under_bfloat16_autocast_the_output_and_its_bias_stay_float32(form):
+    """The products run in bfloat16 but the last layer's bias is added in float32: the differences
+    between a branch's outputs (what an argmax, a log-softmax or a dueling mean reads) keep their
+    float32 accuracy even when a large bias would round them to bfloat16's spacing (0.125 at 30)."""
     torch.manual_seed(1)
     per_branch = form == "per_branch"
     heads = BranchHeads(U, K if per_branch else 1, IN_X, IN_R, HID, OUT, 0 if per_branch else K)
@@ -75,7 +73,7 @@ def test_under_bfloat16_the_output_and_its_bias_stay_float32(form):
         heads.b2 += 30.0
     x, r = torch.randn(B, T, U, IN_X), torch.randn(B, T, U, K, IN_R)
     want = heads(x, r, K)
-    with matmul_precision("bfloat16", torch.device("cpu")):
+    with torch.autocast("cpu", dtype=torch.bfloat16):
         got = heads(x, r, K)
     assert got.dtype == torch.float32
     centred = [y - y.mean(-1, keepdim=True) for y in (got, want)]

@@ -1,11 +1,12 @@
-"""`resources.learner_precision: bfloat16` (docs/model.md#learner-precision).
+"""`resources.learner_precision: bfloat16` (docs/model.md#learner-precision), by both of its routes.
 
-The networks: under the learner's precision context every network's output is float32 and close to
-its float32 output (bfloat16 keeps ~3 significant digits of each product's inputs), and differs
-from it where this CPU multiplies in bfloat16 (a probe product tells). The context sets torch's
-float32 product precision and gives the previous one back, also after an error. The learners:
-every built-in algorithm trains with it, its update runs in it (and only its update: acting stays
-float32), and its weights move by finite amounts; with float32 nothing changes the setting.
+The networks: under either route every network's output comes back float32, close to its float32
+output (bfloat16 keeps ~3 significant digits of each product's inputs) but not equal to it where
+the products did run in bfloat16 (always under autocast; under oneDNN's route where this CPU's
+oneDNN rounds, which a probe product tells). The routes: the probe decides the CPU's, the oneDNN
+setting comes back after its context (also after an error). The learners: every built-in
+algorithm trains with it by each route, its update runs in it (and only its update: acting stays
+float32), and its weights move by finite amounts; with float32 nothing changes.
 """
 
 from __future__ import annotations
@@ -14,10 +15,11 @@ import numpy as np
 import pytest
 import torch
 
+from uavlora_rllib.algorithms.common import precision as precision_module
 from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.algorithms.common.agent_net import RecurrentAgentNet
 from uavlora_rllib.algorithms.common.per_ed_actor import PerEDActor
-from uavlora_rllib.algorithms.common.precision import matmul_precision
+from uavlora_rllib.algorithms.common.precision import autocast_for, onednn_bfloat16, onednn_rounds_in_bfloat16
 from uavlora_rllib.algorithms.mappo.mappo_module import Critic
 from uavlora_rllib.algorithms.qmix.branching import BranchingAgentNet
 from uavlora_rllib.algorithms.qmix.qmix_module import QMixer
@@ -56,49 +58,76 @@ def _tensors(out) -> list[torch.Tensor]:
     return [x for x in (out if isinstance(out, tuple) else (out,)) if isinstance(x, torch.Tensor)]
 
 
-def _rounds_in_bfloat16() -> bool:
-    """Does this CPU multiply float32 in bfloat16 under the context? (1 + 2^-10) x 1 loses its 2^-10
-    there. 64 x 64: torch leaves the smallest products (16 x 16 here) in float32."""
-    x = torch.full((64, 64), 1.0 + 2.0**-10)
-    with matmul_precision("bfloat16", CPU):
-        return not torch.equal(x @ torch.eye(64), x)
-
-
-def _reduced() -> bool:
-    return torch.backends.mkldnn.matmul.fp32_precision == "bf16"
-
-
 @pytest.mark.parametrize("name", list(_nets()))
-def test_outputs_are_float32_and_close_under_bfloat16(name):
+def test_outputs_are_float32_and_close_under_bfloat16_autocast(name):
     net, args = _nets()[name]
     reference = _tensors(net(*args))
-    with matmul_precision("bfloat16", CPU):
+    with autocast_for("bfloat16", CPU):
         low = _tensors(net(*args))
-    with matmul_precision("float32", CPU):
+    with autocast_for("float32", CPU):
         same = _tensors(net(*args))
     for ref, x, y in zip(reference, low, same, strict=True):
         assert x.dtype == torch.float32 and y.dtype == torch.float32
-        torch.testing.assert_close(y, ref, rtol=0, atol=0)  # float32: the very same numbers
-        scale = ref.abs().max().item()
-        err = (x - ref).abs().max().item()
-        assert err <= 0.05 * scale, f"{name}: bfloat16 error {err:.3g} against output scale {scale:.3g}"
-    differs = any(not torch.equal(x, ref) for x, ref in zip(low, reference))
-    assert differs == _rounds_in_bfloat16(), f"{name}: the products did not run in this CPU's bfloat16 mode"
+        torch.testing.assert_close(y, ref, rtol=0, atol=0)  # float32: autocast off, the very same numbers
+        _assert_within_bfloat16(name, x, ref)
+    assert any(not torch.equal(x, ref) for x, ref in zip(low, reference)), f"{name}: autocast did not run in bfloat16"
 
 
-def test_the_context_sets_the_precision_and_gives_the_previous_one_back():
+@pytest.mark.parametrize("name", list(_nets()))
+def test_outputs_are_float32_and_close_under_onednn_bfloat16(name):
+    net, args = _nets()[name]
+    reference = _tensors(net(*args))
+    with onednn_bfloat16():
+        low = _tensors(net(*args))
+    for ref, x in zip(reference, low, strict=True):
+        assert x.dtype == torch.float32
+        _assert_within_bfloat16(name, x, ref)
+        if not onednn_rounds_in_bfloat16():  # oneDNN's float32 kernels instead of MKL's: float32's own digits
+            torch.testing.assert_close(x, ref, rtol=1e-5, atol=1e-5 * ref.abs().max().item())
+    if onednn_rounds_in_bfloat16():
+        assert any(not torch.equal(x, ref) for x, ref in zip(low, reference)), f"{name}: no product rounded"
+
+
+def _assert_within_bfloat16(name: str, x: torch.Tensor, ref: torch.Tensor) -> None:
+    scale = ref.abs().max().item()
+    err = (x - ref).abs().max().item()
+    assert err <= 0.05 * scale, f"{name}: bfloat16 error {err:.3g} against output scale {scale:.3g}"
+
+
+def test_the_onednn_setting_comes_back_after_its_context():
     start = torch.backends.mkldnn.matmul.fp32_precision
-    with matmul_precision("float32", CPU):
-        assert torch.backends.mkldnn.matmul.fp32_precision == start
-    with matmul_precision("bfloat16", CPU):
-        assert _reduced()
-        with matmul_precision("bfloat16", CPU):  # nested (COMA's critic-only steps inside an update)
-            assert _reduced()
-        assert _reduced()
+    with onednn_bfloat16():
+        assert _onednn_on()
+        with onednn_bfloat16():
+            assert _onednn_on()
+        assert _onednn_on()  # an inner context gives back what it found
     assert torch.backends.mkldnn.matmul.fp32_precision == start
-    with pytest.raises(RuntimeError, match="inside"), matmul_precision("bfloat16", CPU):
+    with pytest.raises(RuntimeError, match="inside"), onednn_bfloat16():
         raise RuntimeError("inside")
     assert torch.backends.mkldnn.matmul.fp32_precision == start
+
+
+def test_the_route_follows_the_probe():
+    """A CPU whose oneDNN rounds takes the oneDNN route, any other CPU and a GPU autocast; float32 takes none."""
+    assert precision_module.bfloat16_route(CPU) == ("onednn" if onednn_rounds_in_bfloat16() else "autocast")
+    assert precision_module.bfloat16_route(torch.device("cuda")) == "autocast"
+    with precision_module.precision_context("float32", CPU):
+        assert not _onednn_on() and not torch.is_autocast_enabled("cpu")
+    with precision_module.precision_context("bfloat16", CPU):
+        assert _onednn_on() != torch.is_autocast_enabled("cpu")  # exactly one route
+    assert not _onednn_on() and not torch.is_autocast_enabled("cpu")
+
+
+def _onednn_on() -> bool:
+    return torch.backends.mkldnn.matmul.fp32_precision == "bf16"
+
+
+def _bfloat16_on() -> bool:
+    """Does this moment's code run in bfloat16 by either route?"""
+    return torch.is_autocast_enabled("cpu") or _onednn_on()
+
+
+ROUTES = [("bfloat16", "onednn"), ("bfloat16", "autocast"), ("float32", None)]
 
 
 def test_learner_precision_is_checked_at_the_boundary():
@@ -136,16 +165,17 @@ def test_a_learner_without_precision_is_refused_bfloat16():
 TINY = ScenarioConfig(n_eds=10, n_uavs=2, episode_len=10, action_mode="per_device")
 
 
-@pytest.mark.parametrize("precision", ["bfloat16", "float32"])
+@pytest.mark.parametrize(("precision", "route"), ROUTES)
 @pytest.mark.parametrize("name", registry.built_in())  # UavLoraLearners all (test plugins are not)
-def test_every_learner_updates_under_its_precision(ray_session, name, precision):
+def test_every_learner_updates_under_its_precision(ray_session, monkeypatch, name, precision, route):
+    monkeypatch.setattr(precision_module, "bfloat16_route", lambda device: route)  # the learner learns here
     entry = registry.get(name)
     resources = registry.Resources(num_envs_per_env_runner=4, learner_precision=precision)
     fields = entry.hparams_cls.__pydantic_fields__
     quick = {k: 2 for k in ("batch_size_episodes", "learning_starts_episodes") if k in fields}  # QMIX/VDN learn at once
     algo = entry.build(TINY, entry.hparams(quick), resources, 0).build_algo()
-    seen: list[bool] = []  # per module forward in this process: were float32 products reduced?
-    hook = torch.nn.modules.module.register_module_forward_hook(lambda *_: seen.append(_reduced()))
+    seen: list[bool] = []  # per module forward in this process: did it run in bfloat16?
+    hook = torch.nn.modules.module.register_module_forward_hook(lambda *_: seen.append(_bfloat16_on()))
     try:
         from ray.rllib.core import DEFAULT_MODULE_ID
 
@@ -163,11 +193,11 @@ def test_every_learner_updates_under_its_precision(ray_session, name, precision)
     assert all(np.isfinite(moved)) and max(moved) > 0, f"{name}: the update changed no weight"
     assert not seen[0], "acting (the first forward of an iteration) must stay float32"
     assert any(seen) == (precision == "bfloat16")
-    assert not _reduced(), "the update must give the process its float32 products back"
+    assert not _bfloat16_on(), "the update must give the process its float32 products back"
 
 
-@pytest.mark.parametrize("precision", ["bfloat16", "float32"])
-def test_comas_critic_only_steps_run_under_the_trials_precision(precision):
+@pytest.mark.parametrize(("precision", "route"), ROUTES)
+def test_comas_critic_only_steps_run_under_the_trials_precision(monkeypatch, precision, route):
     """COMA's critic-only steps (COMATorchLearner.train_critic, outside RLlib's update) run every forward
     under the trial's learner_precision, as its joint step does."""
     from ray.rllib.core import DEFAULT_MODULE_ID
@@ -176,6 +206,7 @@ def test_comas_critic_only_steps_run_under_the_trials_precision(precision):
     from uavlora_rllib.algorithms.common.columns import GLOBAL_STATE
     from uavlora_rllib.envs.team import team_action_space, team_observation_space
 
+    monkeypatch.setattr(precision_module, "bfloat16_route", lambda device: route)
     scenario = ScenarioConfig(n_eds=4, n_uavs=2, episode_len=5)
     entry = registry.get("coma")
     hparams = entry.hparams({"actor_hidden": 16, "gru_hidden": 8, "critic_hidden": [32], "critic_steps": 2})
@@ -191,9 +222,41 @@ def test_comas_critic_only_steps_run_under_the_trials_precision(precision):
         GLOBAL_STATE: gen.standard_normal((2, 6, state_dim), dtype=np.float32),
     }
     seen: list[bool] = []
-    hook = torch.nn.modules.module.register_module_forward_hook(lambda *_: seen.append(_reduced()))
+    hook = torch.nn.modules.module.register_module_forward_hook(lambda *_: seen.append(_bfloat16_on()))
     try:
         learner.train_critic(MultiAgentBatch({DEFAULT_MODULE_ID: SampleBatch(columns)}, 10))
     finally:
         hook.remove()
     assert seen and all(x == (precision == "bfloat16") for x in seen)
+
+
+@pytest.mark.parametrize("name", registry.built_in())
+def test_the_next_forward_reads_the_stepped_weights(monkeypatch, name):
+    """autocast keeps one bfloat16 copy of each weight for its whole region, and an update steps its
+    optimisers several times inside one (minibatches and epochs, COMA's critic-only steps): after the
+    learner's apply_gradients, a product with a stepped weight equals the one a fresh region computes."""
+    from ray.rllib.core import DEFAULT_MODULE_ID
+
+    from uavlora_rllib.envs.team import team_action_space, team_observation_space
+
+    monkeypatch.setattr(precision_module, "bfloat16_route", lambda device: "autocast")  # the route with the copies
+    entry = registry.get(name)
+    scenario = ScenarioConfig(n_eds=4, n_uavs=2, episode_len=5)
+    config = entry.algorithm_config(scenario, entry.hparams({}), registry.Resources(learner_precision="bfloat16"), 0)
+    spaces = {DEFAULT_MODULE_ID: (team_observation_space(scenario), team_action_space(scenario))}
+    learner = config.build_learner(env=None, spaces=spaces)
+    optimizers = [opt for _, opt in learner.get_optimizers_for_module(DEFAULT_MODULE_ID)]
+    params = [p for opt in optimizers for group in opt.param_groups for p in group["params"]]
+    for opt in optimizers:
+        for group in opt.param_groups:
+            group["lr"] = 0.5  # a step that moves the weights' bfloat16 values
+    weight = next(p for p in params if p.dim() == 2)
+    x = torch.randn(3, weight.shape[1])
+    with learner.precision():
+        before = torch.nn.functional.linear(x, weight)
+        learner.apply_gradients({learner.get_param_ref(p): torch.ones_like(p) for p in params})
+        after = torch.nn.functional.linear(x, weight)
+    with learner.precision():
+        fresh = torch.nn.functional.linear(x, weight)
+    assert not torch.equal(before, after)
+    torch.testing.assert_close(after, fresh, rtol=0, atol=0)

@@ -5,7 +5,8 @@
 #   git worktree add /tmp/wt6f 6f5d51a; git worktree add /tmp/wtprev PREV
 #   PY=$(pwd)/.venv/bin/python bash docs/history/measurements/bench_versions.sh out.jsonl old=/tmp/wt6f prev=/tmp/wtprev new=.
 #
-# NAME=CHECKOUT@bfloat16 runs that checkout with --learner-precision bfloat16 (the row's "precision").
+# NAME=CHECKOUT@bfloat16 runs that checkout with --learner-precision bfloat16 (the row's "precision"; @float32 and
+# no suffix run it without the flag).
 #
 # CASES (env, optional): "algo U mode" triples separated by commas; a case skips a checkout named old for
 # qmix/vdn per_device (6f5d51a has no per_device form of them).
@@ -22,10 +23,12 @@ done
 bench_out "$OUT"
 CASES=${CASES:-"mappo 8 per_device,qmix 8 per_device,mappo 8 per_uav,qmix 8 per_uav,mappo 2 per_device,qmix 2 per_uav"}
 run() { # name dir[@precision] algo U mode round
-  local line dir=${2%@*} precision=float32 extra=()
-  [[ $2 == *@* ]] && precision=${2##*@} && extra=(--learner-precision "$precision")
+  local line dir=${2%@*} precision=float32 extra=""
+  [[ $2 == *@* ]] && precision=${2##*@}
+  # the flag only where asked: checkouts from before it (6f5d51a) run float32 without it
+  [ "$precision" = bfloat16 ] && extra="--learner-precision bfloat16"
   line=$(cd "$dir" && "$PY" -m uavlora_rllib.bench_train "$3" --n-eds 60 --n-uavs "$4" --iterations 3 --torch-threads 1 \
-    --action-mode "$5" "${extra[@]}" --json 2>/dev/null | grep '^{' | tail -1)
+    --action-mode "$5" $extra --json 2>/dev/null | grep '^{' | tail -1)
   echo "{\"ver\":\"$1\",\"commit\":\"$(git -C "$dir" rev-parse --short HEAD 2>/dev/null || echo none)\",\"precision\":\"$precision\",\"algo\":\"$3\",\"U\":$4,\"mode\":\"$5\",\"round\":$6,\"load\":\"$(cut -d' ' -f1 /proc/loadavg)\",\"res\":${line:-null}}" >>"$OUT"
 }
 IFS=, read -ra cases <<<"$CASES"

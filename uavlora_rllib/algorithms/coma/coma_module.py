@@ -442,7 +442,8 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
     ) -> torch.Tensor:
         """Q [..., U, A] (per_uav) or [..., U, L, W] (per_device) of the critic `net` (or its target);
         per_device with `rows` (flat u L + l, [K]): those rows only, [..., K, W]."""
-        return self._critic_q(net, state, obs, actions, rows)
+        q = self._critic_q(net, state, obs, actions, rows)
+        return q.float()  # float32 under autocast too (common/precision.py)
 
     def _critic_q(
         self, net: nn.Module, state: torch.Tensor, obs: torch.Tensor, actions: torch.Tensor, rows: torch.Tensor | None
@@ -531,7 +532,7 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
         unrolling the GRU again. Taken once; a forward_train on other observations, without
         gradient or after an in-place change of the actor's parameters (their version counters: a
         change through `.data` is not seen) computes its own. Both calls must run under the same
-        matmul precision: the learner runs each under the trial's precision."""
+        autocast setting: the learner runs each under the trial's precision."""
         self._kept_logits = (obs, logits, self._actor_versions())
 
     def _actor_versions(self) -> tuple[int, ...]:

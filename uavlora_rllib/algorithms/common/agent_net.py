@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from uavlora_rllib.algorithms.common.gru_sequence import gru_sequence
+from uavlora_rllib.algorithms.common.gru_sequence import gru_sequence, gru_steps
 
 
 class _AgentStack(nn.Module):
@@ -156,7 +156,7 @@ class RecurrentAgentNet(nn.Module):
             own = torch.einsum("buth,uho->buto", feat, self.agent_out).reshape(b * u, t, -1)
             out = net.out[-1](feat.reshape(b * u, t, -1)) + own
         out = out.reshape(b, u, t, self.n_out).permute(0, 2, 1, 3)
-        return out, h_out.reshape(b, u, self.gru_hidden)
+        return out.float(), h_out.reshape(b, u, self.gru_hidden)  # float32 under autocast too (common/precision.py)
 
     def _stacked(self, name: str) -> torch.Tensor:
         """The stacked [U, ...] parameter of the per-agent parameter `name` (share=False)."""
@@ -178,7 +178,7 @@ class RecurrentAgentNet(nn.Module):
             y = self._linear(y, f"out.{2 * k}")
             if k < self.n_out_layers - 1:
                 y = torch.relu(y)
-        out = y.reshape(u, b, t, self.n_out).permute(1, 2, 0, 3)
+        out = y.reshape(u, b, t, self.n_out).permute(1, 2, 0, 3).float()  # float32 under autocast too
         return out, h_out.transpose(0, 1).contiguous()
 
     def _gru(self, z: torch.Tensor, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -189,6 +189,10 @@ class RecurrentAgentNet(nn.Module):
         w_ih, w_hh, b_ih, b_hh = (
             self._stacked(f"gru.{k}_l0") for k in ("weight_ih", "weight_hh", "bias_ih", "bias_hh")
         )
-        gi = torch.baddbmm(b_ih.unsqueeze(1), z.reshape(u, b * t, f), w_ih.transpose(1, 2)).view(u, b, t, -1)
-        hs = gru_sequence(gi, h, w_hh, b_hh)
+        # .to(h.dtype): under bf16 autocast (learner_precision) the products run in bf16 but the gates and
+        # the carried state stay float32, so rounding does not compound over T (a no-op otherwise)
+        gi = torch.baddbmm(b_ih.unsqueeze(1), z.reshape(u, b * t, f), w_ih.transpose(1, 2))
+        gi = gi.to(h.dtype).view(u, b, t, -1)
+        recurrence = gru_steps if torch.is_autocast_enabled(z.device.type) else gru_sequence
+        hs = recurrence(gi, h, w_hh, b_hh)
         return hs, hs[:, :, -1]

@@ -32,7 +32,7 @@ class BranchHeads(nn.Module):
     rows' product added in the same call and the ReLU then in place (a per-ED head's hidden layer
     is K times the GRU's: passes over memory, not products, are what it costs;
     docs/model.md#mappo-and-ippo-per-device). The last layer's bias is added after its product,
-    so under learner_precision bfloat16 it keeps float32 precision (common/precision.py)."""
+    so under learner_precision bfloat16's autocast route the output is float32 (common/precision.py)."""
 
     def __init__(self, groups: int, branches: int, in_x: int, in_r: int, hidden: int, n_out: int, slot_ids: int = 0):
         super().__init__()

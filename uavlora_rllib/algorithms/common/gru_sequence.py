@@ -14,10 +14,12 @@ in two implementations of the same function (tests/test_gru_sequence.py):
   adds it into a running sum: T thin products and T sums of a weight-sized tensor, work that
   reads and writes memory more than it computes.
 
-`RecurrentAgentNet` runs `gru_sequence`; `gru_steps` is the reference the tests compare it with.
-`gru_sequence` runs outside any autocast region a caller may open (the package opens none), forward
-and backward: its buffers take the inputs' dtype, which autocast's bfloat16 products would not
-match, and a gradient rounded to bfloat16 at every step would compound over T.
+`RecurrentAgentNet` runs `gru_sequence`, and `gru_steps` under autocast on the inputs' device
+(learner_precision bfloat16's autocast route, common/precision.py): there autocast casts each
+step's product to bfloat16 while the gates stay float32. `gru_sequence` itself runs outside
+autocast, forward and backward, so a gradient is never rounded to bfloat16 step after step. Under
+the oneDNN route its products round their inputs and return float32, like every product of the
+update: the carried state and its gradient stay float32.
 
 Layout: batch-major, [U, B, T, .] (agent, sequence, step), the rows of the agent network's other
 layers, so no transpose is copied on the way in or out.
@@ -104,12 +106,13 @@ def gru_sequence(gi: torch.Tensor, h0: torch.Tensor, w_hh: torch.Tensor, b_hh: t
 
 def gru_steps(gi: torch.Tensor, h0: torch.Tensor, w_hh: torch.Tensor, b_hh: torch.Tensor) -> torch.Tensor:
     """`gru_sequence` as a loop of tensor operations that autograd differentiates, in nn.GRU's
-    operation order."""
+    operation order. Each step's product is cast to the state's dtype: under autocast the product
+    runs in bfloat16 and the gates and the carried state stay float32."""
     w_hh_t, bias = w_hh.transpose(1, 2), b_hh.unsqueeze(1)
     h, hs = h0, []
     for g in gi.unbind(2):  # unbind: one backward node for all steps
         i_r, i_z, i_n = g.chunk(3, -1)
-        h_r, h_z, h_n = torch.baddbmm(bias, h, w_hh_t).chunk(3, -1)
+        h_r, h_z, h_n = torch.baddbmm(bias, h, w_hh_t).to(h.dtype).chunk(3, -1)
         r = torch.sigmoid(i_r + h_r)
         z = torch.sigmoid(i_z + h_z)
         n = torch.tanh(i_n + r * h_n)

@@ -1,7 +1,9 @@
 """The package's TorchLearner, the base of every built-in learner (docs/model.md#the-learner).
 
 * Each update runs in the trial's number format, `resources.learner_precision`
-  (common/precision.py, docs/model.md#learner-precision).
+  (common/precision.py, docs/model.md#learner-precision); under its autocast route every optimiser
+  step drops autocast's bfloat16 copies of the weights, so that the update's next forward reads the
+  stepped ones.
 * `register_adam` builds every network's Adam one way: torch's fused implementation (on the CPU
   torch otherwise loops over the parameters, several small operations each). A checkpoint
   restores an optimiser's param groups with their flags, so `set_state` makes them fused again.
@@ -24,7 +26,7 @@ from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 from ray.rllib.utils.annotations import override
 from ray.rllib.utils.typing import LearningRateOrSchedule, ParamDict, StateDict
 
-from uavlora_rllib.algorithms.common.precision import matmul_precision
+from uavlora_rllib.algorithms.common.precision import precision_context
 
 
 def surely_finite(tensors: Sequence[torch.Tensor]) -> bool:
@@ -44,9 +46,10 @@ class UavLoraLearner(TorchLearner):
             return super().update(*args, **kwargs)
 
     def precision(self) -> contextlib.AbstractContextManager[None]:
-        """The trial's `learner_precision` as a context: every forward and backward of an update runs
-        in it (update; a learner's own extra steps, such as COMA's critic-only ones, too)."""
-        return matmul_precision(self.config.model_config["learner_precision"], torch.device(self.device))
+        """The trial's `learner_precision` as a context (common/precision.py's route for the learner's
+        device): every forward and backward of an update runs in it (update; a learner's own extra
+        steps, such as COMA's critic-only ones, too)."""
+        return precision_context(self.config.model_config["learner_precision"], torch.device(self.device))
 
     def register_adam(
         self,
@@ -84,6 +87,14 @@ class UavLoraLearner(TorchLearner):
 
     @override(TorchLearner)
     def apply_gradients(self, gradients_dict: ParamDict) -> None:
+        self._step_optimizers(gradients_dict)
+        # autocast keeps one bfloat16 copy of each weight until its outermost region ends, and one
+        # update steps several times inside it (RLlib's loop over minibatches and epochs, COMA's
+        # critic-only steps): drop the copies, or the next forward would read the weights before this step
+        if torch.is_autocast_enabled(torch.device(self.device).type):
+            torch.clear_autocast_cache()
+
+    def _step_optimizers(self, gradients_dict: ParamDict) -> None:
         grads = list(gradients_dict.values())
         # RLlib's method steps every optimiser unchanged when each gradient it is given is finite and
         # each parameter it is not given has no gradient (its per-optimiser test reads those too); a

@@ -82,7 +82,8 @@ class PerEDActor(nn.Module):
         f = torch.relu(f)
         slot_logits = self.slot_heads(f, slot_rows(obs, self.quota), self.quota)  # [B, T, U, K, n_sf + n_tp]
         bw_logits = self.bw_head(f).squeeze(-2)  # [B, T, U, n_bw]
-        return torch.cat((slot_logits.flatten(-2), bw_logits), dim=-1), h_out
+        # float32 under autocast too (common/precision.py)
+        return torch.cat((slot_logits.flatten(-2), bw_logits), dim=-1).float(), h_out
 
 
 def make_actor(

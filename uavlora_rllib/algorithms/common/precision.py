@@ -1,42 +1,68 @@
 """The learner's number format (`Resources.learner_precision`, docs/model.md#learner-precision).
 
-`bfloat16` lowers the internal precision of the float32 matrix products of every training update
-(the learner connectors' value passes, the forward passes, the losses and their backward): each
-product rounds its inputs to bfloat16 (~3 significant digits) and accumulates in float32, which
-CPUs with AMX or AVX512-BF16 multiply several times faster than float32 (torch's oneDNN backend;
-on a CPU without them torch computes the product in float32). Every tensor stays float32: the
-parameters and the optimiser's state, the activations, the GRU's gates and carried state, and every
-network's output, so no cast is added and log-probabilities, PPO ratios and TD errors are computed
-at full precision. On an NVIDIA GPU torch offers no bfloat16 mode for float32 products, and the
-learner uses its TF32 mode instead (10 explicit mantissa bits). The setting is process-wide, so it
-holds only while an update runs: acting stays float32.
+`bfloat16` gives every matrix product of a training update (the learner connectors' value passes,
+the forward passes, the losses and their backward) bfloat16 inputs (~3 significant digits) and a
+float32 sum, by one of two routes, chosen per device:
+
+* **oneDNN's bfloat16 products**, on a CPU whose oneDNN multiplies float32 products in bfloat16 when
+  allowed to (AMX: Intel Xeon from Sapphire Rapids on; probed once per process): torch's float32
+  product precision for the CPU is lowered while the update runs. Each product rounds its inputs
+  inside the product and returns float32; every tensor stays float32, so nothing is cast.
+* **torch.autocast(bfloat16)** everywhere else (CPUs with AVX512-BF16 but no AMX, such as AMD
+  Zen 4, where oneDNN ignores that permission; GPUs): products take bfloat16 copies of their inputs
+  and give bfloat16 outputs. The parameters and the optimiser's state, the GRU's gates and carried
+  state (gru_sequence.py's `gru_steps`) and every network's output stay float32, cast back before a
+  loss reads it, so that log-probabilities, PPO ratios and TD errors are not rounded to bfloat16.
+  A CPU with neither emulates bfloat16, slower than float32.
+
+Either route holds only while an update runs (the float32 product precision is process-wide and
+given back after it), so acting stays float32.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 from collections.abc import Iterator
 
 import torch
 
-# torch's float32 product settings per device type, and each one's reduced precision
-_REDUCED = {
-    "cpu": (torch.backends.mkldnn.matmul, "bf16"),  # type: ignore[attr-defined]  # set at torch's import
-    "cuda": (torch.backends.cuda.matmul, "tf32"),
-}
+_ONEDNN = torch.backends.mkldnn.matmul  # type: ignore[attr-defined]  # torch's CPU product settings, set at import
+
+
+def autocast_for(precision: str, device: torch.device) -> torch.autocast:
+    """The autocast context of `precision` on `device`: bfloat16 products, or disabled (float32)."""
+    return torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bfloat16")
 
 
 @contextlib.contextmanager
-def matmul_precision(precision: str, device: torch.device) -> Iterator[None]:
-    """Within it, float32 products on `device` run in `precision`'s internal format: reduced for
-    'bfloat16' (module docstring), unchanged for 'float32'. The previous setting comes back on exit."""
-    if precision != "bfloat16" or device.type not in _REDUCED:
-        yield
-        return
-    backend, reduced = _REDUCED[device.type]
-    before = backend.fp32_precision
-    backend.fp32_precision = reduced
+def onednn_bfloat16() -> Iterator[None]:
+    """Within it, oneDNN may compute the CPU's float32 products in bfloat16; the previous setting
+    comes back on exit."""
+    before = _ONEDNN.fp32_precision
+    _ONEDNN.fp32_precision = "bf16"
     try:
         yield
     finally:
-        backend.fp32_precision = before
+        _ONEDNN.fp32_precision = before
+
+
+@functools.cache
+def onednn_rounds_in_bfloat16() -> bool:
+    """Does this CPU's oneDNN compute float32 products in bfloat16 when allowed to? (1 + 2^-10) x 1
+    loses its 2^-10 there. 64 x 64: torch leaves the smallest products to another library."""
+    x = torch.full((64, 64), 1.0 + 2.0**-10)
+    with onednn_bfloat16():
+        return not torch.equal(x @ torch.eye(64), x)
+
+
+def bfloat16_route(device: torch.device) -> str:
+    """'onednn' or 'autocast': how `bfloat16` runs on `device` (module docstring)."""
+    return "onednn" if device.type == "cpu" and onednn_rounds_in_bfloat16() else "autocast"
+
+
+def precision_context(precision: str, device: torch.device) -> contextlib.AbstractContextManager[None]:
+    """The context an update runs in: `precision`'s route on `device`, or nothing for float32."""
+    if precision != "bfloat16":
+        return contextlib.nullcontext()
+    return onednn_bfloat16() if bfloat16_route(device) == "onednn" else autocast_for(precision, device)

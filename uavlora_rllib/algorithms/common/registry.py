@@ -97,9 +97,10 @@ class Resources:
     torch_threads: int = Field(default=1, ge=1, le=MAX_TORCH_THREADS, description="torch intra-op threads per process")
     learner_precision: LearnerPrecision = Field(
         default="float32",
-        description="number format of the learner's matrix products: 'bfloat16' rounds their inputs to bfloat16 "
-        "during the training update (every tensor stays float32; TF32 on an NVIDIA GPU); faster on CPUs with AMX "
-        "or AVX512-BF16, so measure it with bench_train (docs/model.md#learner-precision)",
+        description="number format of the learner's matrix products: 'bfloat16' gives them bfloat16 inputs during "
+        "the training update (oneDNN's bfloat16 products on CPUs with AMX, torch.autocast elsewhere; the GRU state, "
+        "losses and parameters stay float32); faster on some chips, so measure it with bench_train "
+        "(docs/model.md#learner-precision)",
     )
 
     def bundles(self) -> list[dict[str, float]]:

@@ -71,12 +71,12 @@ class Critic(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x [..., d] (shared) or [..., U, d] (per agent) -> values [..., U] (normalised space)."""
         if self.shared:
-            return self.net(x)
+            return self.net(x).float()  # float32 under autocast too (common/precision.py)
         first = cast(nn.Linear, self.net[0])
         d = self.in_dim - self.n_agents
         z = nn.functional.linear(x, first.weight[:, :d], first.bias)
         z = z + first.weight[:, d:].t()  # [U, hidden]: the agent-id column of each agent
-        return self.net[1:](z).squeeze(-1)
+        return self.net[1:](z).squeeze(-1).float()
 
 
 class MAPPOTorchRLModule(RecurrentActorForward, TorchRLModule, ValueFunctionAPI, InferenceOnlyAPI):

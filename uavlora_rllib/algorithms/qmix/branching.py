@@ -161,4 +161,4 @@ class BranchingAgentNet(nn.Module):
             v = self.value_head(f)  # [B, T, U, 1, 1]
             slot_q = v + slot_q - slot_q.mean(-1, keepdim=True)
             bw_q = v.squeeze(-2) + bw_q - bw_q.mean(-1, keepdim=True)
-        return slot_q, bw_q, h_out
+        return slot_q.float(), bw_q.float(), h_out  # float32 under autocast too (common/precision.py)

@@ -76,7 +76,7 @@ class VDNMixer(nn.Module):
     def forward(self, q: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
         """q [B, T, U], state [B, T, S] -> Q_tot [B, T]."""
         total = q.sum(dim=-1)
-        return total if self.v is None else total + self.v(state).squeeze(-1)
+        return total if self.v is None else total + self.v(state).squeeze(-1).float()  # (common/precision.py)
 
 
 class QMixer(nn.Module):
@@ -109,7 +109,7 @@ class QMixer(nn.Module):
         y = torch.bmm(hidden, w2).view(-1)
         if self.v is not None:
             y = y + self.v(s).view(-1)
-        return y.view(lead)
+        return y.view(lead).float()  # float32 under autocast too (common/precision.py)
 
 
 def make_mixer(
