@@ -285,7 +285,7 @@ def test_bench_versions_script_checks_its_arguments(bench_inputs):
         ([out, f"a={tmp}"], py, "NAME=CHECKOUT: a="),  # a folder that is not a checkout of the project
         ([str(tmp), f"a={old}"], py, f"OUT.jsonl: cannot append to {tmp}"),
         ([out, f"a={old}"], str(tmp / "no_python"), "no python at"),
-        ([out, f"a={old}@fp16"], py, "NAME=CHECKOUT@PRECISION: fp16 is not bfloat16"),
+        ([out, f"a={old}@fp16"], py, f"NAME=CHECKOUT: a={old}@fp16 is not"),  # only @float32 and @bfloat16 are suffixes
     ]
     for args, python, needle in cases:
         proc = _bench("bench_versions.sh", args, python)
@@ -324,12 +324,16 @@ def test_bench_versions_script_passes_a_checkouts_precision(bench_inputs, monkey
     stub.chmod(0o755)
     out = tmp / "out.jsonl"
     monkeypatch.setenv("CASES", "mappo 8 per_uav")
-    proc = _bench("bench_versions.sh", [str(out), f"f32={old}@float32", f"bf16={old}@bfloat16"], str(stub))
+    at = tmp / "workspace@2"  # an @ in a path is no precision
+    (at / "uavlora_rllib").mkdir(parents=True)
+    proc = _bench("bench_versions.sh", [str(out), f"f32={old}@float32", f"bf16={old}@bfloat16", f"at={at}"], str(stub))
     assert proc.returncode == 0 and proc.stderr == "", proc.stderr
     rows = [json.loads(line) for line in out.read_text().splitlines()]
     assert [(r["ver"], r["precision"], r["res"]["bf16"]) for r in rows] == [
         ("f32", "float32", False),
         ("bf16", "bfloat16", True),
+        ("at", "float32", False),
+        ("at", "float32", False),
         ("bf16", "bfloat16", True),
         ("f32", "float32", False),
     ]

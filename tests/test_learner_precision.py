@@ -118,6 +118,20 @@ def test_the_route_follows_the_probe():
     assert not _onednn_on() and not torch.is_autocast_enabled("cpu")
 
 
+@pytest.mark.parametrize("inside_autocast", [False, True])
+def test_the_probe_says_no_where_onednn_does_not_round(inside_autocast):
+    """oneDNN switched off stands for a CPU whose oneDNN does not round: the answer is no, also for a first
+    caller inside an autocast region (whose bfloat16 product would round anywhere)."""
+    onednn_rounds_in_bfloat16.cache_clear()
+    before, torch.backends.mkldnn.enabled = torch.backends.mkldnn.enabled, False
+    try:
+        with torch.autocast("cpu", enabled=inside_autocast):
+            assert not onednn_rounds_in_bfloat16()
+    finally:
+        torch.backends.mkldnn.enabled = before
+        onednn_rounds_in_bfloat16.cache_clear()
+
+
 def _onednn_on() -> bool:
     return torch.backends.mkldnn.matmul.fp32_precision == "bf16"
 
@@ -125,6 +139,12 @@ def _onednn_on() -> bool:
 def _bfloat16_on() -> bool:
     """Does this moment's code run in bfloat16 by either route?"""
     return torch.is_autocast_enabled("cpu") or _onednn_on()
+
+
+def _route_now() -> str | None:
+    """The route this moment's code runs in: 'onednn', 'autocast', None (float32), or 'both' (never right)."""
+    on = {"onednn": _onednn_on(), "autocast": torch.is_autocast_enabled("cpu")}
+    return "both" if all(on.values()) else next((k for k, v in on.items() if v), None)
 
 
 ROUTES = [("bfloat16", "onednn"), ("bfloat16", "autocast"), ("float32", None)]
@@ -174,8 +194,8 @@ def test_every_learner_updates_under_its_precision(ray_session, monkeypatch, nam
     fields = entry.hparams_cls.__pydantic_fields__
     quick = {k: 2 for k in ("batch_size_episodes", "learning_starts_episodes") if k in fields}  # QMIX/VDN learn at once
     algo = entry.build(TINY, entry.hparams(quick), resources, 0).build_algo()
-    seen: list[bool] = []  # per module forward in this process: did it run in bfloat16?
-    hook = torch.nn.modules.module.register_module_forward_hook(lambda *_: seen.append(_bfloat16_on()))
+    seen: list[str | None] = []  # per module forward in this process: the route it ran in
+    hook = torch.nn.modules.module.register_module_forward_hook(lambda *_: seen.append(_route_now()))
     try:
         from ray.rllib.core import DEFAULT_MODULE_ID
 
@@ -191,8 +211,9 @@ def test_every_learner_updates_under_its_precision(ray_session, monkeypatch, nam
         algo.stop()
     moved = [float(np.abs(np.asarray(after[k]) - np.asarray(before[k])).max()) for k in before]
     assert all(np.isfinite(moved)) and max(moved) > 0, f"{name}: the update changed no weight"
-    assert not seen[0], "acting (the first forward of an iteration) must stay float32"
-    assert any(seen) == (precision == "bfloat16")
+    assert seen[0] is None, "acting (the first forward of an iteration) must stay float32"
+    want = {None, route} if route else {None}  # acting float32, the update in its route, never the other
+    assert set(seen) == want, set(seen)
     assert not _bfloat16_on(), "the update must give the process its float32 products back"
 
 
@@ -221,13 +242,13 @@ def test_comas_critic_only_steps_run_under_the_trials_precision(monkeypatch, pre
         "rewards": gen.random((2, 5), dtype=np.float32),
         GLOBAL_STATE: gen.standard_normal((2, 6, state_dim), dtype=np.float32),
     }
-    seen: list[bool] = []
-    hook = torch.nn.modules.module.register_module_forward_hook(lambda *_: seen.append(_bfloat16_on()))
+    seen: list[str | None] = []
+    hook = torch.nn.modules.module.register_module_forward_hook(lambda *_: seen.append(_route_now()))
     try:
         learner.train_critic(MultiAgentBatch({DEFAULT_MODULE_ID: SampleBatch(columns)}, 10))
     finally:
         hook.remove()
-    assert seen and all(x == (precision == "bfloat16") for x in seen)
+    assert seen and all(x == route for x in seen), set(seen)
 
 
 @pytest.mark.parametrize("name", registry.built_in())

@@ -14,17 +14,19 @@
 [ $# -ge 2 ] || bench_fail "usage: $NAME OUT.jsonl NAME=CHECKOUT..."
 OUT=$1; shift
 bench_python
+split() { # NAME=CHECKOUT[@float32|@bfloat16] -> dir, precision (only those two suffixes: a path may hold an @)
+  dir=${1#*=} precision=float32
+  case $dir in *@float32 | *@bfloat16) precision=${dir##*@} dir=${dir%@*} ;; esac
+}
 for spec in "$@"; do
-  dir=${spec#*=} precision=float32
-  [[ $dir == *@* ]] && precision=${dir##*@} dir=${dir%@*}
+  split "$spec"
   [ "$dir" != "$spec" ] && [ -d "$dir/uavlora_rllib" ] || bench_fail "NAME=CHECKOUT: $spec is not NAME=a checkout of this project"
-  [ "$precision" = float32 ] || [ "$precision" = bfloat16 ] || bench_fail "NAME=CHECKOUT@PRECISION: $precision is not bfloat16"
 done
 bench_out "$OUT"
 CASES=${CASES:-"mappo 8 per_device,qmix 8 per_device,mappo 8 per_uav,qmix 8 per_uav,mappo 2 per_device,qmix 2 per_uav"}
-run() { # name dir[@precision] algo U mode round
-  local line dir=${2%@*} precision=float32 extra=""
-  [[ $2 == *@* ]] && precision=${2##*@}
+run() { # name NAME=CHECKOUT[@precision] algo U mode round
+  local line dir precision extra=""
+  split "$2"
   # the flag only where asked: checkouts from before it (6f5d51a) run float32 without it
   [ "$precision" = bfloat16 ] && extra="--learner-precision bfloat16"
   line=$(cd "$dir" && "$PY" -m uavlora_rllib.bench_train "$3" --n-eds 60 --n-uavs "$4" --iterations 3 --torch-threads 1 \
@@ -42,7 +44,7 @@ for round in 1 2; do
     for spec in "${specs[@]}"; do
       name=${spec%%=*}
       [ "$name" = old ] && [ "$3" = per_device ] && [ "$1" != mappo ] && [ "$1" != ippo ] && continue
-      run "$name" "${spec#*=}" "$1" "$2" "$3" $round
+      run "$name" "$spec" "$1" "$2" "$3" $round
     done
   done
 done

@@ -18,8 +18,8 @@ in two implementations of the same function (tests/test_gru_sequence.py):
 (learner_precision bfloat16's autocast route, common/precision.py): there autocast casts each
 step's product to bfloat16 while the gates stay float32. `gru_sequence` itself runs outside
 autocast, forward and backward, so a gradient is never rounded to bfloat16 step after step. Under
-the oneDNN route its products round their inputs and return float32, like every product of the
-update: the carried state and its gradient stay float32.
+the oneDNN route its products round their inputs and return float32, like the update's other large
+products: the carried state and its gradient stay float32.
 
 Layout: batch-major, [U, B, T, .] (agent, sequence, step), the rows of the agent network's other
 layers, so no transpose is copied on the way in or out.

@@ -5,9 +5,11 @@ the forward passes, the losses and their backward) bfloat16 inputs (~3 significa
 float32 sum, by one of two routes, chosen per device:
 
 * **oneDNN's bfloat16 products**, on a CPU whose oneDNN multiplies float32 products in bfloat16 when
-  allowed to (AMX: Intel Xeon from Sapphire Rapids on; probed once per process): torch's float32
-  product precision for the CPU is lowered while the update runs. Each product rounds its inputs
-  inside the product and returns float32; every tensor stays float32, so nothing is cast.
+  allowed to (Intel's AMX, from Sapphire Rapids on; possibly ARM chips with BF16; probed once per
+  process): torch's float32 product precision for the CPU is lowered while the update runs. Each
+  product oneDNN computes rounds its inputs inside the product and returns float32 (torch sends
+  some small products, such as those with an inner dimension of 16 or less, to its float32
+  library); every tensor stays float32, so nothing is cast.
 * **torch.autocast(bfloat16)** everywhere else (CPUs with AVX512-BF16 but no AMX, such as AMD
   Zen 4, where oneDNN ignores that permission; GPUs): products take bfloat16 copies of their inputs
   and give bfloat16 outputs. The parameters and the optimiser's state, the GRU's gates and carried
@@ -50,10 +52,12 @@ def onednn_bfloat16() -> Iterator[None]:
 @functools.cache
 def onednn_rounds_in_bfloat16() -> bool:
     """Does this CPU's oneDNN compute float32 products in bfloat16 when allowed to? (1 + 2^-10) x 1
-    loses its 2^-10 there. 64 x 64: torch leaves the smallest products to another library."""
+    loses its 2^-10 there. 64 x 64: torch sends some small products to its float32 library."""
     x = torch.full((64, 64), 1.0 + 2.0**-10)
-    with onednn_bfloat16():
-        return not torch.equal(x @ torch.eye(64), x)
+    # a float32 product whatever region the first caller is in (autocast's bfloat16 output would round too)
+    with onednn_bfloat16(), torch.autocast("cpu", enabled=False), torch.no_grad():
+        y = x @ torch.eye(64)
+    return y.dtype == torch.float32 and not torch.equal(y, x)
 
 
 def bfloat16_route(device: torch.device) -> str:
