@@ -9,25 +9,14 @@ and the bfloat16 result's largest difference from float32's, relative to float32
 from __future__ import annotations
 
 import argparse
-import time
 
 import torch
+from gru_sequence_timing import median_ms  # this folder's: the script's own folder is on sys.path
 
 from uavlora_rllib.algorithms.common.precision import onednn_bfloat16, onednn_rounds_in_bfloat16
 from uavlora_rllib.algorithms.common.torch_process import setup_torch_process
 
 U, ROWS, SEQ, FC, H, STATE = 8, 608, 19, 128, 128, 1981  # MAPPO's minibatch: 19 sequences of 32 slots
-
-
-def median_ms(fn, repeats: int) -> float:
-    for _ in range(3):
-        fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return sorted(times)[repeats // 2] * 1e3
 
 
 def main() -> None:
