@@ -6,11 +6,13 @@ the open-loop best_fixed, every K iterations. What the test checks at one budget
 
 e.g. python docs/history/measurements/ci_probe.py mappo '{"share_actor": false, "lr": 2e-3, "num_epochs": 8,
 "num_minibatches": 2, "batch_episodes": 8, "gamma": 0.0, "actor_heads": "shared"}' 160 20
-(REWARD_WEIGHTS_JSON, e.g. '{"w1": 4e-4}', replaces the scenario's reward weights.)
+(REWARD_WEIGHTS_JSON, e.g. '{"w1": 4e-4}', replaces the scenario's reward weights; LEARNER_PRECISION=bfloat16 in
+the environment trains with resources.learner_precision bfloat16.)
 """
 
 import dataclasses
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -33,7 +35,10 @@ bf = run_episodes(make_baseline("best_fixed", cfg, seed=0), cfg, tl.EVAL_EPISODE
 print(f"best_fixed {bf:.1f}", flush=True)
 ray.init(num_cpus=1, include_dashboard=False)
 entry = registry.get(name)
-algo = entry.build(cfg, entry.hparams(overrides), registry.Resources(num_envs_per_env_runner=tl.ENVS), 0).build_algo()
+resources = registry.Resources(
+    num_envs_per_env_runner=tl.ENVS, learner_precision=os.environ.get("LEARNER_PRECISION", "float32")
+)
+algo = entry.build(cfg, entry.hparams(overrides), resources, 0).build_algo()
 t0 = time.perf_counter()
 for i in range(1, iters + 1):
     algo.train()
