@@ -281,3 +281,13 @@ def test_the_next_forward_reads_the_stepped_weights(monkeypatch, name):
         fresh = torch.nn.functional.linear(x, weight)
     assert not torch.equal(before, after)
     torch.testing.assert_close(after, fresh, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("route", ["onednn", "autocast"])
+def test_bench_train_says_which_route_bfloat16_took(monkeypatch, route):
+    from uavlora_rllib.bench_train import precision_line
+
+    monkeypatch.setattr(precision_module, "bfloat16_route", lambda device: route)
+    assert precision_line("float32") == "learner precision: float32"
+    want = "oneDNN's bfloat16 products" if route == "onednn" else "torch.autocast (this CPU's oneDNN does not round)"
+    assert precision_line("bfloat16") == f"learner precision: bfloat16 by {want}"

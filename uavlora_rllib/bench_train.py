@@ -10,7 +10,7 @@ measurement the grid calibration uses too), and prints env steps per second end
 to end (env steps sampled / wall-clock of the timed iterations) and how each iteration's
 time splits between sampling and learning (RLlib's `timers`: env_runner_sampling_timer,
 learner_update_timer, synch_weights). Also the wall-clock this rate implies for the paper's
-T_max = 2M env steps. Bad input (a flag, an unknown algorithm, a bad override, a scenario the
+T_max = 2M env steps, and for bfloat16 the route this CPU takes (docs/model.md#learner-precision). Bad input (a flag, an unknown algorithm, a bad override, a scenario the
 algorithm does not support) gives one line on stderr and exit code 2 before Ray starts.
 """
 
@@ -132,6 +132,20 @@ def _resolve(args: argparse.Namespace):
     return entry, scenario, hparams, resources
 
 
+def precision_line(precision: str) -> str:
+    """The learner's number format as bench_train runs it (its learner is this process's, on the CPU): for
+    bfloat16, the route this CPU takes (common/precision.py), since the two differ in speed."""
+    if precision != "bfloat16":
+        return f"learner precision: {precision}"
+    import torch
+
+    from uavlora_rllib.algorithms.common.precision import bfloat16_route
+
+    route = bfloat16_route(torch.device("cpu"))
+    how = "oneDNN's bfloat16 products" if route == "onednn" else "torch.autocast (this CPU's oneDNN does not round)"
+    return f"learner precision: bfloat16 by {how}"
+
+
 def main(argv: list[str] | None = None) -> int:
     from uavlora_rllib.config_errors import ConfigError
 
@@ -162,6 +176,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{args.algo}: V={args.n_eds} U={args.n_uavs} T={args.episode_len} {args.action_mode} "
         f"runners={args.env_runners} envs/runner={args.envs_per_runner} hparams={_parse_set(args.set)}"
     )
+    print(f"  {precision_line(resources.learner_precision)}")
     print(f"  build {t_build:.1f} s; {args.iterations} timed iterations, {env_steps} env steps in {total:.2f} s")
     print(f"  end to end: {rate:,.0f} env steps/s  -> 2M env steps in {T_MAX / rate / 3600:.2f} h")
     print(
