@@ -136,15 +136,15 @@ def _onednn_on() -> bool:
     return torch.backends.mkldnn.matmul.fp32_precision == "bf16"
 
 
-def _bfloat16_on() -> bool:
-    """Does this moment's code run in bfloat16 by either route?"""
-    return torch.is_autocast_enabled("cpu") or _onednn_on()
-
-
 def _route_now() -> str | None:
     """The route this moment's code runs in: 'onednn', 'autocast', None (float32), or 'both' (never right)."""
     on = {"onednn": _onednn_on(), "autocast": torch.is_autocast_enabled("cpu")}
     return "both" if all(on.values()) else next((k for k, v in on.items() if v), None)
+
+
+def _bfloat16_on() -> bool:
+    """Does this moment's code run in bfloat16 by either route?"""
+    return _route_now() is not None
 
 
 ROUTES = [("bfloat16", "onednn"), ("bfloat16", "autocast"), ("float32", None)]

@@ -10,8 +10,9 @@ measurement the grid calibration uses too), and prints env steps per second end
 to end (env steps sampled / wall-clock of the timed iterations) and how each iteration's
 time splits between sampling and learning (RLlib's `timers`: env_runner_sampling_timer,
 learner_update_timer, synch_weights). Also the wall-clock this rate implies for the paper's
-T_max = 2M env steps, and for bfloat16 the route this CPU takes (docs/model.md#learner-precision). Bad input (a flag, an unknown algorithm, a bad override, a scenario the
-algorithm does not support) gives one line on stderr and exit code 2 before Ray starts.
+T_max = 2M env steps, and for bfloat16 the route this CPU takes (docs/model.md#learner-precision).
+Bad input (a flag, an unknown algorithm, a bad override, a scenario the algorithm does not
+support) gives one line on stderr and exit code 2 before Ray starts.
 """
 
 from __future__ import annotations
