@@ -75,6 +75,23 @@ def test_sequence_without_gradient_matches_steps(mode, t):
     torch.testing.assert_close(out, ref, atol=1e-6, rtol=1e-5)
 
 
+@pytest.mark.parametrize("t", [1, 3, 12])
+def test_forward_without_backward_reuses_step_buffers_and_gives_the_same_digits(t):
+    """Without a backward (acting, QMIX's target network) gru_sequence writes each step's gates into one
+    reused buffer instead of keeping all T; the states must be the saving forward's (the same operations in
+    the same order; vectorised and strided elementwise kernels may differ in the last bit), and inputs that
+    do not require a gradient take that path under grad mode too."""
+    ins = _inputs(3, 4, t, 8, torch.float32)
+    saved = gru_sequence(*ins)
+    assert saved.grad_fn is not None
+    with torch.no_grad():
+        torch.testing.assert_close(gru_sequence(*ins), saved.detach(), atol=1e-6, rtol=1e-6)
+    plain = [x.detach() for x in ins]
+    out = gru_sequence(*plain)
+    assert out.grad_fn is None
+    torch.testing.assert_close(out, saved.detach(), atol=1e-6, rtol=1e-6)
+
+
 def test_backward_under_autocast_stays_float32():
     """A backward that runs inside an autocast region (the learner's precision context) computes
     the float32 gradients: no product of the written-out backward is cast to bfloat16."""
@@ -99,7 +116,9 @@ u, b, t, h = 3, 4, 7, 8
 ins = [torch.randn(s).requires_grad_() for s in [(u, b, t, 3 * h), (u, b, h), (u, 3 * h, h), (u, 3 * h)]]
 out = gru_sequence(*ins)
 (out * torch.randn_like(out)).sum().backward()
-print(all(bool(x.isfinite().all()) for x in [out] + [i.grad for i in ins]))
+with torch.no_grad():
+    no_backward = gru_sequence(*ins)
+print(all(bool(x.isfinite().all()) for x in [out, no_backward] + [i.grad for i in ins]))
 """
 
 

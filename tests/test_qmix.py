@@ -124,6 +124,41 @@ def test_qmix_mixer_is_monotonic_and_vdn_sums_exactly():
     assert torch.equal(VDNMixer()(q2, torch.zeros(7, 3, 1)), q2.sum(-1))
 
 
+def _qmix_by_layers(mixer: QMixer, q: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+    """Rashid et al.'s mixer written with each hypernetwork called on its own: the reference for the
+    mixer's one fused product over the state."""
+    u, e = mixer.n_agents, mixer.embed_dim
+    w1 = mixer.hyper_w1(state).abs().reshape(-1, u, e)
+    hidden = torch.nn.functional.elu(torch.bmm(q.reshape(-1, 1, u), w1) + mixer.hyper_b1(state).reshape(-1, 1, e))
+    y = torch.bmm(hidden, mixer.hyper_w2(state).abs().reshape(-1, e, 1)).reshape(q.shape[:-1])
+    return y if mixer.v is None else y + mixer.v(state).squeeze(-1)
+
+
+@pytest.mark.parametrize("state_bias", [True, False])
+@pytest.mark.parametrize("first", [0, 1])
+def test_mixers_on_a_longer_state_sequence_equal_the_mixer_on_its_slice(state_bias, first):
+    """The modules pass the whole state sequence [B, T+1, S] and `first` (0 online, 1 target); the mixer must
+    equal the hypernetworks called one by one on state[:, first:first + T], value and every gradient."""
+    torch.manual_seed(0)
+    u, s_dim, b, t = 3, 11, 4, 6
+    state = torch.randn(b, t + 1, s_dim)
+    for mixer in (
+        QMixer(u, s_dim, embed_dim=8, hypernet_embed=16, state_bias=state_bias),
+        VDNMixer(s_dim, embed_dim=8, state_bias=state_bias),
+    ):
+        q = torch.randn(b, t, u, requires_grad=True)
+        out = mixer(q, state, first=first)
+        grads = torch.autograd.grad(out.square().sum(), [q, *mixer.parameters()])
+        sliced = state[:, first : first + t]
+        ref = _qmix_by_layers(mixer, q, sliced) if isinstance(mixer, QMixer) else mixer(q, sliced)
+        ref_grads = torch.autograd.grad(ref.square().sum(), [q, *mixer.parameters()])
+        torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5)
+        for g, rg in zip(grads, ref_grads, strict=True):
+            torch.testing.assert_close(g, rg, rtol=1e-5, atol=1e-5)
+        with pytest.raises(ValueError, match="first"):
+            mixer(q, state, first=2)
+
+
 def test_state_bias_adds_a_state_value_that_leaves_every_uav_gradient_at_one():
     torch.manual_seed(0)
     u, s_dim = 3, 5

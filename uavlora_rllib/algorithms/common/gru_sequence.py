@@ -7,7 +7,8 @@ in two implementations of the same function (tests/test_gru_sequence.py):
 `gru_steps` is the step loop of tensor operations, differentiated by autograd (~12 nodes per step).
 `gru_sequence` is one autograd node with its backward pass written out:
 
-* forward writes every step's state and gates into preallocated buffers, which backward reads;
+* forward writes every step's state and gates into preallocated buffers, which backward reads
+  (without a backward, as when acting or for QMIX's target network, one reused step buffer per gate);
 * backward walks the steps in reverse with one batched product per step (the carried
   state's gradient) and computes the recurrent weight's gradient as ONE product over all
   T steps. Autograd's loop instead makes a [U, 3H, H] weight-gradient product per step and
@@ -34,6 +35,25 @@ _tanh_backward = torch.ops.aten.tanh_backward.grad_input  # g (1 - y^2), written
 _sigmoid_backward = torch.ops.aten.sigmoid_backward.grad_input  # g y (1 - y)
 
 
+def _recur(gi, h0, w_hh, b_hh, hs, rz_t, new_t, gh_t) -> None:
+    """The forward recurrence, writing the state after each step into hs [U, B, T, H] and step t's
+    gates r | z, candidate n and W_hh h + b_hh into rz_t[t], new_t[t], gh_t[t]: per-step views of
+    buffers that backward reads, or, without a backward, the same small buffer every step."""
+    t_len, hd = gi.shape[2], hs.shape[-1]
+    w_t = w_hh.transpose(1, 2)
+    if t_len > 2:  # the product reads a contiguous W^T faster; one copy pays off over a few steps
+        w_t = w_t.contiguous()
+    bias = b_hh.unsqueeze(1)
+    gi_rz, gi_n = gi[..., : 2 * hd].unbind(2), gi[..., 2 * hd :].unbind(2)
+    hs_t = hs.unbind(2)
+    h = h0
+    for t in range(t_len):
+        gh_step = torch.baddbmm(bias, h, w_t, out=gh_t[t])
+        r_z = torch.add(gi_rz[t], gh_step[..., : 2 * hd], out=rz_t[t]).sigmoid_()
+        n = torch.addcmul(gi_n[t], r_z[..., :hd], gh_step[..., 2 * hd :], out=new_t[t]).tanh_()
+        h = torch.lerp(n, h, r_z[..., hd:], out=hs_t[t])  # n + z (h - n)
+
+
 class _GRUSequence(torch.autograd.Function):
     """gi [U, B, T, 3H] (the input projection W_ih x + b_ih of every step), h0 [U, B, H],
     w_hh [U, 3H, H], b_hh [U, 3H] -> hs [U, B, T, H], the state after each step."""
@@ -41,23 +61,11 @@ class _GRUSequence(torch.autograd.Function):
     @staticmethod
     def forward(ctx, gi, h0, w_hh, b_hh):
         u, b, t_len, g3 = gi.shape
-        hd = g3 // 3
-        w_t = w_hh.transpose(1, 2)
-        if t_len > 2:  # the product reads a contiguous W^T faster; one copy pays off over a few steps
-            w_t = w_t.contiguous()
-        bias = b_hh.unsqueeze(1)
-        hs = gi.new_empty(u, b, t_len, hd)
-        rz = gi.new_empty(u, b, t_len, 2 * hd)  # sigmoid gates r | z
-        new = gi.new_empty(u, b, t_len, hd)  # candidate state n
+        hs = gi.new_empty(u, b, t_len, g3 // 3)
+        rz = gi.new_empty(u, b, t_len, 2 * g3 // 3)  # sigmoid gates r | z
+        new = gi.new_empty(u, b, t_len, g3 // 3)  # candidate state n
         gh = gi.new_empty(t_len, u, b, g3)  # W_hh h + b_hh, step-major: each step's product writes in place
-        gi_rz, gi_n = gi[..., : 2 * hd].unbind(2), gi[..., 2 * hd :].unbind(2)
-        hs_t, rz_t, new_t, gh_t = hs.unbind(2), rz.unbind(2), new.unbind(2), gh.unbind(0)
-        h = h0
-        for t in range(t_len):
-            gh_step = torch.baddbmm(bias, h, w_t, out=gh_t[t])
-            r_z = torch.add(gi_rz[t], gh_step[..., : 2 * hd], out=rz_t[t]).sigmoid_()
-            n = torch.addcmul(gi_n[t], r_z[..., :hd], gh_step[..., 2 * hd :], out=new_t[t]).tanh_()
-            h = torch.lerp(n, h, r_z[..., hd:], out=hs_t[t])  # n + z (h - n)
+        _recur(gi, h0, w_hh, b_hh, hs, rz.unbind(2), new.unbind(2), gh.unbind(0))
         ctx.save_for_backward(h0, w_hh, hs, rz, new, gh)
         return hs
 
@@ -101,7 +109,15 @@ def gru_sequence(gi: torch.Tensor, h0: torch.Tensor, w_hh: torch.Tensor, b_hh: t
     """U GRUs over T steps: gi [U, B, T, 3H] = W_ih x + b_ih, h0 [U, B, H], w_hh [U, 3H, H] and
     b_hh [U, 3H] (nn.GRU's layouts, stacked over the agents), all of one dtype -> hs [U, B, T, H]."""
     with torch.autocast(gi.device.type, enabled=False):
-        return _GRUSequence.apply(gi, h0, w_hh, b_hh)
+        if torch.is_grad_enabled() and any(x.requires_grad for x in (gi, h0, w_hh, b_hh)):
+            return _GRUSequence.apply(gi, h0, w_hh, b_hh)
+        # no backward (acting, QMIX's target network): the gates need not outlive their step, so three
+        # step-sized buffers serve every step and stay in cache (docs/model.md#batched-agent-networks)
+        u, b, t_len, g3 = gi.shape
+        hs = gi.new_empty(u, b, t_len, g3 // 3)
+        rz, new, gh = gi.new_empty(u, b, 2 * g3 // 3), gi.new_empty(u, b, g3 // 3), gi.new_empty(u, b, g3)
+        _recur(gi, h0, w_hh, b_hh, hs, [rz] * t_len, [new] * t_len, [gh] * t_len)
+        return hs
 
 
 def gru_steps(gi: torch.Tensor, h0: torch.Tensor, w_hh: torch.Tensor, b_hh: torch.Tensor) -> torch.Tensor:

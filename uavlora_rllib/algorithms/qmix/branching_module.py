@@ -104,7 +104,7 @@ class BranchingQMixModule(QMixModule):
         slot_idx, bw_idx = branching.branch_indices(batch[Columns.ACTIONS], self.n_tp)
         slot_v, bw_v = branching.taken(q[Q_SLOTS][:, :n_t], q[Q_BW][:, :n_t], slot_idx, bw_idx)
         q_taken = branching.aggregate(slot_v, bw_v, branching.active_slots(obs[:, :n_t], self.quota))
-        q_tot = self.mixer(q_taken, batch[GLOBAL_STATE].float()[:, :n_t])
+        q_tot = self.mixer(q_taken, batch[GLOBAL_STATE].float())
         online = {Q_SLOTS: q[Q_SLOTS].detach(), Q_BW: q[Q_BW].detach()}
         return {**q, Q_TAKEN: q_taken, Q_TOT: q_tot, **self.target_terms({**batch, **online})}
 
@@ -126,4 +126,4 @@ class BranchingQMixModule(QMixModule):
         else:
             slot_v, bw_v = t_slot.max(-1).values, t_bw.max(-1).values
         q_next = branching.aggregate(slot_v, bw_v, branching.active_slots(obs[:, 1:], self.quota))
-        return {TARGET_Q_TOT_NEXT: self._target_mixer(q_next, state[:, 1:])}
+        return {TARGET_Q_TOT_NEXT: self._target_mixer(q_next, state, first=1)}

@@ -29,7 +29,7 @@ Env runners call it one step at a time with the GRU state carried by RLlib's con
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, cast
 
 import torch
 import torch.nn.functional as F
@@ -60,7 +60,7 @@ def linear_epsilon(t: int | float, start: float, end: float, anneal_steps: int |
     return float(start + frac * (end - start))
 
 
-def _state_value(state_dim: int, embed_dim: int) -> nn.Module:
+def _state_value(state_dim: int, embed_dim: int) -> nn.Sequential:
     """V(s): the state-dependent bias of both mixers."""
     return nn.Sequential(nn.Linear(state_dim, embed_dim), nn.ReLU(), nn.Linear(embed_dim, 1))
 
@@ -73,10 +73,22 @@ class VDNMixer(nn.Module):
         self.v = _state_value(state_dim, embed_dim) if state_bias else None
 
     @override(nn.Module)
-    def forward(self, q: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
-        """q [B, T, U], state [B, T, S] -> Q_tot [B, T]."""
+    def forward(self, q: torch.Tensor, state: torch.Tensor, first: int = 0) -> torch.Tensor:
+        """q [B, T, U], state [B, T', S] -> Q_tot [B, T] on the states first .. first + T - 1 (_state_rows)."""
         total = q.sum(dim=-1)
-        return total if self.v is None else total + self.v(state).squeeze(-1).float()  # (common/precision.py)
+        if self.v is None:
+            _state_rows(state, first, q.shape[1])  # unread, but the same rows must exist
+            return total
+        return total + _state_rows(self.v(state), first, q.shape[1]).squeeze(-1).float()  # (common/precision.py)
+
+
+def _state_rows(per_state: torch.Tensor, first: int, n_t: int) -> torch.Tensor:
+    """Rows first .. first + n_t - 1 of a per-state output [B, T', k]. The mixers run their state layers on the
+    whole sequence and slice the narrow output: slicing the wide state [B, T', S] first would copy it (the
+    online mixer reads s_0 .. s_{T-1}, the target mixer s_1 .. s_T; docs/model.md#qmix-mixer-cost)."""
+    if first < 0 or first + n_t > per_state.shape[1]:
+        raise ValueError(f"first: states {first} .. {first + n_t - 1} of a sequence of {per_state.shape[1]}")
+    return per_state[:, first : first + n_t]
 
 
 class QMixer(nn.Module):
@@ -96,19 +108,29 @@ class QMixer(nn.Module):
         )
         self.v = _state_value(state_dim, embed_dim) if state_bias else None
 
+    def _state_layers(self) -> list[nn.Linear]:
+        """The layers that read the state: the first of hyper_w1, hyper_b1, hyper_w2 and V(s)."""
+        first = [self.hyper_w1[0], self.hyper_b1, self.hyper_w2[0]] + ([self.v[0]] if self.v is not None else [])
+        return cast(list[nn.Linear], first)
+
     @override(nn.Module)
-    def forward(self, q: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
-        """q [B, T, U], state [B, T, S] -> Q_tot [B, T]."""
+    def forward(self, q: torch.Tensor, state: torch.Tensor, first: int = 0) -> torch.Tensor:
+        """q [B, T, U], state [B, T', S] -> Q_tot [B, T] on the states first .. first + T - 1 (_state_rows).
+        The four layers that read the state run as ONE product with their weights side by side, so the wide
+        state is read once per pass, not four times (docs/model.md#qmix-mixer-cost)."""
         lead = q.shape[:-1]
+        layers = self._state_layers()
+        weight = torch.cat([layer.weight for layer in layers])
+        bias = torch.cat([layer.bias for layer in layers])
+        terms = _state_rows(F.linear(state, weight, bias), first, q.shape[1]).reshape(-1, weight.shape[0])
+        parts = terms.split([layer.out_features for layer in layers], dim=-1)
         qf = q.reshape(-1, 1, self.n_agents)
-        s = state.reshape(-1, state.shape[-1])
-        w1 = self.hyper_w1(s).abs().view(-1, self.n_agents, self.embed_dim)
-        b1 = self.hyper_b1(s).view(-1, 1, self.embed_dim)
-        hidden = F.elu(torch.bmm(qf, w1) + b1)
-        w2 = self.hyper_w2(s).abs().view(-1, self.embed_dim, 1)
+        w1 = self.hyper_w1[2](torch.relu(parts[0])).abs().view(-1, self.n_agents, self.embed_dim)
+        hidden = F.elu(torch.bmm(qf, w1) + parts[1].unsqueeze(1))
+        w2 = self.hyper_w2[2](torch.relu(parts[2])).abs().view(-1, self.embed_dim, 1)
         y = torch.bmm(hidden, w2).view(-1)
         if self.v is not None:
-            y = y + self.v(s).view(-1)
+            y = y + self.v[2](torch.relu(parts[3])).view(-1)
         return y.view(lead).float()  # float32 under autocast too (common/precision.py)
 
 
@@ -221,7 +243,7 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
         n_t = actions.shape[1]
         q_taken = q_all[:, :n_t].gather(-1, actions.unsqueeze(-1)).squeeze(-1)
         state = batch[GLOBAL_STATE].float()
-        q_tot = self.mixer(q_taken, state[:, :n_t])
+        q_tot = self.mixer(q_taken, state)
         return {Q_ALL: q_all, Q_TAKEN: q_taken, Q_TOT: q_tot, **self.target_terms({**batch, Q_ALL: q_all.detach()})}
 
     def target_terms(self, batch: dict[str, Any]) -> dict[str, Any]:
@@ -260,7 +282,7 @@ class QMixModule(TorchRLModule, QNetAPI, TargetNetworkAPI, InferenceOnlyAPI):
             tq_next = nxt.gather(-1, a_star).squeeze(-1)
         else:
             tq_next = nxt.max(-1).values
-        return {TARGET_Q_TOT_NEXT: self._target_mixer(tq_next, state[:, 1:])}
+        return {TARGET_Q_TOT_NEXT: self._target_mixer(tq_next, state, first=1)}
 
     # ------------------------------------------------------------------ inference-only
     @override(InferenceOnlyAPI)
