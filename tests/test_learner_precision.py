@@ -24,6 +24,7 @@ from uavlora_rllib.algorithms.mappo.mappo_module import Critic
 from uavlora_rllib.algorithms.qmix.branching import BranchingAgentNet
 from uavlora_rllib.algorithms.qmix.qmix_module import QMixer
 from uavlora_rllib.config_errors import ConfigError, build
+from uavlora_rllib.experiment.trainable import precision_routes
 from uavlora_rllib.sim.observation import OBS_EXTRA, OBS_ROW
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
@@ -194,6 +195,8 @@ def test_every_learner_updates_under_its_precision(ray_session, monkeypatch, nam
     fields = entry.hparams_cls.__pydantic_fields__
     quick = {k: 2 for k in ("batch_size_episodes", "learning_starts_episodes") if k in fields}  # QMIX/VDN learn at once
     algo = entry.build(TINY, entry.hparams(quick), resources, 0).build_algo()
+    # what the trial reports and its MLflow run records (run_schema.PRECISION_ROUTE)
+    assert precision_routes(algo) == (f"bfloat16/{route}" if route else "float32")
     seen: list[str | None] = []  # per module forward in this process: the route it ran in
     hook = torch.nn.modules.module.register_module_forward_hook(lambda *_: seen.append(_route_now()))
     try:

@@ -71,6 +71,7 @@ def check_train_run(client, run, grid_file: str, budget: int) -> None:
     seed = tags["seed"]
     assert run.info.run_name == f"{ALGO}-V6-U2-s{seed}"
     assert tags["kind"] == "train" and tags["algorithm"] == ALGO
+    assert tags[run_schema.PRECISION_ROUTE] == "float32"  # the grid's default, as the trial's learner ran it
     assert (tags["n_eds"], tags["n_uavs"]) == ("6", "2") and seed in ("0", "1")
     assert tags["git_commit"] == git_commit() and tags["git_commit"] != ""
     assert tags["grid_file"] == grid_file

@@ -43,6 +43,7 @@ from uavlora_rllib.experiment.run_schema import (
     ENV_STEPS,
     EVAL_PREFIX,
     KIND_TRAIN,
+    PRECISION_ROUTE,
     TRIAL_CONFIG_ARTIFACT,
     curves_csv,
     identity_params,
@@ -118,17 +119,19 @@ class MlflowTrialCallback(Callback):
         self._runs: dict[str, str] = {}  # trial_id -> run_id
         self._last_step: dict[str, int] = {}  # trial_id -> highest env step with training metrics
         self._ended: set[str] = set()
+        self._routes: dict[str, str] = {}  # trial_id -> the PRECISION_ROUTE tag this driver has set
         self._reconciled = False
 
     # Tune pickles callbacks into the experiment state; the client is rebuilt on demand.
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
-        state.update(_tracker=None, _runs={}, _last_step={}, _ended=set(), _reconciled=False)
+        state.update(_tracker=None, _runs={}, _last_step={}, _ended=set(), _routes={}, _reconciled=False)
         return state
 
     def __setstate__(self, state: dict) -> None:
         state.setdefault("retry_timeout_s", DEFAULT_RETRY_TIMEOUT_S)
         state.setdefault("_reconciled", False)
+        state.setdefault("_routes", {})
         state.setdefault("checkpoint_artifact_max_mb", DEFAULT_CHECKPOINT_ARTIFACT_MAX_MB)
         state.update(_RESUMING)
         self.__dict__.update(state)
@@ -253,6 +256,10 @@ class MlflowTrialCallback(Callback):
             self._last_step[tid] = step
         if train or evals:
             self.tracker.log_metrics(run_id, {**train, **evals}, step)
+        route = result.get(PRECISION_ROUTE)
+        if isinstance(route, str) and self._routes.get(tid) != route:  # once per trial, again after a move
+            self.tracker.set_tag(run_id, PRECISION_ROUTE, route)
+            self._routes[tid] = route
 
     def reconcile_trial(self, trial) -> bool:
         """A trial Tune holds as finished whose run is not FINISHED: log what is missing from

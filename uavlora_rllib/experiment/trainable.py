@@ -49,10 +49,18 @@ class UavLoraTrainable(tune.Trainable):
         self._last_steps: int | None = 0
         self._latest_eval: float | None = None  # sweep.SWEEP_METRIC: the latest greedy evaluation
         self._node_id = cluster.node_id()  # which raylet ran it (two may share a host)
+        self._precision_route = precision_routes(self.algo)
 
     def step(self) -> dict:
         from uavlora_rllib.experiment import periodic_eval
-        from uavlora_rllib.experiment.run_schema import ENV_STEPS, TRIAL_WALL_METRIC, lookup, number, training_summary
+        from uavlora_rllib.experiment.run_schema import (
+            ENV_STEPS,
+            PRECISION_ROUTE,
+            TRIAL_WALL_METRIC,
+            lookup,
+            number,
+            training_summary,
+        )
 
         t0 = time.perf_counter()
         result = self.algo.train()
@@ -66,6 +74,7 @@ class UavLoraTrainable(tune.Trainable):
             sampled = number(lookup(result, "env_runners/num_env_steps_sampled")) or 0
         out["env_steps_per_s"] = float(sampled) / dt
         out["node_id"] = self._node_id
+        out[PRECISION_ROUTE] = self._precision_route
         self._last_steps = steps
         if steps >= int(self.cfg["budget_env_steps"]):
             out.update(self.evaluate())
@@ -137,3 +146,16 @@ def _apply_configured_lr(learner) -> None:
     learner's config) gives now, as RLlib does after each update."""
     for optimizer, schedule in getattr(learner, "_optimizer_lr_schedules", {}).items():
         learner._set_optimizer_lr(optimizer, lr=schedule.get_current_value())
+
+
+def _learner_precision_name(learner) -> str:
+    """A learner's number format and route (UavLoraLearner.precision_name); a plugin's own learner
+    runs float32 (the registry refuses it bfloat16)."""
+    name = getattr(learner, "precision_name", None)
+    return name() if callable(name) else "float32"
+
+
+def precision_routes(algo) -> str:
+    """What the trial's learners run in, asked of each learner where it runs (its CPU decides the
+    bfloat16 route): one name, or several joined by ',' when the learners' machines differ."""
+    return ",".join(sorted({r.get() for r in algo.learner_group.foreach_learner(_learner_precision_name)}))

@@ -26,7 +26,7 @@ from ray.rllib.core.learner.torch.torch_learner import TorchLearner
 from ray.rllib.utils.annotations import override
 from ray.rllib.utils.typing import LearningRateOrSchedule, ParamDict, StateDict
 
-from uavlora_rllib.algorithms.common.precision import precision_context
+from uavlora_rllib.algorithms.common.precision import precision_context, precision_name
 
 
 def surely_finite(tensors: Sequence[torch.Tensor]) -> bool:
@@ -50,6 +50,11 @@ class UavLoraLearner(TorchLearner):
         device): every forward and backward of an update runs in it (update; a learner's own extra
         steps, such as COMA's critic-only ones, too)."""
         return precision_context(self.config.model_config["learner_precision"], torch.device(self.device))
+
+    def precision_name(self) -> str:
+        """The format and route `precision` runs in on this learner's device (common/precision.py's
+        `precision_name`), for the trial's MLflow run."""
+        return precision_name(self.config.model_config["learner_precision"], torch.device(self.device))
 
     def register_adam(
         self,

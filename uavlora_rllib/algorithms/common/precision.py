@@ -70,3 +70,10 @@ def precision_context(precision: str, device: torch.device) -> contextlib.Abstra
     if precision != "bfloat16":
         return contextlib.nullcontext()
     return onednn_bfloat16() if bfloat16_route(device) == "onednn" else autocast_for(precision, device)
+
+
+def precision_name(precision: str, device: torch.device) -> str:
+    """What an update runs in, as a run records it: 'float32', 'bfloat16/onednn' or 'bfloat16/autocast'
+    (`precision` and, for bfloat16, its route on `device`): the routes differ in speed and in the last
+    digits, and which one a trial took depends on the machine it ran on."""
+    return precision if precision != "bfloat16" else f"bfloat16/{bfloat16_route(device)}"
