@@ -87,7 +87,9 @@ def _state_rows(per_state: torch.Tensor, first: int, n_t: int) -> torch.Tensor:
     whole sequence and slice the narrow output: slicing the wide state [B, T', S] first would copy it (the
     online mixer reads s_0 .. s_{T-1}, the target mixer s_1 .. s_T; docs/model.md#qmix-mixer-cost)."""
     if first < 0 or first + n_t > per_state.shape[1]:
-        raise ValueError(f"first: states {first} .. {first + n_t - 1} of a sequence of {per_state.shape[1]}")
+        raise ValueError(
+            f"first: states {first} .. {first + n_t - 1} asked of a sequence of {per_state.shape[1]} states"
+        )
     return per_state[:, first : first + n_t]
 
 
