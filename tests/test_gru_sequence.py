@@ -15,6 +15,7 @@ import sys
 import pytest
 import torch
 
+import uavlora_rllib.algorithms.common.gru_sequence as gru_sequence_module
 from uavlora_rllib.algorithms.common.agent_net import RecurrentAgentNet
 from uavlora_rllib.algorithms.common.gru_sequence import gru_sequence, gru_steps
 
@@ -76,7 +77,7 @@ def test_sequence_without_gradient_matches_steps(mode, t):
 
 
 @pytest.mark.parametrize("t", [1, 3, 12])
-def test_forward_without_backward_reuses_step_buffers_and_gives_the_same_digits(t):
+def test_forward_without_backward_reuses_step_buffers_and_gives_the_same_digits(t, monkeypatch):
     """Without a backward (acting, QMIX's target network) gru_sequence writes each step's gates into one
     reused buffer instead of keeping all T; the states must be the saving forward's (the same operations in
     the same order; vectorised and strided elementwise kernels may differ in the last bit), and inputs that
@@ -84,6 +85,11 @@ def test_forward_without_backward_reuses_step_buffers_and_gives_the_same_digits(
     ins = _inputs(3, 4, t, 8, torch.float32)
     saved = gru_sequence(*ins)
     assert saved.grad_fn is not None
+
+    def refuse(*_):
+        raise AssertionError("the saving forward ran where no backward will")
+
+    monkeypatch.setattr(gru_sequence_module._GRUSequence, "apply", refuse)
     with torch.no_grad():
         torch.testing.assert_close(gru_sequence(*ins), saved.detach(), atol=1e-6, rtol=1e-6)
     plain = [x.detach() for x in ins]

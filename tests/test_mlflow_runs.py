@@ -20,6 +20,7 @@ import socket
 import subprocess
 import sys
 import time
+from types import SimpleNamespace
 
 import pytest
 import yaml
@@ -93,6 +94,39 @@ def test_parent_run_nests_baselines_drawn_as_flat_lines(sqlite_tracker):
     grid = t.client.get_run(parent)
     assert grid.data.tags["kind"] == "grid" and grid.info.run_name == "nest"
     assert [a.path for a in t.client.list_artifacts(parent)] == ["grid.yaml"]
+
+
+def test_precision_route_tag_keeps_every_route_a_trial_ran_in(sqlite_tracker, monkeypatch):
+    """The trial's results carry its learners' route; the run's tag holds every route seen, also across drivers
+    (a resumed grid) and nodes (a recovered trial), and an empty or absent one changes nothing."""
+    from uavlora_rllib.experiment.mlflow_callback import MlflowTrialCallback
+
+    t = sqlite_tracker
+    t.open_grid_run()
+    run_id = t.create_run("mappo-V6-U2-s0", t.base_tags("train", "mappo", 0, 6, 2, 100), BASE_PARAMS)
+    trial = SimpleNamespace(trial_id="t0")
+
+    def driver() -> MlflowTrialCallback:  # a fresh driver's callback on the same store and run
+        cb = MlflowTrialCallback(t.tracking_uri, "nest", t.grid_file, commit="c0ffee")
+        cb._tracker = t
+        monkeypatch.setattr(cb, "run_id", lambda _trial: run_id)
+        return cb
+
+    def tag() -> str | None:
+        return t.client.get_run(run_id).data.tags.get(run_schema.PRECISION_ROUTE)
+
+    first = driver()
+    first._log_result(trial, {run_schema.ENV_STEPS: 20})  # a result without the key (an older trainable)
+    assert tag() is None
+    for steps in (20, 40):
+        first._log_result(trial, {run_schema.ENV_STEPS: steps, run_schema.PRECISION_ROUTE: "bfloat16/onednn"})
+    first._log_result(trial, {run_schema.ENV_STEPS: 60, run_schema.PRECISION_ROUTE: ""})
+    assert tag() == "bfloat16/onednn"
+    second = driver()  # resumed, and the trial recovered on a node without AMX
+    second._log_result(trial, {run_schema.ENV_STEPS: 80, run_schema.PRECISION_ROUTE: "bfloat16/autocast"})
+    assert tag() == "bfloat16/autocast,bfloat16/onednn"
+    driver()._log_result(trial, {run_schema.ENV_STEPS: 100, run_schema.PRECISION_ROUTE: "bfloat16/onednn"})
+    assert tag() == "bfloat16/autocast,bfloat16/onednn"
 
 
 def test_creating_an_existing_experiment_finds_it(sqlite_tracker):

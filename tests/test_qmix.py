@@ -150,13 +150,18 @@ def test_mixers_on_a_longer_state_sequence_equal_the_mixer_on_its_slice(state_bi
         out = mixer(q, state, first=first)
         grads = torch.autograd.grad(out.square().sum(), [q, *mixer.parameters()])
         sliced = state[:, first : first + t]
-        ref = _qmix_by_layers(mixer, q, sliced) if isinstance(mixer, QMixer) else mixer(q, sliced)
+        if isinstance(mixer, QMixer):
+            ref = _qmix_by_layers(mixer, q, sliced)
+        else:  # VDN(-S): the sum, plus V(s) called on its own
+            ref = q.sum(-1) if mixer.v is None else q.sum(-1) + mixer.v(sliced).squeeze(-1)
         ref_grads = torch.autograd.grad(ref.square().sum(), [q, *mixer.parameters()])
         torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5)
         for g, rg in zip(grads, ref_grads, strict=True):
             torch.testing.assert_close(g, rg, rtol=1e-5, atol=1e-5)
         with pytest.raises(ValueError, match="first"):
             mixer(q, state, first=2)
+        with pytest.raises(ValueError, match=r"expected \[B, T"):  # no [N, U] / [N, S] call without a time axis
+            mixer(q[:, 0], state[:, 0])
 
 
 def test_state_bias_adds_a_state_value_that_leaves_every_uav_gradient_at_one():

@@ -119,7 +119,7 @@ class MlflowTrialCallback(Callback):
         self._runs: dict[str, str] = {}  # trial_id -> run_id
         self._last_step: dict[str, int] = {}  # trial_id -> highest env step with training metrics
         self._ended: set[str] = set()
-        self._routes: dict[str, str] = {}  # trial_id -> the PRECISION_ROUTE tag this driver has set
+        self._routes: dict[str, set[str]] = {}  # trial_id -> the routes in its PRECISION_ROUTE tag
         self._reconciled = False
 
     # Tune pickles callbacks into the experiment state; the client is rebuilt on demand.
@@ -256,10 +256,18 @@ class MlflowTrialCallback(Callback):
             self._last_step[tid] = step
         if train or evals:
             self.tracker.log_metrics(run_id, {**train, **evals}, step)
-        route = result.get(PRECISION_ROUTE)
-        if isinstance(route, str) and self._routes.get(tid) != route:  # once per trial, again after a move
-            self.tracker.set_tag(run_id, PRECISION_ROUTE, route)
-            self._routes[tid] = route
+        if isinstance(result.get(PRECISION_ROUTE), str) and result[PRECISION_ROUTE]:
+            self._tag_routes(tid, run_id, set(result[PRECISION_ROUTE].split(",")))
+
+    def _tag_routes(self, tid: str, run_id: str, routes: set[str]) -> None:
+        """PRECISION_ROUTE: every route the trial's learners have run in, also before a move to another
+        node (the run's tag read once per driver); set only when it grows."""
+        if tid not in self._routes:
+            recorded = self.tracker.get_run(run_id).data.tags.get(PRECISION_ROUTE, "")
+            self._routes[tid] = {r for r in recorded.split(",") if r}
+        if not routes <= self._routes[tid]:
+            self._routes[tid] |= routes
+            self.tracker.set_tag(run_id, PRECISION_ROUTE, ",".join(sorted(self._routes[tid])))
 
     def reconcile_trial(self, trial) -> bool:
         """A trial Tune holds as finished whose run is not FINISHED: log what is missing from

@@ -61,8 +61,8 @@ MAX_TAG_VAL_LENGTH = 5000
 TRIAL_WALL_METRIC = "cost/trial_wall_s"  # a trial's own working time so far [s] (experiment/trial_clock.py)
 TRAIN_METRICS = ("episode_return_mean", "ee_sys_mean", "success_rate", "env_steps_per_s", TRIAL_WALL_METRIC)
 ENV_STEPS = "env_steps"  # key of the env-step counter in the trainable's results
-# key of the learners' number format and route in the trainable's results, and the run's tag that records it
-# (common/precision.py precision_name; "a,b" when learners differ)
+# key of the learners' number format and route in the trainable's results, and the run's tag that records every
+# one the trial ran in (common/precision.py precision_name; "a,b" when its learners, or its nodes over time, differ)
 PRECISION_ROUTE = "learner_precision_route"
 LEARNER_PREFIX = "learner/"
 EVAL_PREFIX = "eval/"

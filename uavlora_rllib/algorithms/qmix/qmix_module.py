@@ -75,6 +75,8 @@ class VDNMixer(nn.Module):
     @override(nn.Module)
     def forward(self, q: torch.Tensor, state: torch.Tensor, first: int = 0) -> torch.Tensor:
         """q [B, T, U], state [B, T', S] -> Q_tot [B, T] on the states first .. first + T - 1 (_state_rows)."""
+        if q.dim() != 3:
+            raise ValueError(f"q: expected [B, T, U], got {tuple(q.shape)}")
         total = q.sum(dim=-1)
         if self.v is None:
             _state_rows(state, first, q.shape[1])  # unread, but the same rows must exist
@@ -85,7 +87,10 @@ class VDNMixer(nn.Module):
 def _state_rows(per_state: torch.Tensor, first: int, n_t: int) -> torch.Tensor:
     """Rows first .. first + n_t - 1 of a per-state output [B, T', k]. The mixers run their state layers on the
     whole sequence and slice the narrow output: slicing the wide state [B, T', S] first would copy it (the
-    online mixer reads s_0 .. s_{T-1}, the target mixer s_1 .. s_T; docs/model.md#qmix-mixer-cost)."""
+    online mixer reads s_0 .. s_{T-1}, the target mixer s_1 .. s_T; docs/model.md#qmix-mixer-cost). So every
+    state row must be finite, the unused ones too (an inf there would give 0 x inf in the weight gradients)."""
+    if per_state.dim() != 3:
+        raise ValueError(f"state: expected [B, T', S], got {tuple(per_state.shape)}")
     if first < 0 or first + n_t > per_state.shape[1]:
         raise ValueError(
             f"first: states {first} .. {first + n_t - 1} asked of a sequence of {per_state.shape[1]} states"
@@ -120,6 +125,8 @@ class QMixer(nn.Module):
         """q [B, T, U], state [B, T', S] -> Q_tot [B, T] on the states first .. first + T - 1 (_state_rows).
         The four layers that read the state run as ONE product with their weights side by side, so the wide
         state is read once per pass, not four times (docs/model.md#qmix-mixer-cost)."""
+        if q.dim() != 3 or state.dim() != 3:
+            raise ValueError(f"q, state: expected [B, T, U] and [B, T', S], got {tuple(q.shape)}, {tuple(state.shape)}")
         lead = q.shape[:-1]
         layers = self._state_layers()
         weight = torch.cat([layer.weight for layer in layers])
