@@ -133,18 +133,21 @@ def _resolve(args: argparse.Namespace):
     return entry, scenario, hparams, resources
 
 
+_ROUTE_WORDS = {  # common/precision.py precision_name -> how bench_train says it
+    "bfloat16/onednn": "bfloat16 by oneDNN's bfloat16 products",
+    "bfloat16/autocast": "bfloat16 by torch.autocast (this CPU's oneDNN does not round)",
+}
+
+
 def precision_line(precision: str) -> str:
     """The learner's number format as bench_train runs it (its learner is this process's, on the CPU): for
     bfloat16, the route this CPU takes (common/precision.py), since the two differ in speed."""
-    if precision != "bfloat16":
-        return f"learner precision: {precision}"
     import torch
 
-    from uavlora_rllib.algorithms.common.precision import bfloat16_route
+    from uavlora_rllib.algorithms.common.precision import precision_name
 
-    route = bfloat16_route(torch.device("cpu"))
-    how = "oneDNN's bfloat16 products" if route == "onednn" else "torch.autocast (this CPU's oneDNN does not round)"
-    return f"learner precision: bfloat16 by {how}"
+    name = precision_name(precision, torch.device("cpu"))
+    return f"learner precision: {_ROUTE_WORDS.get(name, name)}"
 
 
 def main(argv: list[str] | None = None) -> int:
