@@ -337,3 +337,18 @@ def test_bench_versions_script_passes_a_checkouts_precision(bench_inputs, monkey
         ("bf16", "bfloat16", True),
         ("f32", "float32", False),
     ]
+
+
+def test_bench_versions_script_passes_a_cases_eds(bench_inputs, monkeypatch):
+    tmp, old = bench_inputs["tmp"], bench_inputs["old"]
+    stub = tmp / "eds_python"  # reports the --n-eds bench_train was given
+    stub.write_text(
+        '#!/bin/sh\nv=$(echo "$*" | sed -n "s/.*--n-eds \\([0-9]*\\).*/\\1/p")\necho "{\\"env_steps_per_s\\": 1.0, \\"v\\": $v}"\n'
+    )
+    stub.chmod(0o755)
+    out = tmp / "out.jsonl"
+    monkeypatch.setenv("CASES", "mappo 2 per_uav 10,qmix 8 per_uav")  # V: EDs, 60 if left out
+    proc = _bench("bench_versions.sh", [str(out), f"new={old}"], str(stub))
+    assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+    rows = [json.loads(line) for line in out.read_text().splitlines()]
+    assert [(r["algo"], r["V"], r["res"]["v"]) for r in rows] == [("mappo", 10, 10), ("qmix", 60, 60)] * 2

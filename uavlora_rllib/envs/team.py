@@ -220,6 +220,8 @@ def sample_through_team_env(
     runner in ONE BatchCore (`gym_env_vectorize_mode="vector_entry_point"`), with the trial's
     `registry.Resources`. The algorithm's own env-runner settings (fragment length, batch mode)
     pass through `env_runner_settings`."""
+    from uavlora_rllib.envs.team_connectors import team_env_to_module, team_module_to_env  # imports Ray
+
     return config.environment(
         UavLoraTeamEnv, env_config={"scenario": scenario.to_dict(), "uavlora_algorithm": algorithm}
     ).env_runners(
@@ -227,5 +229,10 @@ def sample_through_team_env(
         num_envs_per_env_runner=resources.num_envs_per_env_runner,
         num_cpus_per_env_runner=resources.num_cpus_per_env_runner,
         gym_env_vectorize_mode="vector_entry_point",
+        # one connector piece each way instead of RLlib's 5 + 6 (docs/model.md#acting-connectors)
+        env_to_module_connector=team_env_to_module,
+        add_default_connectors_to_env_to_module_pipeline=False,
+        module_to_env_connector=team_module_to_env,
+        add_default_connectors_to_module_to_env_pipeline=False,
         **env_runner_settings,
     )

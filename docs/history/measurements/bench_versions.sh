@@ -8,8 +8,8 @@
 # NAME=CHECKOUT@bfloat16 runs that checkout with --learner-precision bfloat16 (the row's "precision"; @float32 and
 # no suffix run it without the flag).
 #
-# CASES (env, optional): "algo U mode" triples separated by commas; a case skips a checkout named old for
-# qmix/vdn per_device (6f5d51a has no per_device form of them).
+# CASES (env, optional): "algo U mode [V]" cases separated by commas (V: EDs, 60 if left out); a case skips a
+# checkout named old for qmix/vdn per_device (6f5d51a has no per_device form of them).
 . "$(dirname "$0")/bench_checks.sh"  # NAME, HERE, bench_fail, bench_python (PY), bench_out
 [ $# -ge 2 ] || bench_fail "usage: $NAME OUT.jsonl NAME=CHECKOUT..."
 OUT=$1; shift
@@ -24,14 +24,14 @@ for spec in "$@"; do
 done
 bench_out "$OUT"
 CASES=${CASES:-"mappo 8 per_device,qmix 8 per_device,mappo 8 per_uav,qmix 8 per_uav,mappo 2 per_device,qmix 2 per_uav"}
-run() { # name NAME=CHECKOUT[@precision] algo U mode round
+run() { # name NAME=CHECKOUT[@precision] algo U mode round V
   local line dir precision extra=""
   split "$2"
   # the flag only where asked: checkouts from before it (6f5d51a) run float32 without it
   [ "$precision" = bfloat16 ] && extra="--learner-precision bfloat16"
-  line=$(cd "$dir" && "$PY" -m uavlora_rllib.bench_train "$3" --n-eds 60 --n-uavs "$4" --iterations 3 --torch-threads 1 \
+  line=$(cd "$dir" && "$PY" -m uavlora_rllib.bench_train "$3" --n-eds "$7" --n-uavs "$4" --iterations 3 --torch-threads 1 \
     --action-mode "$5" $extra --json 2>/dev/null | grep '^{' | tail -1)
-  echo "{\"ver\":\"$1\",\"commit\":\"$(git -C "$dir" rev-parse --short HEAD 2>/dev/null || echo none)\",\"precision\":\"$precision\",\"algo\":\"$3\",\"U\":$4,\"mode\":\"$5\",\"round\":$6,\"load\":\"$(cut -d' ' -f1 /proc/loadavg)\",\"res\":${line:-null}}" >>"$OUT"
+  echo "{\"ver\":\"$1\",\"commit\":\"$(git -C "$dir" rev-parse --short HEAD 2>/dev/null || echo none)\",\"precision\":\"$precision\",\"algo\":\"$3\",\"V\":$7,\"U\":$4,\"mode\":\"$5\",\"round\":$6,\"load\":\"$(cut -d' ' -f1 /proc/loadavg)\",\"res\":${line:-null}}" >>"$OUT"
 }
 IFS=, read -ra cases <<<"$CASES"
 forward=("$@") backward=()
@@ -44,7 +44,7 @@ for round in 1 2; do
     for spec in "${specs[@]}"; do
       name=${spec%%=*}
       [ "$name" = old ] && [ "$3" = per_device ] && [ "$1" != mappo ] && [ "$1" != ippo ] && continue
-      run "$name" "$spec" "$1" "$2" "$3" $round
+      run "$name" "$spec" "$1" "$2" "$3" $round "${4:-60}"
     done
   done
 done

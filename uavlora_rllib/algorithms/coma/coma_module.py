@@ -506,6 +506,7 @@ class COMATorchRLModule(RecurrentActorForward, TorchRLModule, TargetNetworkAPI, 
         return x.sum(-1) if self.per_device else x
 
     @override(RLModule)
+    @torch.no_grad()  # acting builds no graph (common/actor_module.py)
     def _forward_exploration(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
         """Sampled actions (the common actor forward); per_device also hands the env runner each
         branch's log-probability (BRANCH_LOGP), the per-branch ratio's denominator."""

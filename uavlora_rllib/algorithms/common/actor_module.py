@@ -42,12 +42,16 @@ class RecurrentActorForward:
         logits, h = self.actor(obs.float(), batch[Columns.STATE_IN][HIDDEN].float())
         return logits, {HIDDEN: h}
 
+    # Acting builds no autograd graph: RLlib's env runners call these with gradients enabled, and a
+    # graph per step would also send the GRU through its saving autograd Function (common/gru_sequence.py).
     @override(RLModule)
+    @torch.no_grad()
     def _forward_inference(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
         logits, state = self.actor_logits(batch)
         return {Columns.ACTIONS: self.head.greedy(logits), Columns.STATE_OUT: state}
 
     @override(RLModule)
+    @torch.no_grad()
     def _forward_exploration(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
         logits, state = self.actor_logits(batch)
         actions, logp = self.head.sample(logits)

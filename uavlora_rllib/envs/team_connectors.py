@@ -1,0 +1,120 @@
+"""The env runner's connectors for the team view, one piece each way (docs/model.md#acting-connectors).
+
+RLlib's default env-to-module pipeline is five pieces (observations, time rank, recurrent state,
+batching, tensors) and its module-to-env pipeline six (get actions, numpy, unbatch, time rank,
+clip, listify), each timed and walked item by item per scenario. For the team view, where every
+scenario of the vector env is one single-agent episode with the same spaces, each direction is a
+few stacked-array operations. These two pieces build exactly what the default pipelines build for
+this env and these modules (tests/test_team_connectors.py compares them on every learner), in one
+call each way:
+
+* `TeamEnvToModule`: OBS, the last observation of every episode, [N, 1, ...] for a stateful module
+  (RLlib's single-step time rank) or [N, ...]; STATE_IN, each episode's last STATE_OUT, or the
+  module's initial state where an episode has not stepped yet; as tensors on the runner's device.
+* `TeamModuleToEnv`: the module's outputs as numpy, the time rank removed (not from STATE_OUT), one
+  item per scenario; ACTIONS stays one [N, ...] array, which the env runner steps the vector env
+  with. This package's modules return ACTIONS; for a module that returns only ACTION_DIST_INPUTS
+  RLlib's own GetActions samples them first. The team view's actions are discrete: nothing to clip.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+from ray.rllib.connectors.connector_v2 import ConnectorV2
+from ray.rllib.connectors.module_to_env.get_actions import GetActions
+from ray.rllib.core.columns import Columns
+from ray.rllib.utils.annotations import override
+from ray.rllib.utils.numpy import convert_to_numpy  # on each array: dm-tree's walk once, not per column
+
+
+def _map(fn: Any, data: Any) -> Any:
+    """fn on every array of a column (an array, or a dict of them as STATE_IN/STATE_OUT are): the
+    team view's columns are only these, and dm-tree's generic walk costs ~30 us a call."""
+    if isinstance(data, dict):
+        return {k: _map(fn, v) for k, v in data.items()}
+    return fn(data)
+
+
+def _per_episode(data: Any, n: int) -> list[Any]:
+    """A batched column -> its n per-scenario items (views, as RLlib's unbatching gives)."""
+    if isinstance(data, dict):
+        parts = {k: _per_episode(v, n) for k, v in data.items()}
+        return [{k: v[i] for k, v in parts.items()} for i in range(n)]
+    return list(data)
+
+
+def _stack(items: list[Any]) -> Any:
+    """n per-scenario items (arrays or dicts of them) -> one batched column."""
+    if isinstance(items[0], dict):
+        return {k: _stack([item[k] for item in items]) for k in items[0]}
+    return np.stack(items)
+
+
+class TeamEnvToModule(ConnectorV2):
+    """Episodes -> {OBS, STATE_IN} tensors for forward_exploration/forward_inference (see module doc)."""
+
+    def __init__(self, input_observation_space=None, input_action_space=None, *, device=None, **kwargs):
+        super().__init__(input_observation_space, input_action_space, **kwargs)
+        self._device = device
+
+    def _tensor(self, x: np.ndarray) -> torch.Tensor:
+        t = torch.from_numpy(x)
+        return t if self._device is None else t.to(self._device)
+
+    @override(ConnectorV2)
+    def __call__(
+        self, *, rl_module: Any, batch: dict[str, Any], episodes: list[Any], explore=None, shared_data=None, **kwargs
+    ) -> Any:
+        obs = np.stack([episode.get_observations(-1) for episode in episodes])
+        stateful = rl_module.is_stateful()
+        batch[Columns.OBS] = self._tensor(obs[:, None] if stateful else obs)
+        if stateful:
+            init = None
+            states = []
+            for episode in episodes:
+                fresh = episode.t_started == 0 and len(episode) == 0
+                if fresh or Columns.STATE_OUT not in episode.extra_model_outputs:
+                    init = _map(convert_to_numpy, rl_module.get_initial_state()) if init is None else init
+                    states.append(init)
+                else:
+                    states.append(episode.get_extra_model_outputs(key=Columns.STATE_OUT, indices=-1))
+            batch[Columns.STATE_IN] = _map(self._tensor, _stack(states))
+        return batch
+
+
+class TeamModuleToEnv(ConnectorV2):
+    """The module's outputs -> what the env runner steps the env with and stores per scenario (module doc)."""
+
+    def __init__(self, input_observation_space=None, input_action_space=None, **kwargs):
+        super().__init__(input_observation_space, input_action_space, **kwargs)
+        self._get_actions = GetActions()
+
+    @override(ConnectorV2)
+    def __call__(
+        self, *, rl_module: Any, batch: dict[str, Any], episodes: list[Any], explore=None, shared_data=None, **kwargs
+    ) -> Any:
+        if Columns.ACTIONS not in batch:  # a module that returns only its distribution's inputs
+            batch = self._get_actions(rl_module=rl_module, batch=batch, episodes=episodes, explore=explore)
+        out = {column: _map(convert_to_numpy, data) for column, data in batch.items()}
+        timed = rl_module.is_stateful()  # TeamEnvToModule gave every input but STATE_IN a time rank of 1
+        to_env: dict[str, Any] = {}
+        for column, data in out.items():
+            if column == Columns.STATE_OUT:
+                to_env[column] = _per_episode(data, len(episodes))
+                continue
+            data = _map(lambda x: x[:, 0], data) if timed else data
+            to_env[column] = data if column == Columns.ACTIONS else _per_episode(data, len(episodes))
+        return to_env
+
+
+def team_env_to_module(env: Any = None, spaces: Any = None, device: Any = None) -> TeamEnvToModule:
+    """`config.env_runners(env_to_module_connector=...)` for the team view."""
+    return TeamEnvToModule(device=device)
+
+
+def team_module_to_env(env: Any = None, spaces: Any = None) -> TeamModuleToEnv:
+    """`config.env_runners(module_to_env_connector=...)` for the team view."""
+    return TeamModuleToEnv()
