@@ -222,6 +222,14 @@ def sample_through_team_env(
     pass through `env_runner_settings`."""
     from uavlora_rllib.envs.team_connectors import team_env_to_module, team_module_to_env  # imports Ray
 
+    # one connector piece each way instead of RLlib's 5 + 6 (docs/model.md#acting-connectors); an
+    # algorithm's own env_runner_settings may set its connectors instead
+    connectors = {
+        "env_to_module_connector": team_env_to_module,
+        "add_default_connectors_to_env_to_module_pipeline": False,
+        "module_to_env_connector": team_module_to_env,
+        "add_default_connectors_to_module_to_env_pipeline": False,
+    }
     return config.environment(
         UavLoraTeamEnv, env_config={"scenario": scenario.to_dict(), "uavlora_algorithm": algorithm}
     ).env_runners(
@@ -229,10 +237,5 @@ def sample_through_team_env(
         num_envs_per_env_runner=resources.num_envs_per_env_runner,
         num_cpus_per_env_runner=resources.num_cpus_per_env_runner,
         gym_env_vectorize_mode="vector_entry_point",
-        # one connector piece each way instead of RLlib's 5 + 6 (docs/model.md#acting-connectors)
-        env_to_module_connector=team_env_to_module,
-        add_default_connectors_to_env_to_module_pipeline=False,
-        module_to_env_connector=team_module_to_env,
-        add_default_connectors_to_module_to_env_pipeline=False,
-        **env_runner_settings,
+        **{**connectors, **env_runner_settings},
     )

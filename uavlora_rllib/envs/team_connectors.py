@@ -13,7 +13,8 @@ call each way:
   module's initial state where an episode has not stepped yet; as tensors on the runner's device.
 * `TeamModuleToEnv`: the module's outputs as numpy, the time rank removed (not from STATE_OUT), one
   item per scenario; ACTIONS stays one [N, ...] array, which the env runner steps the vector env
-  with. This package's modules return ACTIONS; for a module that returns only ACTION_DIST_INPUTS
+  with (a module's own ACTIONS_FOR_ENV is dropped: with RLlib's default normalize_actions the
+  default pipeline replaces it by ACTIONS). This package's modules return ACTIONS; for a module that returns only ACTION_DIST_INPUTS
   RLlib's own GetActions samples them first. The team view's actions are discrete: nothing to clip.
 """
 
@@ -21,29 +22,33 @@ from __future__ import annotations
 
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 import torch
 from ray.rllib.connectors.connector_v2 import ConnectorV2
 from ray.rllib.connectors.module_to_env.get_actions import GetActions
 from ray.rllib.core.columns import Columns
 from ray.rllib.utils.annotations import override
-from ray.rllib.utils.numpy import convert_to_numpy  # on each array: dm-tree's walk once, not per column
+from ray.rllib.utils.numpy import convert_to_numpy
+from ray.rllib.utils.torch_utils import convert_to_torch_tensor
 
 
 def _map(fn: Any, data: Any) -> Any:
     """fn on every array of a column (an array, or a dict of them as STATE_IN/STATE_OUT are): the
-    team view's columns are only these, and dm-tree's generic walk costs ~30 us a call."""
+    team view's columns are only these, and dm-tree's walk over a whole column costs ~30 us a call
+    (RLlib's conversions, given one array each here, walk just that array)."""
     if isinstance(data, dict):
         return {k: _map(fn, v) for k, v in data.items()}
     return fn(data)
 
 
-def _per_episode(data: Any, n: int) -> list[Any]:
-    """A batched column -> its n per-scenario items (views, as RLlib's unbatching gives)."""
+def _per_episode(data: Any, n: int, squeezed: bool = False) -> list[Any]:
+    """A batched column -> its n per-scenario items, views as RLlib's unbatching gives them. squeezed: the
+    column lost its time rank here, and an [N] column's items are then 0-d arrays (np.squeeze's), not scalars."""
     if isinstance(data, dict):
-        parts = {k: _per_episode(v, n) for k, v in data.items()}
+        parts = {k: _per_episode(v, n, squeezed) for k, v in data.items()}
         return [{k: v[i] for k, v in parts.items()} for i in range(n)]
-    return list(data)
+    return [np.asarray(x) for x in data] if squeezed and data.ndim == 1 else list(data)
 
 
 def _stack(items: list[Any]) -> Any:
@@ -61,8 +66,7 @@ class TeamEnvToModule(ConnectorV2):
         self._device = device
 
     def _tensor(self, x: np.ndarray) -> torch.Tensor:
-        t = torch.from_numpy(x)
-        return t if self._device is None else t.to(self._device)
+        return convert_to_torch_tensor(x, device=self._device)  # NumpyToTensor's conversion
 
     @override(ConnectorV2)
     def __call__(
@@ -75,6 +79,7 @@ class TeamEnvToModule(ConnectorV2):
             init = None
             states = []
             for episode in episodes:
+                # AddStatesFromEpisodesToBatch's rule for env runners (Ray 2.60)
                 fresh = episode.t_started == 0 and len(episode) == 0
                 if fresh or Columns.STATE_OUT not in episode.extra_model_outputs:
                     init = _map(convert_to_numpy, rl_module.get_initial_state()) if init is None else init
@@ -101,12 +106,13 @@ class TeamModuleToEnv(ConnectorV2):
         out = {column: _map(convert_to_numpy, data) for column, data in batch.items()}
         timed = rl_module.is_stateful()  # TeamEnvToModule gave every input but STATE_IN a time rank of 1
         to_env: dict[str, Any] = {}
+        out.pop(Columns.ACTIONS_FOR_ENV, None)  # the env gets ACTIONS, as after the default's normalize/clip
         for column, data in out.items():
             if column == Columns.STATE_OUT:
                 to_env[column] = _per_episode(data, len(episodes))
                 continue
             data = _map(lambda x: x[:, 0], data) if timed else data
-            to_env[column] = data if column == Columns.ACTIONS else _per_episode(data, len(episodes))
+            to_env[column] = data if column == Columns.ACTIONS else _per_episode(data, len(episodes), timed)
         return to_env
 
 
@@ -116,5 +122,9 @@ def team_env_to_module(env: Any = None, spaces: Any = None, device: Any = None) 
 
 
 def team_module_to_env(env: Any = None, spaces: Any = None) -> TeamModuleToEnv:
-    """`config.env_runners(module_to_env_connector=...)` for the team view."""
+    """`config.env_runners(module_to_env_connector=...)` for the team view, whose actions are discrete:
+    RLlib's clipping and unsquashing, which this piece leaves out, would have nothing to do."""
+    space = getattr(env, "single_action_space", None)
+    if space is not None and not isinstance(space, (gym.spaces.Discrete, gym.spaces.MultiDiscrete)):
+        raise ValueError(f"team_module_to_env: the env's actions must be discrete (they are not clipped); got {space}")
     return TeamModuleToEnv()

@@ -100,7 +100,8 @@ class HParamsConfig(abc.ABC):
 
     def env_runner_settings(self, scenario: ScenarioConfig) -> dict[str, Any]:
         """`AlgorithmConfig.env_runners` arguments of this algorithm's sampling (fragment
-        length, batch mode) beyond the trial's resources; none: RLlib's defaults."""
+        length, batch mode) beyond the trial's resources; none: RLlib's defaults. Connector
+        arguments given here replace the team view's (docs/model.md#acting-connectors)."""
         return {}
 
 
