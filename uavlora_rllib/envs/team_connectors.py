@@ -14,8 +14,9 @@ call each way:
 * `TeamModuleToEnv`: the module's outputs as numpy, the time rank removed (not from STATE_OUT), one
   item per scenario; ACTIONS stays one [N, ...] array, which the env runner steps the vector env
   with (a module's own ACTIONS_FOR_ENV is dropped: with RLlib's default normalize_actions the
-  default pipeline replaces it by ACTIONS). This package's modules return ACTIONS; for a module that returns only ACTION_DIST_INPUTS
-  RLlib's own GetActions samples them first. The team view's actions are discrete: nothing to clip.
+  default pipeline replaces it by ACTIONS). This package's modules return ACTIONS; for a module
+  that returns only ACTION_DIST_INPUTS, RLlib's own GetActions samples them first. The team view's
+  actions are discrete: nothing to clip.
 """
 
 from __future__ import annotations
