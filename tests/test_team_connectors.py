@@ -4,9 +4,11 @@ For every built-in learner and action mode: two env runners of the same trial co
 `envs/team_connectors` (what every trial uses) and one with RLlib's default env-to-module and
 module-to-env pipelines, the same module weights and the same seeds, sample across episode ends
 (the recurrent state restarts there) and on from where a call cut its episodes, in exploration and
-greedily. Every episode they return must
-agree: observations, actions, rewards and every extra model output (log-probabilities, the GRU
-state), values, dtypes and structure. And acting builds no autograd graph (docs/model.md#batched-agent-networks).
+greedily. Every episode they return must agree: observations, actions, rewards and every extra
+model output (log-probabilities, the GRU state), values, dtypes, item types and structure. On
+hand-built episodes the two pieces give what RLlib's default pipelines give, for a recurrent and a
+feed-forward module (docs/model.md#acting-connectors). And acting builds no autograd graph
+(docs/model.md#batched-agent-networks).
 """
 
 from __future__ import annotations
