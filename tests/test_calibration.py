@@ -167,6 +167,7 @@ def test_estimate_is_the_hand_computed_arithmetic(tmp_path, calib_file):
     assert cost.wall_clock_s(est, 3, None) == (600.0, 1)  # one trial at a time: 580 s of trials; 1800 CPU-s / 3
     assert cost.wall_clock_s(est, 6, None) == (300.0, 2)  # two at once: 290 s; 1800 / 6 = 300
     assert cost.wall_clock_s(est, 6, 1) == (580.0, 1)  # max_concurrent_trials 1
+    assert cost.wall_clock_s(est, 30, None)[1] == 2  # 10 slots, 2 trials
     assert math.isnan(cost.wall_clock_s(est, 2, None)[0])  # a trial needs 3 CPUs
     assert est.notes == []
 
@@ -227,20 +228,79 @@ def test_partly_calibrated_grid_lists_the_rest(tmp_path, calib_file, capsys):
     path = write_grid(tmp_path, grid_data(tmp_path, n_uavs=[2, 3]), "two.yaml")
     assert tune_cli.main([path, "--dry-run"]) == 0
     out = capsys.readouterr().out
-    assert "not calibrated for version" in out and "1 trial cell(s), 1 baseline cell(s)" in out
+    assert "not calibrated: 1 trial cell(s), 1 baseline cell(s)" in out
     assert "mappo V=4 U=3 per_uav T=5 runners=2 envs/runner=4 (trials 2, 4)" in out
     assert "partial: 0.50 CPU-hours for the calibrated part only (2 of 4 trials" in out
     assert "\ngrid:" not in out and "wall-clock" not in out
 
 
-def test_other_versions_are_not_used(tmp_path, calib_file, capsys):
+def test_records_of_other_code_stand_in_marked_approximate(tmp_path, calib_file, capsys):
     write_hand_calibration(tmp_path, calib_file, calibration.this_machine())
     data = json.loads(calib_file.read_text())
     for rec in data["records"].values():
-        rec["version"] = "0.0.0-old"
+        rec["version"] = "0.1.0+0123456789ab"
+    calib_file.write_text(json.dumps(data))
+    assert tune_cli.main([str(tmp_path / "grid.yaml"), "--dry-run", "--num-cpus", "3"]) == 0
+    out = capsys.readouterr().out
+    assert "grid: 0.50 CPU-hours" in out  # the same figures ...
+    assert [ln.split()[-1] for ln in out.splitlines() if "mappo-V4-U2-s" in ln] == ["~", "~"]  # ... marked
+    assert (
+        f"note: approximate for trials 1-2: measured with other code (0.1.0+0123456789ab, 2026-01-01; "
+        f"this is {VERSION})" in out
+    )
+    assert "note: approximate baselines (random): measured with other code" in out
+    assert "measured 2026-01-01):" in out  # the header dates the records used
+    # --calibrate measures this code: the old records do not count as done
+    store = calibration.Store.load(str(calib_file))
+    cell = next(iter(calibration.grid_train_cells(load_grid(str(tmp_path / "grid.yaml")), [])), None)
+    assert cell is None or not store.has(cell, calibration.this_machine(), VERSION)
+    assert not any(store.has(r["cell_key"], calibration.this_machine(), VERSION) for r in store.records.values())
+
+
+def test_the_code_version_follows_the_sources(tmp_path, monkeypatch):
+    import uavlora_rllib
+
+    pkg = tmp_path / "pkg"
+    (pkg / "sub").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "sub" / "a.py").write_text("x = 1\n")
+    (pkg / "notes.txt").write_text("not code")
+    monkeypatch.setattr(uavlora_rllib, "__file__", str(pkg / "__init__.py"))
+
+    def digest() -> str:
+        calibration.code_digest.cache_clear()
+        return calibration.code_digest()
+
+    try:
+        first = digest()
+        assert digest() == first and len(first) == 12
+        (pkg / "notes.txt").write_text("still not code")
+        assert digest() == first
+        (pkg / "sub" / "a.py").write_text("x = 2\n")
+        assert digest() != first
+    finally:
+        monkeypatch.undo()
+        calibration.code_digest.cache_clear()
+    assert calibration.package_version() == f"{uavlora_rllib.__version__}+{calibration.code_digest()}" == VERSION
+
+
+def test_unusable_records_are_ignored_and_counted(tmp_path, calib_file, capsys):
+    machine = calibration.this_machine()
+    write_hand_calibration(tmp_path, calib_file, machine)
+    data = json.loads(calib_file.read_text())
+    [(rid, train)] = [(k, r) for k, r in data["records"].items() if r["kind"] == "train"]
+    data["records"]["junk"] = "oops"
+    data["records"]["no-final"] = {k: v for k, v in train.items() if k != "final_eval_s"}
+    data["records"]["zero-rate"] = {**train, "env_steps_per_s": 0}
+    data["records"]["nan-build"] = {**train, "build_s": float("nan")}
+    data["records"]["bool-episodes"] = {**train, "eval_episodes": True}
+    del data["records"][rid]
     calib_file.write_text(json.dumps(data))
     assert tune_cli.main([str(tmp_path / "grid.yaml"), "--dry-run"]) == 0
-    assert "not calibrated: none of the grid's" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "note: 5 record(s) of the calibration file cannot be read (damaged or edited) and are ignored" in out
+    assert "not calibrated: 1 trial cell(s), 0 baseline cell(s)" in out
+    assert calibration.usable(train) and not calibration.usable({**train, "kind": "other"})
 
 
 def record_with_hparams(cell, machine, hparams, measured_at, rate) -> dict:
@@ -298,10 +358,48 @@ def test_the_nearest_record_has_the_fewest_differences_then_this_machine():
     ]:
         rec = record_with_hparams(cell, where, hp, "2026-01-01T00:00:00+00:00", 1.0)
         store.records[name] = {**rec, "label": name}
-    record, diff = store.nearest(cell, machine, VERSION)
-    assert record["label"] == "one" and diff == {"x": ("unset", 1)}
-    assert store.nearest(cell, machine, "9.9") is None
+    # the exact cell, measured with other code: after this code's records that differ in neutral fields only
+    exact_old = record_with_hparams(cell, machine, {"x": 1, "y": 2}, "2026-03-01T00:00:00+00:00", 1.0)
+    store.records["exact-old"] = {**exact_old, "label": "exact-old", "version": "9.9"}
+    match = store.nearest(cell, machine, VERSION, neutral={"x", "y"})
+    assert match.record["label"] == "one" and match.differs == {"x": ("unset", 1)} and not match.other_code
+    assert store.nearest(cell, machine, VERSION, neutral={"y"}).record["label"] == "one-other"  # x may not
+    exact = store.nearest(cell, machine, VERSION)  # no neutral field: only the exact cell, here of other code
+    assert exact.record["label"] == "exact-old" and exact.other_code and exact.differs == {}
+    assert store.nearest(cell, machine, "9.9", neutral={"x", "y"}).record["label"] == "exact-old"
+    old = store.nearest(cell, machine, "8.8", neutral={"x", "y"})
+    assert old.other_code and old.record["label"] == "exact-old"  # all of other code: the fewest differences
     assert store.nearest(calibration.Cell("baseline", {}, "b"), machine, VERSION) is None
+
+
+def test_a_speed_hyperparameter_never_stands_in(tmp_path, calib_file, capsys):
+    # a record one field away (num_epochs, which sets the update's cost) and one two fields away (lr and gamma,
+    # which do not): only the second may price the trial
+    machine = calibration.this_machine()
+    grid = load_grid(write_grid(tmp_path, grid_data(tmp_path)))
+    specs = trials(grid)
+    [(tcell, _)] = calibration.grid_train_cells(grid, specs).values()
+    hp = dict(tcell.content["hparams"])
+    store = calibration.Store(str(calib_file))
+    store.put(record_with_hparams(tcell, machine, {**hp, "num_epochs": 4}, "2026-01-01T00:00:00+00:00", 400.0))
+    est = cost.estimate(grid, specs, calibration.Store.load(str(calib_file)), machine, VERSION)
+    assert [r.record for r in est.rows] == [None, None]
+    store.put(record_with_hparams(tcell, machine, {**hp, "lr": 1.0, "gamma": 0.5}, "2026-01-01T00:00:00+00:00", 100.0))
+    est = cost.estimate(grid, specs, calibration.Store.load(str(calib_file)), machine, VERSION)
+    assert [r.record["env_steps_per_s"] for r in est.rows] == [100.0, 100.0]
+    assert set(est.rows[0].differs) == {"lr", "gamma"}
+
+
+def test_every_speed_neutral_name_is_a_hyperparameter():
+    import dataclasses
+
+    from uavlora_rllib.algorithms.common import registry
+
+    for name in registry.built_in():
+        cls = registry.spec(name).hparams_cls
+        neutral = getattr(cls, "SPEED_NEUTRAL", frozenset())
+        assert neutral <= {f.name for f in dataclasses.fields(cls)}, name
+        assert neutral, f"{name}: declares no speed-neutral hyperparameter"
 
 
 # --------------------------------------------------------------------------- the file
@@ -358,15 +456,15 @@ def test_bad_calibrate_flags(tmp_path, calib_file, capsys, extra, message):
     assert not ray.is_initialized() and not calib_file.exists()
 
 
-def test_calibrate_measures_each_cell_once_and_records_it(tmp_path, calib_file, capsys, monkeypatch):
-    """The calibration's bookkeeping, with the measurements replaced (no Ray)."""
+def _fake_measurements(monkeypatch, rate: float = 100.0) -> list[str]:
+    """measure_* replaced (no Ray): each call appends the spec's name; trials measure `rate`."""
     import ray
 
     measured: list[str] = []
 
     def fake_train(grid, spec, iterations):
         measured.append(spec.name)
-        return {**HAND, "iterations": iterations, "learning_started": True}
+        return {**HAND, "env_steps_per_s": rate, "iterations": iterations, "learning_started": True}
 
     def fake_baseline(spec, episodes):
         measured.append(spec.name)
@@ -376,6 +474,12 @@ def test_calibrate_measures_each_cell_once_and_records_it(tmp_path, calib_file, 
     monkeypatch.setattr(calibration, "measure_baseline_cell", fake_baseline)
     monkeypatch.setattr(ray, "init", lambda **kw: None)
     monkeypatch.setattr(ray, "shutdown", lambda: None)
+    return measured
+
+
+def test_calibrate_measures_each_cell_once_and_records_it(tmp_path, calib_file, capsys, monkeypatch):
+    """The calibration's bookkeeping, with the measurements replaced (no Ray)."""
+    measured = _fake_measurements(monkeypatch)
     path = write_grid(tmp_path, grid_data(tmp_path))
     assert tune_cli.main([path, "--calibrate", "--calibrate-iterations", "3", "--num-cpus", "3"]) == 0
     out = capsys.readouterr().out
@@ -387,6 +491,68 @@ def test_calibrate_measures_each_cell_once_and_records_it(tmp_path, calib_file, 
     assert tune_cli.main([path, "--calibrate"]) == 0  # a second run keeps what is there
     assert measured == ["mappo-V4-U2-s0", "random-V4-U2-s0"]
     assert "0 trial cells and 0 baseline cells to measure" in capsys.readouterr().out
+
+
+def test_an_unusable_measurement_is_not_recorded(tmp_path, calib_file, capsys, monkeypatch):
+    measured = _fake_measurements(monkeypatch, rate=0.0)  # e.g. no env step was timed
+    path = write_grid(tmp_path, grid_data(tmp_path))
+    assert tune_cli.main([path, "--calibrate"]) == 0
+    out = capsys.readouterr().out
+    assert "mappo V=4 U=2 per_uav T=5 runners=2 envs/runner=4: not recorded, the measurement is unusable" in out
+    assert [r["kind"] for r in json.loads(calib_file.read_text())["records"].values()] == ["baseline"]
+    assert tune_cli.main([path, "--calibrate"]) == 0  # so the next calibration measures it again
+    assert measured == ["mappo-V4-U2-s0", "random-V4-U2-s0", "mappo-V4-U2-s0"]
+
+
+def test_calibrate_refuses_an_unwritable_file_before_measuring(tmp_path, capsys, monkeypatch):
+    measured = _fake_measurements(monkeypatch)
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    monkeypatch.setenv(calibration.PATH_ENV, str(blocker / "calibration.json"))  # its directory is a file
+    assert tune_cli.main([write_grid(tmp_path, grid_data(tmp_path)), "--calibrate"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: calibration file {blocker / 'calibration.json'}: cannot write there")
+    assert err.count("\n") == 1 and f"${calibration.PATH_ENV}" in err and measured == []
+
+
+def test_a_second_calibration_into_the_same_file_is_refused(tmp_path, calib_file, capsys, monkeypatch):
+    import fcntl
+
+    measured = _fake_measurements(monkeypatch)
+    calib_file.parent.mkdir(parents=True)
+    with open(str(calib_file) + ".calibrating", "a") as held:  # what a running --calibrate holds
+        fcntl.flock(held, fcntl.LOCK_EX)
+        assert tune_cli.main([write_grid(tmp_path, grid_data(tmp_path)), "--calibrate"]) == 2
+    err = capsys.readouterr().err
+    assert "another --calibrate is measuring into it" in err and err.count("\n") == 1 and measured == []
+    assert tune_cli.main([str(tmp_path / "grid.yaml"), "--calibrate"]) == 0  # once it has ended
+    assert len(measured) == 2
+
+
+def test_calibrate_on_a_busy_machine_says_so(tmp_path, calib_file, capsys, monkeypatch):
+    _fake_measurements(monkeypatch)
+    monkeypatch.setattr(os, "getloadavg", lambda: (4.0 * (os.cpu_count() or 1), 0.0, 0.0))
+    assert tune_cli.main([write_grid(tmp_path, grid_data(tmp_path)), "--calibrate"]) == 0
+    assert "other work shares the cores, so the rates measured now will be low" in capsys.readouterr().out
+
+
+def test_notes_of_schedulers_sweeps_and_gpus(tmp_path, calib_file):
+    machine = calibration.this_machine()
+    write_hand_calibration(tmp_path, calib_file, machine)
+    store = calibration.Store.load(str(calib_file))
+
+    def notes(**changes) -> list[str]:
+        grid = load_grid(write_grid(tmp_path, grid_data(tmp_path, **changes), "n.yaml"))
+        return cost.estimate(grid, trials(grid), store, machine, VERSION).notes
+
+    pbt = notes(scheduler={"type": "pbt"}, algorithms={"mappo": {"lr": {"uniform": [1e-4, 1e-3]}}})
+    assert "note: the pbt scheduler pauses and rebuilds trials at each perturbation: a lower bound" in pbt
+    assert "note: sampled hyperparameters are calibrated at their defaults" in pbt  # lr: speed-neutral, no more
+    asha = notes(scheduler={"type": "asha"}, algorithms={"mappo": {"num_epochs": {"grid_search": [4, 16]}}})
+    assert "note: the asha scheduler stops some trials early: an upper bound" in asha
+    assert any("num_epochs change(s) how long a step takes" in n for n in asha)
+    gpus = notes(resources={**grid_data(tmp_path)["resources"], "num_learners": 1, "num_gpus_per_learner": 1})
+    assert "note: the wall-clock counts CPUs only; trials that reserve GPUs also wait for free GPUs" in gpus
 
 
 # --------------------------------------------------------------------------- measurement

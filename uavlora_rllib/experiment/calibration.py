@@ -5,16 +5,18 @@ A *cell* is what decides the cost, without the seed: for a trial the algorithm, 
 hyperparameters, the whole scenario and the resources that change speed (SPEED_RESOURCES); for a
 baseline run the baseline, the scenario and the number of evaluation episodes. Its key is a hash
 of that content, so a grid that differs in anything that matters gets new cells, and two grids
-that share a cell share its measurement. A trial cell with no record of its own falls back, for
-the estimate only, to the record that differs from it in hyperparameters alone (`Store.nearest`),
-so adding a hyperparameter does not throw the earlier measurements away.
+that share a cell share its measurement. A cell with no record of its own falls back, for the
+estimate only and marked approximate, to the same cell measured with other code or to a record
+that differs from it in speed-neutral hyperparameters alone (`Store.nearest`), so a code change or
+a new hyperparameter does not throw the earlier measurements away.
 
 The file lives in the user's cache directory (`default_path`; $UAVLORA_CALIBRATION names
 another), not in the grid's storage: the numbers describe a machine, not an experiment, one file
 serves every grid and every storage (including cloud URIs no plain file can be written to), and a
-dry run needs no storage. Each record names the machine (CPU model and count) and the package
-version it was measured with; the estimate prefers this machine's records and says when it uses
-another machine's. Every write is atomic (a temporary file renamed over the old one, under a
+dry run needs no storage. Each record names the machine (CPU model and count) and the code it was
+measured with (`package_version`: the package's sources and the torch and Ray versions); the
+estimate prefers this machine's records and this code's, and says when it uses another machine's
+or older code's. Every write is atomic (a temporary file renamed over the old one, under a
 lock), one record at a time, so a killed calibration keeps what it measured and a rerun
 measures only the rest.
 
@@ -26,6 +28,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import datetime
+import functools
 import hashlib
 import json
 import math
@@ -33,7 +36,7 @@ import os
 import sys
 import tempfile
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Collection, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any, TextIO
 
@@ -158,9 +161,39 @@ def describe_machine(machine: Mapping[str, Any]) -> str:
 
 
 def package_version() -> str:
+    """The code a measurement describes: the package's version and `code_digest`. `__version__` alone
+    stays the same while the learners get several times faster, and an old record would then pass
+    for an exact one."""
     import uavlora_rllib
 
-    return str(uavlora_rllib.__version__)
+    return f"{uavlora_rllib.__version__}+{code_digest()}"
+
+
+@functools.cache
+def code_digest() -> str:
+    """12 hex digits of a SHA-256 over the package's Python sources (relative path and bytes, in
+    sorted order) and the installed torch and Ray versions, which set a trial's speed as much; read
+    from their metadata, so neither is imported."""
+    from importlib import metadata
+
+    import uavlora_rllib
+
+    root = os.path.dirname(os.path.abspath(uavlora_rllib.__file__))
+    digest = hashlib.sha256()
+    for directory, subdirs, files in os.walk(root):
+        subdirs[:] = sorted(d for d in subdirs if d != "__pycache__")  # a fixed walk order
+        for name in sorted(f for f in files if f.endswith(".py")):
+            path = os.path.join(directory, name)
+            digest.update(os.path.relpath(path, root).encode() + b"\0")
+            with open(path, "rb") as fh:
+                digest.update(fh.read() + b"\0")
+    for dist in ("torch", "ray"):
+        try:
+            installed = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            installed = "none"
+        digest.update(f"{dist}={installed}\0".encode())
+    return digest.hexdigest()[:12]
 
 
 def default_path() -> str:
@@ -175,6 +208,50 @@ def default_path() -> str:
 
 
 # --------------------------------------------------------------------------- the file
+# the fields the estimate reads, each a finite number: True where it must be above 0 (a rate, a count)
+_READ_FIELDS = {
+    "train": {
+        "env_steps_per_s": True,
+        "env_steps_per_iteration": True,
+        "eval_episodes": True,
+        "seconds_per_iteration": False,
+        "build_s": False,
+        "periodic_eval_s": False,
+        "final_eval_s": False,
+    },
+    "baseline": {"seconds": False, "timed_episodes": True, "episodes": True},
+}
+
+
+def usable(record: Any) -> bool:
+    """Whether a record can price a cell: its identity fields, and the numbers the estimate reads
+    (`_READ_FIELDS`) finite, rates and counts above 0. A damaged or hand-edited file may hold others;
+    they are skipped (and counted: `Store.unusable`), never a traceback."""
+    if not isinstance(record, dict) or record.get("kind") not in _READ_FIELDS:
+        return False
+    if not all(isinstance(record.get(k), t) for k, t in (("cell_key", str), ("version", str), ("cell", dict))):
+        return False
+    if not isinstance(record.get("machine"), dict):
+        return False
+    for name, positive in _READ_FIELDS[record["kind"]].items():
+        value = record.get(name)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            return False
+        if value < 0 or (positive and value == 0):
+            return False
+    return True
+
+
+@dataclass(frozen=True)
+class Match:
+    """The record that prices a cell, and how it differs: hyperparameters (name -> (the record's
+    value, the grid's), `hparam_differences`) and whether it was measured with other code."""
+
+    record: dict[str, Any]
+    differs: dict[str, tuple[Any, Any]]
+    other_code: bool
+
+
 def _record_id(key: str, machine: Mapping[str, Any], version: str) -> str:
     return f"{key}/{cell_key('machine', machine)}/{version}"
 
@@ -200,36 +277,51 @@ class Store:
             raise ConfigError(f"calibration file {path}: not a calibration of format {FORMAT}; delete it to start over")
         return cls(path, dict(data["records"]))
 
+    def unusable(self) -> int:
+        """How many of the file's records `usable` rejects."""
+        return sum(not usable(r) for r in self.records.values())
+
     def find(self, key: str, machine: Mapping[str, Any], version: str) -> dict[str, Any] | None:
         """The record of cell `key` for `version`: this machine's, else the newest of another
-        machine (its "machine" field tells which); records of other versions are not used."""
-        found = [r for r in self.records.values() if r.get("cell_key") == key and r.get("version") == version]
+        machine (its "machine" field tells which)."""
+        found = [r for r in self.records.values() if usable(r) and r["cell_key"] == key and r["version"] == version]
         return _own_then_newest(found, machine) if found else None
 
-    def nearest(self, cell: Cell, machine: Mapping[str, Any], version: str) -> tuple[dict[str, Any], dict] | None:
-        """The record for `version` of a trial cell whose content differs from `cell`'s in
-        hyperparameters only, with the fewest differing fields (none: the cell's own record, as
-        `find` gives it), this machine's first, then the newest; and those differences
-        (`hparam_differences`). None if there is none. Adding a hyperparameter changes every
-        cell's key, and this keeps the earlier measurements usable, named as approximate, until
-        `--calibrate` measures the exact cell."""
-        if cell.kind != "train":
-            return None
+    def nearest(
+        self, cell: Cell, machine: Mapping[str, Any], version: str, neutral: Collection[str] = ()
+    ) -> Match | None:
+        """The record that prices `cell`: its own (the same content measured with this code), else the
+        nearest stand-in, marked approximate: the same content measured with other code, or, for a
+        trial cell, a record that differs from it only in hyperparameters named in `neutral` (its
+        HParams class's SPEED_NEUTRAL: they change what is learned, not how long a step takes). This
+        code's records come first, then the fewest differing fields, this machine's, the newest.
+        None if there is none. Adding a neutral hyperparameter, or changing the code, keeps the
+        earlier measurements usable, named as approximate, until `--calibrate` measures the cell."""
         rest = {k: v for k, v in cell.content.items() if k != "hparams"}
         found = []
         for r in self.records.values():
-            content = r.get("cell", {})
-            if r.get("kind") == "train" and r.get("version") == version:
-                if {k: v for k, v in content.items() if k != "hparams"} == rest:
-                    found.append((r, hparam_differences(content.get("hparams", {}), cell.content["hparams"])))
+            if not usable(r) or r["kind"] != cell.kind:
+                continue
+            diff: dict[str, tuple[Any, Any]] = {}
+            if cell.kind != "train":
+                if r["cell_key"] != cell.key:
+                    continue
+            else:
+                if {k: v for k, v in r["cell"].items() if k != "hparams"} != rest:
+                    continue
+                diff = hparam_differences(r["cell"].get("hparams", {}), cell.content["hparams"])
+                if any(name not in neutral for name in diff):
+                    continue
+            found.append((r["version"] != version, len(diff), r, diff))
         if not found:
             return None
-        fewest = min(len(diff) for _, diff in found)
-        record = _own_then_newest([r for r, diff in found if len(diff) == fewest], machine)
-        return record, next(diff for r, diff in found if r is record)
+        best = min((other, n) for other, n, _, _ in found)
+        group = [(r, diff) for other, n, r, diff in found if (other, n) == best]
+        record = _own_then_newest([r for r, _ in group], machine)
+        return Match(record, next(diff for r, diff in group if r is record), record["version"] != version)
 
     def has(self, key: str, machine: Mapping[str, Any], version: str) -> bool:
-        """Whether cell `key` is measured on `machine` for `version`."""
+        """Whether cell `key` is measured on `machine` with this code (`version`)."""
         found = self.find(key, machine, version)
         return found is not None and found.get("machine") == dict(machine)
 
@@ -276,11 +368,39 @@ def hparam_differences(recorded: Mapping[str, Any], wanted: Mapping[str, Any]) -
 
 @contextlib.contextmanager
 def _locked(path: str) -> Iterator[None]:
-    """An exclusive advisory lock on `path` (two calibrations may run at once)."""
+    """An exclusive advisory lock on `path`, held while one record is merged into the file."""
     import fcntl
 
     with open(path, "a") as fh:
         fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+@contextlib.contextmanager
+def _one_calibration(path: str) -> Iterator[None]:
+    """Held for a whole `--calibrate` into `path`: a second one is refused, since two at once would
+    time each other's load and record it as this machine's speed. Also the check, before anything
+    is measured, that the file's directory can be written."""
+    import fcntl
+
+    try:
+        os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+        fh = open(path + ".calibrating", "a")  # noqa: SIM115  (held until the end of the block)
+    except OSError as exc:
+        raise ConfigError(
+            f"calibration file {path}: cannot write there ({exc.strerror}); set ${PATH_ENV} to a writable path"
+        ) from None
+    with fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ConfigError(
+                f"calibration file {path}: another --calibrate is measuring into it; wait for it to end "
+                "(two at once would time each other's load)"
+            ) from None
         try:
             yield
         finally:
@@ -389,10 +509,16 @@ def calibrate(
     num_cpus: int | None = None,
     out: TextIO | None = None,
 ) -> int:
-    """Measure every cell of the grid not yet recorded for this machine and version and record
-    each as soon as it is measured; returns how many were measured."""
+    """Measure every cell of the grid not yet recorded for this machine and this code, one
+    calibration per file at a time, and record each as soon as it is measured; returns how many
+    were measured."""
     out = out or sys.stdout
-    store = Store.load(path or default_path())
+    path = path or default_path()
+    with _one_calibration(path):
+        return _calibrate_grid(grid, specs, Store.load(path), iterations, num_cpus, out)
+
+
+def _calibrate_grid(grid, specs, store: Store, iterations: int, num_cpus: int | None, out: TextIO) -> int:
     machine, version = this_machine(), package_version()
     trains = [(c, specs[ix[0]]) for c, ix in grid_train_cells(grid, specs).values()]
     bases = [(c, members[0]) for c, members in grid_baseline_cells(grid).values()]
@@ -405,12 +531,21 @@ def calibrate(
         file=out,
         flush=True,
     )
+    load, cpus = (os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0), os.cpu_count() or 1
+    if (todo_t or todo_b) and load > 0.5 * cpus:  # a 1-minute mean: other work before this one started
+        print(
+            f"note: load {load:.1f} on {cpus} CPUs: other work shares the cores, so the rates measured now will be "
+            "low; calibrate on an idle machine for the figures to plan with",
+            file=out,
+            flush=True,
+        )
     t_start = time.perf_counter()
     if todo_t:
         _calibrate_trials(grid, todo_t, store, machine, version, iterations, num_cpus, out)
     for i, (cell, spec) in enumerate(todo_b, 1):
         fields = measure_baseline_cell(spec, grid.evaluation.episodes)
-        store.put(_stamp(cell, machine, version, **fields))
+        if not _put_usable(store, _stamp(cell, machine, version, **fields), f"  [{i}/{len(todo_b)}]", out):
+            continue
         scaled = (
             f" (timed on {fields['timed_episodes']} of {fields['episodes']} episodes, scaled)"
             if fields["timed_episodes"] < fields["episodes"]
@@ -450,7 +585,8 @@ def _calibrate_trials(
         for i, (cell, spec) in enumerate(todo, 1):
             t0 = time.perf_counter()
             fields = measure_train_cell(grid, spec, iterations)
-            store.put(_stamp(cell, machine, version, **fields))
+            if not _put_usable(store, _stamp(cell, machine, version, **fields), f"  [{i}/{len(todo)}]", out):
+                continue
             late = "" if fields["learning_started"] else "; the learner had not updated yet (rate too high)"
             print(
                 f"  [{i}/{len(todo)}] {cell.label}: {fields['env_steps_per_s']:,.0f} env steps/s, "
@@ -461,3 +597,14 @@ def _calibrate_trials(
             )
     finally:
         ray.shutdown()
+
+
+def _put_usable(store: Store, record: dict[str, Any], prefix: str, out: TextIO) -> bool:
+    """Store a measured record, unless `usable` rejects it (e.g. no env step was timed): a record
+    the estimate cannot read would only hide the cell from the next --calibrate."""
+    if usable(record):
+        store.put(record)
+        return True
+    read = {k: record.get(k) for k in _READ_FIELDS[record["kind"]]}
+    print(f"{prefix} {record['label']}: not recorded, the measurement is unusable: {read}", file=out, flush=True)
+    return False

@@ -5,9 +5,10 @@ Per trial: wall = build + budget / rate + periodic evaluations x one evaluation 
 evaluation, all as measured for its cell; CPU-hours = wall x the CPUs the trial reserves (its
 learner process and env runners). Baseline runs add their own time on one CPU each. The
 wall-clock time packs the trials, in the grid's order, onto as many slots as the CPUs (and
-max_concurrent_trials) allow. A trial cell without a record of its own is estimated from the
-record that differs from it in hyperparameters only (calibration.Store.nearest), marked approximate
-with the differing fields named; a cell with neither is listed, never guessed.
+max_concurrent_trials) allow. A cell without a record of its own (this code, these
+hyperparameters) is estimated from its nearest stand-in (calibration.Store.nearest: the same cell
+measured with older code, or a record that differs in speed-neutral hyperparameters only), marked
+approximate with what differs named; a cell with neither is listed, never guessed.
 """
 
 from __future__ import annotations
@@ -38,13 +39,19 @@ class TrialCost:
     wall_s: float = math.nan  # one trial
     # hyperparameters in which `record` differs from the trial (calibration.nearest); empty: its own cell
     differs: dict[str, tuple[Any, Any]] = field(default_factory=dict)
+    other_code: bool = False  # `record` was measured with other code (calibration.package_version)
+
+    @property
+    def approximate(self) -> bool:
+        return self.record is not None and (bool(self.differs) or self.other_code)
 
 
 @dataclass
 class GridCost:
     rows: list[TrialCost]
     cpus_per_trial: float
-    baselines: list[tuple[calibration.Cell, int, dict[str, Any] | None]]  # (cell, runs, record)
+    # (cell, runs, its record or None, whether that record was measured with other code)
+    baselines: list[tuple[calibration.Cell, int, dict[str, Any] | None, bool]]
     machine: dict[str, Any]
     version: str
     path: str
@@ -52,12 +59,12 @@ class GridCost:
 
     @property
     def complete(self) -> bool:
-        return all(r.record is not None for r in self.rows) and all(rec is not None for _, _, rec in self.baselines)
+        return all(r.record is not None for r in self.rows) and all(rec is not None for _, _, rec, _ in self.baselines)
 
     @property
     def approximate(self) -> list[TrialCost]:
-        """The rows estimated from a record measured with other hyperparameters."""
-        return [r for r in self.rows if r.record is not None and r.differs]
+        """The rows estimated from a stand-in: other hyperparameters or other code."""
+        return [r for r in self.rows if r.approximate]
 
     def trial_cpu_s(self) -> float:
         return sum(r.wall_s * r.trials * self.cpus_per_trial for r in self.rows if r.record is not None)
@@ -65,7 +72,7 @@ class GridCost:
     def baseline_cpu_s(self) -> float:
         from uavlora_rllib.experiment.baseline_tasks import BASELINE_CPUS
 
-        return sum(rec["seconds"] * n * BASELINE_CPUS for _, n, rec in self.baselines if rec is not None)
+        return sum(rec["seconds"] * n * BASELINE_CPUS for _, n, rec, _ in self.baselines if rec is not None)
 
 
 def periodic_evaluations(budget: int, interval: int, steps_per_iteration: float) -> int:
@@ -99,24 +106,32 @@ def trials_per_spec(grid, specs) -> list[int]:
 
 
 def estimate(grid, specs, store: calibration.Store, machine: Mapping[str, Any], version: str) -> GridCost:
-    """The grid's cost from `store`'s records for `version` (this machine's first)."""
+    """The grid's cost from `store`'s records, this code's (`version`) and this machine's first."""
     budget, interval, episodes = grid.stop.env_steps, eval_interval(grid), grid.evaluation.episodes
     rows = []
     for i, (spec, n) in enumerate(zip(specs, trials_per_spec(grid, specs)), 1):
         if n == 0:
             continue
         cell = calibration.train_cell(spec, grid.resources)
-        record, differs = store.nearest(cell, machine, version) or (None, {})  # its own record first
-        row = TrialCost(i, spec.name, n, cell, record, differs=differs)
-        if record is not None:
-            row.wall_s = trial_seconds(record, budget, interval, episodes)
+        match = store.nearest(cell, machine, version, speed_neutral(spec))  # its own record first
+        row = TrialCost(i, spec.name, n, cell, None)
+        if match is not None:
+            row.record, row.differs, row.other_code = match.record, match.differs, match.other_code
+            row.wall_s = trial_seconds(match.record, budget, interval, episodes)
         rows.append(row)
-    baselines = [
-        (cell, len(members), store.find(key, machine, version))
-        for key, (cell, members) in calibration.grid_baseline_cells(grid).items()
-    ]
+    baselines: list[tuple[calibration.Cell, int, dict[str, Any] | None, bool]] = []
+    for cell, members in calibration.grid_baseline_cells(grid).values():
+        found = store.nearest(cell, machine, version)
+        baselines.append(
+            (cell, len(members), found.record, found.other_code) if found else (cell, len(members), None, False)
+        )
     cost = GridCost(rows, calibration.trial_cpus(grid.resources), baselines, dict(machine), version, store.path)
-    used = [r.record for r in rows if r.record is not None] + [rec for _, _, rec in baselines if rec is not None]
+    used = [r.record for r in rows if r.record is not None] + [rec for _, _, rec, _ in baselines if rec is not None]
+    bad = store.unusable()
+    if bad:
+        cost.notes.append(
+            f"note: {bad} record(s) of the calibration file cannot be read (damaged or edited) and are ignored"
+        )
     others = {calibration.describe_machine(r["machine"]) for r in used if r["machine"] != dict(machine)}
     for other in sorted(others):
         cost.notes.append(
@@ -132,10 +147,34 @@ def estimate(grid, specs, store: calibration.Store, machine: Mapping[str, Any], 
         )
     cost.notes += _approximate_notes(cost)
     if grid.scheduler is not None:
-        cost.notes.append(f"note: the {grid.scheduler.type} scheduler stops some trials early: an upper bound")
+        cost.notes.append(_scheduler_note(grid.scheduler.type))
+    sampled = sorted({name for s in specs for name in s.spaces if name not in speed_neutral(s)})
     if any(s.spaces for s in specs):
-        cost.notes.append("note: sampled hyperparameters are calibrated at their defaults")
+        cost.notes.append(
+            "note: sampled hyperparameters are calibrated at their defaults"
+            + (
+                f"; {', '.join(sampled)} change(s) how long a step takes, so trials at other values cost more or less"
+                if sampled
+                else ""
+            )
+        )
+    if any(b.get("GPU", 0) for b in grid.resources.bundles()):
+        cost.notes.append("note: the wall-clock counts CPUs only; trials that reserve GPUs also wait for free GPUs")
     return cost
+
+
+def speed_neutral(spec) -> frozenset[str]:
+    """The hyperparameters of `spec`'s algorithm that change what is learned but not how long a step
+    takes (its HParams class's SPEED_NEUTRAL; none declared: none), across which a calibration record
+    may stand in for another (calibration.Store.nearest)."""
+    return frozenset(getattr(type(spec.hparams), "SPEED_NEUTRAL", ()))
+
+
+def _scheduler_note(kind: str) -> str:
+    """What a Tune scheduler does to the estimate of trials that all run their whole budget."""
+    if kind == "pbt":  # it stops no trial; each perturbation checkpoints, restores and rebuilds some
+        return "note: the pbt scheduler pauses and rebuilds trials at each perturbation: a lower bound"
+    return f"note: the {kind} scheduler stops some trials early: an upper bound"
 
 
 def _show(value: Any) -> str:
@@ -143,22 +182,33 @@ def _show(value: Any) -> str:
 
 
 def _approximate_notes(cost: GridCost) -> list[str]:
-    """One note per group of trials estimated from a record with other hyperparameters, naming the
-    fields, both values and the trials."""
+    """One note per group of trials estimated from a stand-in record, naming what differs: the fields
+    with both values, or the other code's version and date; one for baselines of other code."""
     groups: dict[tuple, list[int]] = {}
     for r in cost.approximate:
-        what = (str(r.cell.content["algorithm"]), tuple((k, _show(a), _show(b)) for k, (a, b) in r.differs.items()))
-        groups.setdefault(what, []).append(r.index)
-    return [
-        f"note: approximate for trials {_ranges(ix)} ({algo}): measured with other hyperparameters, "
-        + ", ".join(f"{k} {a} (now {b})" for k, a, b in fields)
-        for (algo, fields), ix in groups.items()
-    ]
+        assert r.record is not None
+        fields = tuple((k, _show(a), _show(b)) for k, (a, b) in r.differs.items())
+        code = (str(r.record["version"]), str(r.record.get("measured_at", ""))[:10]) if r.other_code else None
+        algo = str(r.cell.content["algorithm"]) if fields else ""  # other code alone: one note for all algorithms
+        groups.setdefault((algo, fields, code), []).append(r.index)
+    notes = []
+    for (algo, fields, code), ix in groups.items():
+        what = []
+        if code is not None:
+            what.append(f"other code ({code[0]}, {code[1]}; this is {cost.version})")
+        if fields:
+            what.append("other hyperparameters, " + ", ".join(f"{k} {a} (now {b})" for k, a, b in fields))
+        who = f" ({algo})" if algo else ""
+        notes.append(f"note: approximate for trials {_ranges(ix)}{who}: measured with " + "; ".join(what))
+    old_baselines = sorted({str(c.content["baseline"]) for c, _, rec, other in cost.baselines if rec and other})
+    if old_baselines:
+        notes.append(f"note: approximate baselines ({', '.join(old_baselines)}): measured with other code")
+    return notes
 
 
 def wall_clock_s(cost: GridCost, cpus: float, max_concurrent: int | None) -> tuple[float, int]:
-    """(wall seconds of the whole grid, trials at once) on `cpus` CPUs; (nan, 0) if a trial does
-    not fit. Trials start in order on the first free slot; baselines share the CPUs."""
+    """(wall seconds of the whole grid, most trials at once) on `cpus` CPUs; (nan, 0) if a trial
+    does not fit. Trials start in order on the first free slot; baselines share the CPUs."""
     slots = math.floor(cpus / cost.cpus_per_trial + 1e-9)
     if max_concurrent is not None:
         slots = min(slots, max_concurrent)
@@ -169,8 +219,8 @@ def wall_clock_s(cost: GridCost, cpus: float, max_concurrent: int | None) -> tup
         for _ in range(row.trials):
             heapq.heappush(free, heapq.heappop(free) + row.wall_s)
     busy = (cost.trial_cpu_s() + cost.baseline_cpu_s()) / cpus
-    longest_baseline = max((rec["seconds"] for _, _, rec in cost.baselines if rec), default=0.0)
-    return max(max(free), busy, longest_baseline), slots
+    longest_baseline = max((rec["seconds"] for _, _, rec, _ in cost.baselines if rec), default=0.0)
+    return max(max(free), busy, longest_baseline), min(slots, sum(r.trials for r in cost.rows))
 
 
 def _ranges(indices: list[int]) -> str:
@@ -184,6 +234,15 @@ def _ranges(indices: list[int]) -> str:
     return ", ".join(str(lo) if lo == hi else f"{lo}-{hi}" for lo, hi in runs)
 
 
+def _measured(cost: GridCost) -> str:
+    """'; measured FIRST to LAST' (UTC days) of the records the estimate uses, or ''."""
+    used = [r.record for r in cost.rows if r.record] + [rec for _, _, rec, _ in cost.baselines if rec]
+    days = sorted(str(r.get("measured_at", ""))[:10] for r in used if r.get("measured_at"))
+    if not days:
+        return ""
+    return f"; measured {days[0]}" + (f" to {days[-1]}" if days[-1] != days[0] else "")
+
+
 def _minutes(hours: float) -> str:
     """' (N min)' after a figure in hours that would print as 0.0x, else ''."""
     return f" ({hours * 60:.1f} min)" if hours < 0.1 else ""
@@ -191,12 +250,12 @@ def _minutes(hours: float) -> str:
 
 def report_lines(cost: GridCost, grid, grid_file: str, cpus: float, cpus_given: bool) -> list[str]:
     """The dry run's cost section."""
-    lines = [f"cost estimate (calibration {cost.path}, version {cost.version}):"]
-    if not any(r.record for r in cost.rows) and not any(rec for _, _, rec in cost.baselines):
+    lines = [f"cost estimate (calibration {cost.path}, code {cost.version}{_measured(cost)}):"]
+    if not any(r.record for r in cost.rows) and not any(rec for _, _, rec, _ in cost.baselines):
         n_cells = len({r.cell.key for r in cost.rows})
         return lines + [
             f"  not calibrated: none of the grid's {n_cells} trial cell(s) and {len(cost.baselines)} "
-            f"baseline cell(s) is in the calibration for version {cost.version}",
+            "baseline cell(s) is in the calibration",
             f"calibrate with: python -m uavlora_rllib.tune {grid_file} --calibrate",
         ]
     lines += cost.notes + _trial_lines(cost) + _baseline_lines(cost)
@@ -219,7 +278,8 @@ def report_lines(cost: GridCost, grid, grid_file: str, cpus: float, cpus_given: 
     if cost.approximate:
         n = sum(r.trials for r in cost.approximate)
         lines.append(
-            f"approximate: {n} trial(s) (marked ~) from records measured with other hyperparameters (notes above); "
+            f"approximate: {n} trial(s) (marked ~) from records measured with other hyperparameters or other code "
+            "(notes above); "
             f"measure them exactly with: python -m uavlora_rllib.tune {grid_file} --calibrate"
         )
     where = f"{cpus:g} CPUs (--num-cpus)" if cpus_given else f"this machine's {cpus:g} CPUs"
@@ -253,7 +313,7 @@ def _trial_lines(cost: GridCost) -> list[str]:
             lines.append(
                 f"{r.index:>4}  {r.name:<24} {r.record['env_steps_per_s']:>12,.0f} {r.wall_s / 3600:>8.2f} "
                 f"{cost.cpus_per_trial:>5g} {r.wall_s * cost.cpus_per_trial / 3600:>8.2f}{count}"
-                + ("  ~" if r.differs else "")
+                + ("  ~" if r.approximate else "")
             )
     return lines
 
@@ -264,13 +324,13 @@ def _missing_lines(cost: GridCost, grid_file: str, most: int = 12) -> list[str]:
     for r in cost.rows:
         if r.record is None:
             by_cell.setdefault(r.cell.key, (r.cell, []))[1].append(r.index)
-    missing_b = [(c, n) for c, n, rec in cost.baselines if rec is None]
+    missing_b = [(c, n) for c, n, rec, _ in cost.baselines if rec is None]
     cells = [f"  {cell.label} (trials {_ranges(ix)})" for cell, ix in by_cell.values()] + [
         f"  {cell.label} ({n} baseline runs)" for cell, n in missing_b
     ]
     more = [f"  ... and {len(cells) - most} more"] if len(cells) > most else []
     return (
-        [f"not calibrated for version {cost.version}: {len(by_cell)} trial cell(s), {len(missing_b)} baseline cell(s):"]
+        [f"not calibrated: {len(by_cell)} trial cell(s), {len(missing_b)} baseline cell(s):"]
         + cells[:most]
         + more
         + [f"calibrate with: python -m uavlora_rllib.tune {grid_file} --calibrate"]
@@ -280,7 +340,7 @@ def _missing_lines(cost: GridCost, grid_file: str, most: int = 12) -> list[str]:
 def _baseline_lines(cost: GridCost) -> list[str]:
     """Baseline CPU-hours per kind (seconds per run are measured per cell)."""
     kinds: dict[str, list[tuple[int, dict[str, Any]]]] = {}
-    for cell, n, rec in cost.baselines:
+    for cell, n, rec, _ in cost.baselines:
         if rec is not None:
             kinds.setdefault(str(cell.content["baseline"]), []).append((n, rec))
     if not kinds:

@@ -3,7 +3,7 @@ torch (registry.spec: grid checks, --dry-run, --list-hparams)."""
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, ClassVar, Literal
 
 from pydantic import Field
 from pydantic.dataclasses import dataclass as typed_dataclass
@@ -28,6 +28,24 @@ ACTION_MODES = ("per_uav", "per_device")
 @typed_dataclass(config={"extra": "forbid", "frozen": True})
 class COMAHParams:
     """COMA's hyperparameters; defaults from the paper's training table where it has them."""
+
+    # change what is learned, not how long a step or an update takes (gamma does: at 0 the target
+    # critic is skipped): a calibration record with other values of these prices a trial
+    # (experiment/calibration.py, Store.nearest)
+    SPEED_NEUTRAL: ClassVar[frozenset[str]] = frozenset(
+        {
+            "lr_actor",
+            "lr_critic",
+            "td_lambda",
+            "entropy_coeff",
+            "grad_clip",
+            "tau",
+            "target_hard_update_every",
+            "ratio_clip",
+            "normalize_advantages",
+            "reward_scale",
+        }
+    )
 
     lr_actor: float = Field(
         default=1e-4, gt=0, le=1, description="Adam step size of the actor [1/update] (paper: lr 1e-4)"

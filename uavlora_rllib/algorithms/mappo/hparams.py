@@ -3,7 +3,7 @@ the registry without Ray or torch (registry.spec: grid checks, --dry-run, --list
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import ClassVar, Literal
 
 from pydantic import ConfigDict, Field
 from pydantic.dataclasses import dataclass as typed_dataclass
@@ -29,6 +29,12 @@ class MAPPOHParams:
 
     Defaults: the paper's training table where it gives one, else this project's decision
     (docs/model.md#training-defaults)."""
+
+    # change what is learned, not how long a step or an update takes: a calibration record measured
+    # with other values of these prices a trial (experiment/calibration.py, Store.nearest)
+    SPEED_NEUTRAL: ClassVar[frozenset[str]] = frozenset(
+        {"lr", "gamma", "lambda_", "clip_param", "entropy_coeff", "vf_loss_coeff", "grad_clip", "value_clip"}
+    )
 
     lr: float = Field(default=1e-4, gt=0.0, le=1.0, description="Adam step size, actor and critic [1/update] (paper)")
     gamma: float = Field(default=0.99, ge=0.0, le=1.0, description="discount per slot [-] (paper)")

@@ -3,7 +3,7 @@ registry without Ray or torch (registry.spec: grid checks, --dry-run, --list-hpa
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import ClassVar, Literal
 
 from pydantic import Field, model_validator
 from pydantic.dataclasses import dataclass as typed_dataclass
@@ -30,6 +30,25 @@ def _updates_per_episode(default: float):
 @typed_dataclass(config={"extra": "forbid", "frozen": True})
 class QMIXHParams:
     """QMIX/VDN hyperparameters (grid YAML `algorithms.qmix:` / `algorithms.vdn:`)."""
+
+    # change what is learned, not how long a step or an update takes (gamma does: at 0 the target
+    # networks are skipped): a calibration record with other values of these prices a trial
+    # (experiment/calibration.py, Store.nearest)
+    SPEED_NEUTRAL: ClassVar[frozenset[str]] = frozenset(
+        {
+            "lr",
+            "lr_end",
+            "negative_td_weight",
+            "n_step",
+            "tau",
+            "grad_clip",
+            "buffer_size_episodes",
+            "epsilon_start",
+            "epsilon_end",
+            "epsilon_anneal_fraction",
+            "t_max_env_steps",
+        }
+    )
 
     lr: float = Field(
         default=1e-4, gt=0, le=1, description="Adam step size, agent network and mixer [1/update] (paper)"
