@@ -209,6 +209,10 @@ def test_evaluation_time_is_scaled_by_episodes(tmp_path, calib_file):
     grid = load_grid(write_grid(tmp_path, grid_data(tmp_path, evaluation={"episodes": 8}), "g8.yaml"))
     est = cost.estimate(grid, trials(grid), calibration.Store.load(str(calib_file)), machine, VERSION)
     assert est.rows[0].wall_s == 42 + 120 + 21 * 12 + 4
+    # a budget that is not a whole number of iterations: the iteration that crosses it runs in full
+    odd = load_grid(write_grid(tmp_path, grid_data(tmp_path, stop={"env_steps": 11_950}), "odd.yaml"))
+    record = calibration.Store.load(str(calib_file)).nearest(est.rows[0].cell, machine, VERSION)
+    assert cost.trial_seconds(record.record, odd.stop.env_steps, 0, 4) == 42 + 120 + 2
     assert any("scaled by episodes from [4] to the grid's 8" in n for n in est.notes)
     assert not est.complete  # the baseline cell holds its episodes: 8 is another cell
 

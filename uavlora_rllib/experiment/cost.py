@@ -87,12 +87,15 @@ def periodic_evaluations(budget: int, interval: int, steps_per_iteration: float)
 
 
 def trial_seconds(record: Mapping[str, Any], budget: int, interval: int, episodes: int) -> float:
-    """One trial's wall seconds from its cell's record (evaluations scaled to `episodes`)."""
+    """One trial's wall seconds from its cell's record (evaluations scaled to `episodes`). Training runs
+    whole iterations: the one that crosses the budget ends the trial, so the steps sampled are the
+    budget rounded up to an iteration's steps."""
     per_episode = episodes / max(int(record["eval_episodes"]), 1)
-    n_eval = periodic_evaluations(budget, interval, record["env_steps_per_iteration"])
+    per_iteration = record["env_steps_per_iteration"]
+    n_eval = periodic_evaluations(budget, interval, per_iteration)
     return (
         record["build_s"]
-        + budget / record["env_steps_per_s"]
+        + math.ceil(budget / per_iteration) * per_iteration / record["env_steps_per_s"]
         + (n_eval * record["periodic_eval_s"] + record["final_eval_s"]) * per_episode
     )
 
