@@ -394,6 +394,44 @@ def test_a_speed_hyperparameter_never_stands_in(tmp_path, calib_file, capsys):
     assert set(est.rows[0].differs) == {"lr", "gamma"}
 
 
+def test_scenario_constants_stand_in_geometry_does_not(tmp_path, calib_file, capsys):
+    machine = calibration.this_machine()
+    grid = load_grid(write_grid(tmp_path, grid_data(tmp_path)))
+    specs = trials(grid)
+    [(tcell, _)] = calibration.grid_train_cells(grid, specs).values()
+    [(bcell, _)] = calibration.grid_baseline_cells(grid).values()
+    store = calibration.Store(str(calib_file))
+
+    def moved(cell, **scenario):
+        return calibration.Cell(cell.kind, {**cell.content, "scenario": {**cell.content["scenario"], **scenario}}, "m")
+
+    reward = {**tcell.content["scenario"]["reward"], "w1": 0.5}
+    store.put(train_record(moved(tcell, altitude_m=120.0), machine, **HAND))  # geometry: never a stand-in
+    store.put(baseline_record(moved(bcell, altitude_m=120.0), machine, 30.0, 4))
+    est = cost.estimate(grid, specs, calibration.Store.load(str(calib_file)), machine, VERSION)
+    assert [r.record for r in est.rows] == [None, None] and est.baselines[0][2] is None
+    store.put(train_record(moved(tcell, reward=reward), machine, **HAND))
+    store.put(baseline_record(moved(bcell, reward=reward), machine, 30.0, 4))
+    assert tune_cli.main([str(tmp_path / "grid.yaml"), "--dry-run", "--num-cpus", "3"]) == 0
+    out = capsys.readouterr().out
+    old, now = json.dumps(reward), json.dumps(tcell.content["scenario"]["reward"])
+    assert (
+        f"note: approximate for trials 1-2 (mappo): measured with other scenario constants, scenario.reward {old} (now {now})"
+        in out
+    )
+    assert f"note: approximate baselines (random): measured with other scenario constants, scenario.reward {old}" in out
+    assert "grid: 0.50 CPU-hours" in out
+
+
+def test_every_speed_neutral_scenario_name_is_a_field():
+    import dataclasses
+
+    from uavlora_rllib.sim.scenario import ScenarioConfig
+
+    assert ScenarioConfig.SPEED_NEUTRAL <= {f.name for f in dataclasses.fields(ScenarioConfig)}
+    assert not {"n_eds", "n_uavs", "episode_len", "action_mode", "area_m", "altitude_m"} & ScenarioConfig.SPEED_NEUTRAL
+
+
 def test_every_speed_neutral_name_is_a_hyperparameter():
     import dataclasses
 

@@ -291,27 +291,31 @@ class Store:
         self, cell: Cell, machine: Mapping[str, Any], version: str, neutral: Collection[str] = ()
     ) -> Match | None:
         """The record that prices `cell`: its own (the same content measured with this code), else the
-        nearest stand-in, marked approximate: the same content measured with other code, or, for a
-        trial cell, a record that differs from it only in hyperparameters named in `neutral` (its
-        HParams class's SPEED_NEUTRAL: they change what is learned, not how long a step takes). This
-        code's records come first, then the fewest differing fields, this machine's, the newest.
-        None if there is none. Adding a neutral hyperparameter, or changing the code, keeps the
-        earlier measurements usable, named as approximate, until `--calibrate` measures the cell."""
-        rest = {k: v for k, v in cell.content.items() if k != "hparams"}
+        nearest stand-in, marked approximate: the same content measured with other code, or a record
+        that differs from it only in speed-neutral settings, which change what is learned or computed
+        but not how long a step takes: the hyperparameters named in `neutral` (a trial's HParams
+        SPEED_NEUTRAL) and the scenario's constants (ScenarioConfig.SPEED_NEUTRAL). This code's
+        records come first, then the fewest differing fields, this machine's, the newest. None if
+        there is none. A code change or a new neutral setting keeps the earlier measurements usable,
+        named as approximate, until `--calibrate` measures the cell."""
+        from uavlora_rllib.sim.scenario import ScenarioConfig
+
+        scenario_neutral = ScenarioConfig.SPEED_NEUTRAL
+        rest, _ = _speed_parts(cell.content, scenario_neutral)
         found = []
         for r in self.records.values():
             if not usable(r) or r["kind"] != cell.kind:
                 continue
-            diff: dict[str, tuple[Any, Any]] = {}
-            if cell.kind != "train":
-                if r["cell_key"] != cell.key:
-                    continue
-            else:
-                if {k: v for k, v in r["cell"].items() if k != "hparams"} != rest:
-                    continue
-                diff = hparam_differences(r["cell"].get("hparams", {}), cell.content["hparams"])
-                if any(name not in neutral for name in diff):
-                    continue
+            other_rest, scenario = _speed_parts(r["cell"], scenario_neutral)
+            if other_rest != rest:
+                continue
+            diff = hparam_differences(r["cell"].get("hparams", {}), cell.content.get("hparams", {}))
+            if any(name not in neutral for name in diff):
+                continue
+            wanted = cell.content.get("scenario", {})
+            diff.update(
+                {f"scenario.{k}": (v, wanted.get(k, UNSET)) for k, v in sorted(scenario.items()) if wanted.get(k) != v}
+            )
             found.append((r["version"] != version, len(diff), r, diff))
         if not found:
             return None
@@ -353,6 +357,17 @@ def _own_then_newest(found: list[dict[str, Any]], machine: Mapping[str, Any]) ->
 
 
 UNSET = "unset"  # a hyperparameter one side of a comparison does not have (added or removed since)
+
+
+def _speed_parts(content: Mapping[str, Any], scenario_neutral: Collection[str]) -> tuple[dict, dict]:
+    """A cell's content without its hyperparameters and its scenario's speed-neutral fields (what must
+    match for one record to stand in for another), and those scenario fields."""
+    scenario = content.get("scenario")
+    rest = {k: v for k, v in content.items() if k not in ("hparams", "scenario")}
+    if not isinstance(scenario, Mapping):
+        return {**rest, "scenario": scenario}, {}
+    rest["scenario"] = {k: v for k, v in scenario.items() if k not in scenario_neutral}
+    return rest, {k: v for k, v in scenario.items() if k in scenario_neutral}
 
 
 def hparam_differences(recorded: Mapping[str, Any], wanted: Mapping[str, Any]) -> dict[str, tuple[Any, Any]]:

@@ -50,8 +50,8 @@ class TrialCost:
 class GridCost:
     rows: list[TrialCost]
     cpus_per_trial: float
-    # (cell, runs, its record or None, whether that record was measured with other code)
-    baselines: list[tuple[calibration.Cell, int, dict[str, Any] | None, bool]]
+    # (cell, runs, its record or None, what differs where the record is a stand-in: "" for its own)
+    baselines: list[tuple[calibration.Cell, int, dict[str, Any] | None, str]]
     machine: dict[str, Any]
     version: str
     path: str
@@ -122,12 +122,11 @@ def estimate(grid, specs, store: calibration.Store, machine: Mapping[str, Any], 
             row.record, row.differs, row.other_code = match.record, match.differs, match.other_code
             row.wall_s = trial_seconds(match.record, budget, interval, episodes)
         rows.append(row)
-    baselines: list[tuple[calibration.Cell, int, dict[str, Any] | None, bool]] = []
+    baselines: list[tuple[calibration.Cell, int, dict[str, Any] | None, str]] = []
     for cell, members in calibration.grid_baseline_cells(grid).values():
         found = store.nearest(cell, machine, version)
-        baselines.append(
-            (cell, len(members), found.record, found.other_code) if found else (cell, len(members), None, False)
-        )
+        why = "" if found is None else _stand_in(found.differs, found.other_code)
+        baselines.append((cell, len(members), found.record if found else None, why))
     cost = GridCost(rows, calibration.trial_cpus(grid.resources), baselines, dict(machine), version, store.path)
     used = [r.record for r in rows if r.record is not None] + [rec for _, _, rec, _ in baselines if rec is not None]
     bad = store.unusable()
@@ -184,28 +183,43 @@ def _show(value: Any) -> str:
     return value if value == calibration.UNSET else json.dumps(value)
 
 
+def _stand_in(differs: Mapping[str, tuple[Any, Any]], other_code: bool, code: str = "") -> str:
+    """What a stand-in record was measured with, for a note: other code (`code` says which), other
+    hyperparameters and other scenario constants, each field with the record's value and the grid's;
+    "" for the cell's own."""
+    what = []
+    if other_code:
+        what.append(f"other code ({code})" if code else "other code")
+    for kind, fields in (
+        ("other hyperparameters", {k: v for k, v in differs.items() if not k.startswith("scenario.")}),
+        ("other scenario constants", {k: v for k, v in differs.items() if k.startswith("scenario.")}),
+    ):
+        if fields:
+            what.append(kind + ", " + ", ".join(f"{k} {_show(a)} (now {_show(b)})" for k, (a, b) in fields.items()))
+    return "; ".join(what)
+
+
 def _approximate_notes(cost: GridCost) -> list[str]:
-    """One note per group of trials estimated from a stand-in record, naming what differs: the fields
-    with both values, or the other code's version and date; one for baselines of other code."""
-    groups: dict[tuple, list[int]] = {}
+    """One note per group of trials estimated from a stand-in record, naming what differs; one per
+    group of baselines."""
+    groups: dict[tuple[str, str], list[int]] = {}
     for r in cost.approximate:
         assert r.record is not None
-        fields = tuple((k, _show(a), _show(b)) for k, (a, b) in r.differs.items())
-        code = (str(r.record["version"]), str(r.record.get("measured_at", ""))[:10]) if r.other_code else None
-        algo = str(r.cell.content["algorithm"]) if fields else ""  # other code alone: one note for all algorithms
-        groups.setdefault((algo, fields, code), []).append(r.index)
-    notes = []
-    for (algo, fields, code), ix in groups.items():
-        what = []
-        if code is not None:
-            what.append(f"other code ({code[0]}, {code[1]}; this is {cost.version})")
-        if fields:
-            what.append("other hyperparameters, " + ", ".join(f"{k} {a} (now {b})" for k, a, b in fields))
-        who = f" ({algo})" if algo else ""
-        notes.append(f"note: approximate for trials {_ranges(ix)}{who}: measured with " + "; ".join(what))
-    old_baselines = sorted({str(c.content["baseline"]) for c, _, rec, other in cost.baselines if rec and other})
-    if old_baselines:
-        notes.append(f"note: approximate baselines ({', '.join(old_baselines)}): measured with other code")
+        code = f"{r.record['version']}, {str(r.record.get('measured_at', ''))[:10]}; this is {cost.version}"
+        why = _stand_in(r.differs, r.other_code, code)
+        algo = str(r.cell.content["algorithm"]) if r.differs else ""  # other code alone: one note for all
+        groups.setdefault((algo, why), []).append(r.index)
+    notes = [
+        f"note: approximate for trials {_ranges(ix)}{f' ({algo})' if algo else ''}: measured with {why}"
+        for (algo, why), ix in groups.items()
+    ]
+    kinds: dict[str, list[str]] = {}
+    for cell, _, rec, why in cost.baselines:
+        if rec is not None and why:
+            kinds.setdefault(why, []).append(str(cell.content["baseline"]))
+    notes += [
+        f"note: approximate baselines ({', '.join(sorted(set(b)))}): measured with {why}" for why, b in kinds.items()
+    ]
     return notes
 
 

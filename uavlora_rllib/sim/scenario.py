@@ -21,7 +21,7 @@ import dataclasses
 import functools
 import math
 from collections.abc import Mapping
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import pydantic
 from pydantic import Field, field_validator, model_validator
@@ -112,6 +112,24 @@ class RewardWeights:
 @dataclass(config=_STRICT)
 class ScenarioConfig:
     """Every parameter of the system model. Defaults: docs/model.md#scenario."""
+
+    # constants that change the numbers a slot computes but not how many: a calibration record measured
+    # with other values of these prices a run (experiment/calibration.py, Store.nearest); geometry is
+    # not among them (area, altitude and range change which EDs each UAV hears)
+    SPEED_NEUTRAL: ClassVar[frozenset[str]] = frozenset(
+        {
+            "carrier_hz",
+            "speed_of_light_mps",
+            "los_a",
+            "los_b",
+            "eta_los_db",
+            "eta_nlos_db",
+            "noise_dbm",
+            "mobility",
+            "hover",
+            "reward",
+        }
+    )
 
     n_eds: int = Field(default=10, ge=1, le=10_000, description="V, end devices, [1, 10000]")
     n_uavs: int = Field(default=2, ge=1, le=64, description="U, UAV gateways, [1, 64]")
