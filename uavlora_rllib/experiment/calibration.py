@@ -58,6 +58,8 @@ DEFAULT_ITERATIONS = 2  # timed training iterations per cell (after the warm-up)
 # exceeds this many seconds is timed on fewer episodes and scaled by episodes (except best_fixed,
 # whose one-off selection does not scale with episodes)
 BASELINE_MEASURE_S = 20.0
+# the installed packages whose version enters the code digest: the learner, Ray and the simulator's numerics
+SPEED_DISTRIBUTIONS = ("torch", "ray", "numpy", "scipy", "gymnasium")
 ONE_OFF_BASELINES = ("best_fixed",)
 
 
@@ -172,8 +174,8 @@ def package_version() -> str:
 @functools.cache
 def code_digest() -> str:
     """12 hex digits of a SHA-256 over the package's Python sources (relative path and bytes, in
-    sorted order) and the installed torch and Ray versions, which set a trial's speed as much; read
-    from their metadata, so neither is imported."""
+    sorted order), the Python version and the installed versions of SPEED_DISTRIBUTIONS, which set a
+    trial's speed as much; read from their metadata, so none is imported."""
     from importlib import metadata
 
     import uavlora_rllib
@@ -182,17 +184,20 @@ def code_digest() -> str:
     digest = hashlib.sha256()
     for directory, subdirs, files in os.walk(root):
         subdirs[:] = sorted(d for d in subdirs if d != "__pycache__")  # a fixed walk order
-        for name in sorted(f for f in files if f.endswith(".py")):
+        for name in sorted(f for f in files if f.endswith(".py") and not f.startswith(".")):
             path = os.path.join(directory, name)
+            if not os.path.isfile(path):  # an editor's lock file, a dangling link: not code
+                continue
             digest.update(os.path.relpath(path, root).encode() + b"\0")
             with open(path, "rb") as fh:
                 digest.update(fh.read() + b"\0")
-    for dist in ("torch", "ray"):
+    for dist in SPEED_DISTRIBUTIONS:
         try:
             installed = metadata.version(dist)
         except metadata.PackageNotFoundError:
             installed = "none"
         digest.update(f"{dist}={installed}\0".encode())
+    digest.update(f"python={sys.version_info[0]}.{sys.version_info[1]}".encode())
     return digest.hexdigest()[:12]
 
 
@@ -232,6 +237,8 @@ def usable(record: Any) -> bool:
     if not all(isinstance(record.get(k), t) for k, t in (("cell_key", str), ("version", str), ("cell", dict))):
         return False
     if not isinstance(record.get("machine"), dict):
+        return False
+    if not all(isinstance(record["cell"].get(k, {}), dict) for k in ("hparams", "scenario")):
         return False
     for name, positive in _READ_FIELDS[record["kind"]].items():
         value = record.get(name)
@@ -294,14 +301,15 @@ class Store:
         nearest stand-in, marked approximate: the same content measured with other code, or a record
         that differs from it only in speed-neutral settings, which change what is learned or computed
         but not how long a step takes: the hyperparameters named in `neutral` (a trial's HParams
-        SPEED_NEUTRAL) and the scenario's constants (ScenarioConfig.SPEED_NEUTRAL). This code's
+        SPEED_NEUTRAL) and, for a trial cell, the scenario's (ScenarioConfig.SPEED_NEUTRAL). This code's
         records come first, then the fewest differing fields, this machine's, the newest. None if
         there is none. A code change or a new neutral setting keeps the earlier measurements usable,
         named as approximate, until `--calibrate` measures the cell."""
         from uavlora_rllib.sim.scenario import ScenarioConfig
 
-        scenario_neutral = ScenarioConfig.SPEED_NEUTRAL
-        rest, _ = _speed_parts(cell.content, scenario_neutral)
+        # a baseline's cost follows the scenario's every number (its searches loop until nothing improves)
+        scenario_neutral = ScenarioConfig.SPEED_NEUTRAL if cell.kind == "train" else frozenset()
+        rest, wanted = _speed_parts(cell.content, scenario_neutral)
         found = []
         for r in self.records.values():
             if not usable(r) or r["kind"] != cell.kind:
@@ -312,10 +320,7 @@ class Store:
             diff = hparam_differences(r["cell"].get("hparams", {}), cell.content.get("hparams", {}))
             if any(name not in neutral for name in diff):
                 continue
-            wanted = cell.content.get("scenario", {})
-            diff.update(
-                {f"scenario.{k}": (v, wanted.get(k, UNSET)) for k, v in sorted(scenario.items()) if wanted.get(k) != v}
-            )
+            diff.update({f"scenario.{k}": v for k, v in hparam_differences(scenario, wanted).items()})
             found.append((r["version"] != version, len(diff), r, diff))
         if not found:
             return None
@@ -371,8 +376,8 @@ def _speed_parts(content: Mapping[str, Any], scenario_neutral: Collection[str]) 
 
 
 def hparam_differences(recorded: Mapping[str, Any], wanted: Mapping[str, Any]) -> dict[str, tuple[Any, Any]]:
-    """name -> (the record's value, the grid's value) for every hyperparameter that differs,
-    UNSET where one side lacks it; sorted by name."""
+    """name -> (the record's value, the grid's value) for every hyperparameter (or scenario field)
+    that differs, UNSET where one side lacks it; sorted by name."""
     names = sorted(set(recorded) | set(wanted))
     return {
         n: (recorded.get(n, UNSET), wanted.get(n, UNSET))
@@ -401,8 +406,14 @@ def _one_calibration(path: str) -> Iterator[None]:
     is measured, that the file's directory can be written."""
     import fcntl
 
+    directory = os.path.dirname(os.path.abspath(path))
     try:
-        os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+        os.makedirs(directory, exist_ok=True)
+        with open(path + ".lock", "a"):  # what each write locks (Store.put) ...
+            pass
+        fd, probe = tempfile.mkstemp(prefix=".calibration-", suffix=".tmp", dir=directory)  # ... and creates
+        os.close(fd)
+        os.unlink(probe)
         fh = open(path + ".calibrating", "a")  # noqa: SIM115  (held until the end of the block)
     except OSError as exc:
         raise ConfigError(

@@ -6,9 +6,10 @@ evaluation, all as measured for its cell; CPU-hours = wall x the CPUs the trial 
 learner process and env runners). Baseline runs add their own time on one CPU each. The
 wall-clock time packs the trials, in the grid's order, onto as many slots as the CPUs (and
 max_concurrent_trials) allow. A cell without a record of its own (this code, these
-hyperparameters) is estimated from its nearest stand-in (calibration.Store.nearest: the same cell
-measured with older code, or a record that differs in speed-neutral hyperparameters only), marked
-approximate with what differs named; a cell with neither is listed, never guessed.
+settings) is estimated from its nearest stand-in (calibration.Store.nearest: the same cell
+measured with older code, or a record that differs in speed-neutral hyperparameters or scenario
+constants only), marked approximate with what differs named; a cell with neither is listed, never
+guessed.
 """
 
 from __future__ import annotations
@@ -295,8 +296,8 @@ def report_lines(cost: GridCost, grid, grid_file: str, cpus: float, cpus_given: 
     if cost.approximate:
         n = sum(r.trials for r in cost.approximate)
         lines.append(
-            f"approximate: {n} trial(s) (marked ~) from records measured with other hyperparameters or other code "
-            "(notes above); "
+            f"approximate: {n} trial(s) (marked ~) from records measured with other code or other speed-neutral "
+            "settings (notes above); "
             f"measure them exactly with: python -m uavlora_rllib.tune {grid_file} --calibrate"
         )
     where = f"{cpus:g} CPUs (--num-cpus)" if cpus_given else f"this machine's {cpus:g} CPUs"

@@ -113,22 +113,12 @@ class RewardWeights:
 class ScenarioConfig:
     """Every parameter of the system model. Defaults: docs/model.md#scenario."""
 
-    # constants that change the numbers a slot computes but not how many: a calibration record measured
-    # with other values of these prices a run (experiment/calibration.py, Store.nearest); geometry is
-    # not among them (area, altitude and range change which EDs each UAV hears)
+    # constants that change the numbers a trial's slot computes but not how many: a calibration record
+    # measured with other values of these prices a trial (experiment/calibration.py, Store.nearest).
+    # Not the geometry (which EDs each UAV hears), the LoS/NLoS constants (which pick the link stage:
+    # physics/links.py), mobility (its resampling draws) or anything a baseline's search loops on.
     SPEED_NEUTRAL: ClassVar[frozenset[str]] = frozenset(
-        {
-            "carrier_hz",
-            "speed_of_light_mps",
-            "los_a",
-            "los_b",
-            "eta_los_db",
-            "eta_nlos_db",
-            "noise_dbm",
-            "mobility",
-            "hover",
-            "reward",
-        }
+        {"carrier_hz", "speed_of_light_mps", "noise_dbm", "hover", "reward"}
     )
 
     n_eds: int = Field(default=10, ge=1, le=10_000, description="V, end devices, [1, 10000]")
