@@ -233,17 +233,19 @@ def organise(records: list[RunRecord]) -> Organised:
             )
     org = Organised(cells, warnings, records)
     for scenario in org.scenarios():  # a share divides by the reference: both must see the same episodes
-        by_count: dict[str, set[str]] = defaultdict(set)
-        for cell in org.cells_of(scenario):
-            for r in cell.runs:
-                by_count[r.params.get("eval.episodes", "<unset>")].add(cell.algorithm)
-        if len(by_count) > 1:
-            groups = "; ".join(f"{n}: {', '.join(sorted(names))}" for n, names in sorted(by_count.items()))
-            warnings.append(
-                f"V={scenario[0]} U={scenario[1]}: its runs were evaluated on different numbers of episodes "
-                f"(eval.episodes {groups}), so its shares of the reference compare different episodes "
-                "(check the joined experiments)"
-            )
+        for key, groups in _params_across_cells(org.cells_of(scenario)):
+            where = f"V={scenario[0]} U={scenario[1]}"
+            if key == "eval.episodes":
+                warnings.append(
+                    f"{where}: its runs were evaluated on different numbers of episodes "
+                    f"(eval.episodes {groups}), so its shares of the reference compare different episodes "
+                    "(check the joined experiments)"
+                )
+            else:  # another action mode, episode length, channel or reward: other episodes, another task
+                warnings.append(
+                    f"{where}: its algorithms ran different scenarios ({key} {groups}), so its shares of the "
+                    "reference compare different tasks (check the joined experiments)"
+                )
     for key in sorted(cells):
         cell, ref = cells[key], org.reference(key[:2])
         unmatched = [s for s in cell.seeds if s not in org.matched_seeds(cell)] if ref is not None else []
@@ -253,6 +255,26 @@ def organise(records: list[RunRecord]) -> Organised:
                 f"{ref.name} run on their evaluation episodes; left out of every share of the reference"
             )
     return org
+
+
+def _params_across_cells(cells: list[Cell]) -> list[tuple[str, str]]:
+    """(param, "value: algorithms; ...") for eval.episodes and every scenario.* param (but V and U)
+    whose value differs between the algorithms of one scenario."""
+    keys = {"eval.episodes"}
+    for cell in cells:
+        for r in cell.runs:
+            keys.update(
+                k for k in r.params if k.startswith("scenario.") and k not in ("scenario.n_eds", "scenario.n_uavs")
+            )
+    found = []
+    for key in sorted(keys, key=lambda k: (k != "eval.episodes", k)):
+        by_value: dict[str, set[str]] = defaultdict(set)
+        for cell in cells:
+            for r in cell.runs:
+                by_value[r.params.get(key, "<unset>")].add(cell.algorithm)
+        if len(by_value) > 1:
+            found.append((key, "; ".join(f"{v}: {', '.join(sorted(names))}" for v, names in sorted(by_value.items()))))
+    return found
 
 
 def _mixed_params(runs: list[RunRecord]) -> str:

@@ -12,7 +12,7 @@ from typing import Any
 
 from analysis import stats
 from analysis.data import BEST_FIXED, KINDS, MIN_SEEDS, OPTIMAL, Cell, Organised
-from analysis.runs import SAMPLED_EE_KEY
+from analysis.runs import EE_KEY, SAMPLED_EE_KEY
 
 TABLE_EE_COLUMNS = (
     "n_eds",
@@ -89,6 +89,10 @@ def ee_table(org: Organised, reference: str | None) -> list[dict[str, Any]]:
         ref_mean = ref.summary().mean if ref is not None else math.nan
         for c in order(org.cells_of(scen)):
             s = c.summary()
+            # a share divides by the reference on the same evaluation episodes: over the seeds both ran
+            # (Organised.matched_seeds), as every other share of the report; the EE columns keep all seeds
+            seeds = org.matched_seeds(c)
+            ref_seeds = org.reference(scen, seeds) if seeds else None
             rows.append(
                 {
                     "n_eds": c.n_eds,
@@ -106,9 +110,11 @@ def ee_table(org: Organised, reference: str | None) -> list[dict[str, Any]]:
                     "success_rate_mean": c.mean_of("eval/success_rate"),
                     # the same episodes played with actions drawn from the trained policy (learners only)
                     "sampled_ee_mean": c.mean_of(SAMPLED_EE_KEY),
-                    "sampled_share_of_reference": (c.mean_of(SAMPLED_EE_KEY) / ref_base.mean if ref_base else math.nan),
+                    "sampled_share_of_reference": (
+                        c.mean_of(SAMPLED_EE_KEY, seeds) / ref_seeds.mean if ref_seeds else math.nan
+                    ),
                     "reference_baseline": ref_base.name if ref_base else "",
-                    "share_of_reference": s.mean / ref_base.mean if ref_base else math.nan,
+                    "share_of_reference": c.mean_of(EE_KEY, seeds) / ref_seeds.mean if ref_seeds else math.nan,
                     "reference_improvement_pct": (
                         stats.improvement_pct(ref_mean, s.mean) if c.algorithm != reference else math.nan
                     ),

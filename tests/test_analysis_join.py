@@ -379,4 +379,13 @@ def test_cells_joining_different_budgets_warn():
         for w in warned
     ), warned
     assert any("differ in stop.env_steps (1000 / 2000)" in w for w in org.warnings), org.warnings
+    # a learner of another action mode than its reference's runs: another task, named
+    learner, ref = rec(0, "1000", "a"), rec(1, "1000", "b")
+    learner.params["scenario.action_mode"], ref.params["scenario.action_mode"] = "per_device", "per_uav"
+    ref.kind, ref.algorithm, ref.seed = "baseline", "optimal", "0"
+    assert any(
+        "V=10 U=2: its algorithms ran different scenarios (scenario.action_mode per_device: mappo; per_uav: optimal)"
+        in w
+        for w in organise([learner, ref]).warnings
+    )
     assert not any("differ" in w for w in organise([rec(0, "1000", "a"), rec(1, "1000", "b")]).warnings)
