@@ -106,6 +106,8 @@ def check_train_run(client, run, grid_file: str, budget: int) -> None:
     interval = max(1, budget // 20)
     assert set(ev) <= set(steps) and ev[0] == steps[0] and ev[-1] == steps[-1]
     assert all(b - a <= interval + 2 * EPISODE_LEN for a, b in zip(ev, ev[1:])), ev
+    sampled = steps_of(client, run, "eval_sampled/ee_sys_mean")
+    assert sampled and sampled[-1] == steps[-1]  # the final evaluation plays the sampled policy too
 
 
 def check_eval(client, run) -> None:

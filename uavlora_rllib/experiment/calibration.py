@@ -455,19 +455,18 @@ def trial_cpus(resources) -> float:
     return float(sum(b.get("CPU", 0.0) for b in resources.bundles()))
 
 
-def _evaluation_timer(entry, scenario, episodes: int, seed: int):
-    """algo -> (seconds of one periodic evaluation, seconds of the final greedy evaluation),
-    with the code a trial runs (periodic_eval.evaluate_policies; the trainable's evaluate)."""
+def _evaluation_timer(scenario, episodes: int, seed: int):
+    """algo -> (seconds of one periodic evaluation, seconds of the final evaluation), with the code a
+    trial runs: periodic_eval.evaluate_policies for both (the trainable's evaluate calls it too)."""
 
     def run(algo) -> tuple[float, float]:
-        from uavlora_rllib.experiment.evaluation import run_episodes
         from uavlora_rllib.experiment.periodic_eval import PeriodicEvalSettings, evaluate_policies
 
         evaluate_policies(algo, PeriodicEvalSettings(scenario, 1, 1, seed))  # first-call costs, untimed
         t0 = time.perf_counter()
         evaluate_policies(algo, PeriodicEvalSettings(scenario, 1, episodes, seed))
         t1 = time.perf_counter()
-        run_episodes(entry.greedy_policy(algo, scenario), scenario, episodes, seed)
+        evaluate_policies(algo, PeriodicEvalSettings(scenario, 0, episodes, seed))
         return t1 - t0, time.perf_counter() - t1
 
     return run
@@ -488,7 +487,7 @@ def measure_train_cell(grid, spec, iterations: int) -> dict[str, Any]:
         spec.seed,
         iterations,
         warmup_until_learning=True,
-        after=_evaluation_timer(entry, spec.scenario, episodes, spec.seed),
+        after=_evaluation_timer(spec.scenario, episodes, spec.seed),
     )
     periodic_s, final_s = m.after
     return {

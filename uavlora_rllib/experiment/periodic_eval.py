@@ -18,7 +18,8 @@ The sampled policy (the registry entry's ``policy(..., explore=True)``: actions 
 actor's distribution, or QMIX/VDN's final epsilon-greedy) is evaluated on the same episodes,
 with its own action stream seeded by the evaluation seed, and logged as ``eval_sampled/<k>``:
 the gap between the two curves shows how much greedy execution loses (or gains) against the
-policy that was trained.
+policy that was trained. The final evaluation plays both too (the trainable's `evaluate`), so
+the last point of each series is the final policy's, whatever the interval.
 """
 
 from __future__ import annotations

@@ -107,12 +107,12 @@ class UavLoraTrainable(tune.Trainable):
         return extra
 
     def evaluate(self) -> dict:
-        from uavlora_rllib.experiment.evaluation import run_episodes
-        from uavlora_rllib.experiment.run_schema import eval_metrics
+        """The final execution-phase evaluation: the greedy and the sampled policy on the trial's
+        evaluation episodes (periodic_eval.evaluate_policies), so that the run's last eval_sampled/*
+        point is the final policy's as its eval/* is, whatever the periodic interval."""
+        from uavlora_rllib.experiment import periodic_eval
 
-        policy = self.entry.greedy_policy(self.algo, self.scenario)
-        res = run_episodes(policy, self.scenario, int(self.cfg["eval_episodes"]), int(self.cfg["seed"]))
-        return eval_metrics(res.summary())
+        return periodic_eval.evaluate_policies(self.algo, self._eval_settings)
 
     def save_checkpoint(self, checkpoint_dir: str) -> None:
         self.algo.save_to_path(checkpoint_dir)
