@@ -257,15 +257,20 @@ def organise(records: list[RunRecord]) -> Organised:
     return org
 
 
+def _scenario_keys(runs: list[RunRecord]) -> set[str]:
+    """The scenario.* params the runs logged, but V and U (which key the cells)."""
+    return {
+        k
+        for r in runs
+        for k in r.params
+        if k.startswith("scenario.") and k not in ("scenario.n_eds", "scenario.n_uavs")
+    }
+
+
 def _params_across_cells(cells: list[Cell]) -> list[tuple[str, str]]:
     """(param, "value: algorithms; ...") for eval.episodes and every scenario.* param (but V and U)
     whose value differs between the algorithms of one scenario."""
-    keys = {"eval.episodes"}
-    for cell in cells:
-        for r in cell.runs:
-            keys.update(
-                k for k in r.params if k.startswith("scenario.") and k not in ("scenario.n_eds", "scenario.n_uavs")
-            )
+    keys = {"eval.episodes"} | _scenario_keys([r for cell in cells for r in cell.runs])
     found = []
     for key in sorted(keys, key=lambda k: (k != "eval.episodes", k)):
         by_value: dict[str, set[str]] = defaultdict(set)
@@ -279,9 +284,7 @@ def _params_across_cells(cells: list[Cell]) -> list[tuple[str, str]]:
 
 def _mixed_params(runs: list[RunRecord]) -> str:
     """'param (values), ...' for identity params (budget, episodes, scenario.*) that differ."""
-    keys = set(_IDENTITY_PARAMS)
-    for r in runs:
-        keys.update(k for k in r.params if k.startswith("scenario.") and k not in ("scenario.n_eds", "scenario.n_uavs"))
+    keys = set(_IDENTITY_PARAMS) | _scenario_keys(runs)
     parts = []
     for k in sorted(keys):
         vals = sorted({r.params.get(k, "<unset>") for r in runs})
