@@ -312,18 +312,26 @@ class Curve:
     mean: np.ndarray
     lo: np.ndarray
     hi: np.ndarray
-    n_seeds: int
+    seeds: tuple[str, ...]  # the runs' seeds, one series each
+
+    @property
+    def n_seeds(self) -> int:
+        return len(self.seeds)
 
 
 EVAL_CURVE = EE_KEY  # the greedy policy's execution EE per slot, logged during training
 CURVE_METRICS = (EVAL_CURVE, RETURN_METRIC)
 
 
-def curves(history, org: Organised, metric: str, smooth: float, points: int, min_points: int = 1):
+def curves(
+    history, org: Organised, metric: str, smooth: float, points: int, min_points: int = 1, matched: bool = False
+):
     """{scenario: {algorithm: Curve}} of `metric`'s history (x = env steps) over the train runs,
     and notes. `history(record, key)` -> (steps, values). FINISHED runs only, unless an
     algorithm has none (then all its runs). Runs with fewer than `min_points` logged points are
-    left out (the execution curve needs the periodic evaluation: one point is the final one)."""
+    left out (the execution curve needs the periodic evaluation: one point is the final one).
+    With `matched`, a scenario with a reference keeps only the seeds the reference also ran, so a
+    curve divided by the reference over its seeds compares the same episodes (Organised.normalised)."""
     notes: list[str] = []
     out: dict[tuple[int, int], dict[str, Curve]] = {}
     groups: dict[tuple[int, int, str], list[RunRecord]] = defaultdict(list)
@@ -335,11 +343,21 @@ def curves(history, org: Organised, metric: str, smooth: float, points: int, min
         use = finished or runs
         if not finished:
             notes.append(f"V={v} U={u} {alg}: no FINISHED run; its {metric} curve uses unfinished runs")
-        series = []
+        ref = org.reference((v, u)) if matched else None
+        if ref is not None:
+            ran = set(org.cells[(v, u, ref.name)].seeds)
+            if dropped := sorted({str(r.seed) for r in use} - ran):
+                notes.append(
+                    f"V={v} U={u} {alg}: seed(s) {', '.join(dropped)} left out of its {metric} curve: "
+                    f"the {ref.name} reference has no run of them"
+                )
+            use = [r for r in use if str(r.seed) in ran]
+        series, seeds = [], []
         for r in use:
             steps, vals = history(r, metric)
             if len(steps) >= min_points:
                 series.append((np.asarray(steps), stats.ema(vals, smooth)))
+                seeds.append(str(r.seed))
         if not series:
             continue
         grid = stats.common_grid([(s[0], s[-1]) for s, _ in series], points)
@@ -348,7 +366,7 @@ def curves(history, org: Organised, metric: str, smooth: float, points: int, min
             continue
         y = stats.interpolate(series, grid)
         mean, lo, hi = stats.bootstrap_ci95(y)
-        out.setdefault((v, u), {})[alg] = Curve(grid, mean, lo, hi, len(series))
+        out.setdefault((v, u), {})[alg] = Curve(grid, mean, lo, hi, tuple(seeds))
     return out, notes
 
 

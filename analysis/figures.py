@@ -101,11 +101,22 @@ def _sci_x(ax) -> None:
     ax.xaxis.get_offset_text().set_fontsize(style.SMALL_PT)
 
 
-def _plot_curves(ax, curves: dict[str, Curve], lk: dict, scale: float = 1.0) -> dict[str, tuple]:
-    """Mean lines (markers on ~8 points) and bands; returns the plotted series for overlaps()."""
+def reference_scales(org: Organised, scen: tuple[int, int], curves: dict[str, Curve]):
+    """The scenario's reference (None without one) and, per algorithm, the reference's mean over
+    that curve's seeds: the curve's divisor, as every share of the report divides over matched seeds."""
+    ref = org.reference(scen)
+    if ref is None:
+        return None, {}
+    return ref, {alg: getattr(org.reference(scen, c.seeds), "mean", ref.mean) for alg, c in curves.items()}
+
+
+def _plot_curves(ax, curves: dict[str, Curve], lk: dict, scales: dict[str, float] | None = None) -> dict[str, tuple]:
+    """Mean lines (markers on ~8 points) and bands, each divided by its scale (1 where none);
+    returns the plotted series for overlaps()."""
     drawn = {}
     for alg in sorted(curves):
         c = curves[alg]
+        scale = (scales or {}).get(alg, 1.0)
         y, lo, hi = c.mean / scale, c.lo / scale, c.hi / scale
         ax.plot(c.steps, y, label=f"{alg} (n={c.n_seeds})", markevery=max(1, len(c.steps) // 8), **lk[alg])
         if c.n_seeds >= 2:
@@ -129,10 +140,10 @@ def fig3a(eval_curves, return_curves, org: Organised, lk: dict, out_dir: str, sm
     if why:
         notes.append(f"Fig. 3a: {why}.")
     ev, ret = eval_curves.get(main, {}), return_curves.get(main, {})
-    ref = org.reference(main)
+    ref, scales = reference_scales(org, main, ev)
     fig, (ax_e, ax_r) = plt.subplots(2, 1, figsize=(style.COLUMN_WIDTH_IN, 4.8), layout="constrained")
     if ev:
-        drawn = _plot_curves(ax_e, ev, lk, ref.mean if ref else 1.0)
+        drawn = _plot_curves(ax_e, ev, lk, scales)
         if ref:
             ax_e.axhline(1.0, color="black", linewidth=0.8, linestyle=(0, (2, 2)), label=f"{ref.label} = 1")
             ax_e.set_ylim(top=max(ax_e.get_ylim()[1], 1.08))  # the reference line off the frame
@@ -180,7 +191,11 @@ def fig3a(eval_curves, return_curves, org: Organised, lk: dict, out_dir: str, sm
     for ax in (ax_e, ax_r):
         ax.title.set_fontsize(style.SMALL_PT)
     files = style.save(fig, os.path.join(out_dir, "fig3a"))
-    ref_txt = f"share of the {ref.label} ({ref.mean:.6g} bit/J)" if ref else "bit/J (no reference baseline)"
+    ref_txt = (
+        f"share of the {ref.label} over the curve's seeds ({ref.mean:.6g} bit/J over all its seeds)"
+        if ref
+        else "bit/J (no reference baseline)"
+    )
     n_e = interval_text([c.n_seeds for c in ev.values()], "95% bootstrap band") if ev else "not drawn"
     n_r = interval_text([c.n_seeds for c in ret.values()], "95% bootstrap band") if ret else "not drawn"
     caption = (
@@ -194,8 +209,8 @@ def fig3a(eval_curves, return_curves, org: Organised, lk: dict, out_dir: str, sm
         width = style.COLUMN_WIDTH_IN if ncol == 1 else style.DOUBLE_WIDTH_IN
         fig, axes = plt.subplots(nrow, ncol, figsize=(width, 2.3 * nrow), layout="constrained", squeeze=False)
         for ax, scen in zip(axes.flat, scens):
-            r = org.reference(scen)
-            _plot_curves(ax, eval_curves[scen], lk, r.mean if r else 1.0)
+            r, sc = reference_scales(org, scen, eval_curves[scen])
+            _plot_curves(ax, eval_curves[scen], lk, sc)
             if r:
                 ax.axhline(1.0, color="black", linewidth=0.8, linestyle=(0, (2, 2)))
                 ax.set_ylim(top=max(ax.get_ylim()[1], 1.08))
@@ -221,7 +236,8 @@ def fig3a(eval_curves, return_curves, org: Organised, lk: dict, out_dir: str, sm
 
 
 def write_curves_csv(curve_sets: dict[str, dict], org: Organised, path: str) -> None:
-    """Every plotted curve point: metric, scenario, algorithm, mean and band, and the reference."""
+    """Every plotted curve point: metric, scenario, algorithm, mean and band, and the reference
+    (its mean over the curve's seeds)."""
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(
@@ -241,7 +257,7 @@ def write_curves_csv(curve_sets: dict[str, dict], org: Organised, path: str) -> 
         )
         for metric, curves in curve_sets.items():
             for scen in sorted(curves):
-                ref = org.reference(scen) if metric == EVAL_CURVE else None
+                ref, scales = reference_scales(org, scen, curves[scen]) if metric == EVAL_CURVE else (None, {})
                 for alg in sorted(curves[scen]):
                     c = curves[scen][alg]
                     for i in range(len(c.steps)):
@@ -257,7 +273,7 @@ def write_curves_csv(curve_sets: dict[str, dict], org: Organised, path: str) -> 
                                 repr(float(c.lo[i])),
                                 repr(float(c.hi[i])),
                                 ref.name if ref else "",
-                                repr(ref.mean) if ref else "",
+                                repr(scales[alg]) if ref else "",
                             ]
                         )
 

@@ -14,7 +14,7 @@ is read, so a sweep split over experiments or clusters gets its Fig. 3b/3c. Writ
 * fig3a.{png,svg}: (a) the greedy policy's execution EE per slot during training (the
   periodic evaluation, eval/ee_sys_mean against env steps) as a share of the scenario's
   reference, the per-slot optimum where the `optimal` baseline ran, else the greedy baseline,
-  drawn as a line at 1; (b) the training return of the exploring policy. For the paper's
+  drawn as a line at 1 (over the seeds the reference also ran, as every share); (b) the training return of the exploring policy. For the paper's
   scenario V=10, U=2 if present (else the scenario with the most seeds); fig3a_all.{png,svg}:
   panel (a) for every scenario; fig3a_curves.csv: the plotted numbers.
 * fig3b.{png,svg} / fig3c.{png,svg}: execution EE against V at the most common U / against U

@@ -259,7 +259,8 @@ def draw_figures(org, history, out_dir: str, args) -> tuple[dict[str, list[str]]
     for metric in CURVE_METRICS:
         # the execution curve needs 2+ points (a lone point is the final evaluation, no curve)
         smooth = args.smooth if metric == RETURN_METRIC else 0.0
-        curve_sets[metric], cnotes = curves(history, org, metric, smooth, args.points, 2 if metric == EVAL_CURVE else 1)
+        ev = metric == EVAL_CURVE  # divided by the reference: over the seeds it ran
+        curve_sets[metric], cnotes = curves(history, org, metric, smooth, args.points, 2 if ev else 1, matched=ev)
         notes += cnotes
     lk = looks(org.algorithms() + [a for cs in curve_sets.values() for s in cs.values() for a in s])
     files, n3a, cap3a = fig3a(curve_sets[EVAL_CURVE], curve_sets[RETURN_METRIC], org, lk, out_dir, args.smooth)
