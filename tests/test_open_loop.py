@@ -64,3 +64,12 @@ def test_cli_open_loop_json_and_text(capsys, tmp_path):
     assert main(["--policy", "random", "--episodes", "2", "--n-eds", "6", "--open-loop"]) == 0
     line = capsys.readouterr().out.splitlines()[-1]
     assert line.startswith("open-loop check: ") and "of the acting decisions equal the policy's modal action" in line
+
+
+def test_cli_reports_one_run_of_a_stochastic_policy(capsys):
+    """`random` draws from its own RNG: the summary's EE and the check's policy EE are one run's, so
+    they agree (a second run, with the RNG advanced and other batches, gave another number)."""
+    argv = ["--policy", "random", "--episodes", "5", "--n-eds", "6", "--open-loop", "--json"]
+    assert main(argv) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["ee_sys_mean"] == out["open_loop"]["policy_ee_sys_mean"]

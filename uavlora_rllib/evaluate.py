@@ -274,18 +274,19 @@ def run_with_progress(
     prefix: str = "",
     out: Any = None,
     bound: Any = None,
+    n_envs: int | None = None,
 ):
     """evaluation.run_episodes, plus, when the run is estimated to take more than LONG_SECONDS
     (baselines.policies.evaluation_seconds; `kind` a baseline name, or anything else for a
     learned policy), one line with the estimate and a tqdm progress bar on `out` (stderr).
     The bar only watches: the episodes, seeds and metrics are those of run_episodes. Usable
     by any driver that evaluates (e.g. the baseline phase of tune: `kind` = the baseline).
-    `bound`: run_episodes' per-slot bound (None: not computed)."""
+    `bound`: run_episodes' per-slot bound (None: not computed); `n_envs`: its batch (None: its default)."""
     from uavlora_rllib.experiment.evaluation import run_episodes
 
     estimate = evaluation_seconds(kind, cfg, episodes)
     if estimate <= LONG_SECONDS:
-        return run_episodes(policy, cfg, episodes=episodes, seed=seed, bound=bound)
+        return run_episodes(policy, cfg, episodes=episodes, seed=seed, n_envs=n_envs, bound=bound)
     from tqdm import tqdm
 
     out = out or sys.stderr
@@ -294,7 +295,8 @@ def run_with_progress(
         what += f", {cfg.n_joint_actions}^{cfg.n_uavs} = {cfg.n_joint_actions**cfg.n_uavs:,} joint actions per slot"
     print(f"{prefix}{label} on {what}: estimated {_duration(estimate)} on one core", file=out, flush=True)
     with tqdm(total=episodes * cfg.episode_len, unit="slot", desc=label, file=out, dynamic_ncols=True) as bar:
-        return run_episodes(_Progress(policy, cfg, episodes, bar), cfg, episodes=episodes, seed=seed, bound=bound)
+        progress = _Progress(policy, cfg, episodes, bar)
+        return run_episodes(progress, cfg, episodes=episodes, seed=seed, n_envs=n_envs, bound=bound)
 
 
 def _duration(seconds: float) -> str:
@@ -314,12 +316,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         from uavlora_rllib.baselines.bound import upper_bound_of_core
 
         bound = upper_bound_of_core if args.policy in REFERENCES else None
-        result = run_with_progress(policy, cfg, args.episodes, args.seed, kind, label, prefix=f"{PROG}: ", bound=bound)
+
+        def play(p: Any, n_envs: int | None = None):
+            return run_with_progress(
+                p, cfg, args.episodes, args.seed, kind, label, prefix=f"{PROG}: ", bound=bound, n_envs=n_envs
+            )
+
         check = None
-        if args.open_loop:
+        if args.open_loop:  # the check plays the reported run itself, so both name the same EE
             from uavlora_rllib.experiment.open_loop import open_loop_check
 
-            check = open_loop_check(policy, cfg, args.episodes, args.seed)
+            check = open_loop_check(policy, cfg, args.episodes, args.seed, play=play)
+            result = check.result
+        else:
+            result = play(policy)
     except (UsageError, ConfigError) as exc:
         return fail(exc, PROG)
     except ActionError as exc:  # a policy whose actions do not fit the scenario's action space

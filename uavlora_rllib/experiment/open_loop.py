@@ -9,12 +9,13 @@ and whose mode earns about what it does, ignores its observations (issue 23).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import stats
 
-from uavlora_rllib.experiment.evaluation import Policy, run_episodes
+from uavlora_rllib.experiment.evaluation import EvalResult, Policy, run_episodes
 from uavlora_rllib.sim.core import BatchCore
 from uavlora_rllib.sim.scenario import ScenarioConfig
 
@@ -27,6 +28,7 @@ class OpenLoopCheck:
     policy_ee: float  # mean EE_sys of the policy on the episodes [bit/J]
     modal_ee: float  # mean EE_sys of its modal action replayed as a constant, same episodes [bit/J]
     action: np.ndarray  # the modal action: [U] (per_uav) or [U, 2 quota + 1] (per_device)
+    result: EvalResult  # the policy's own run, whose mean EE is policy_ee
 
     @property
     def modal_ratio(self) -> float:
@@ -79,11 +81,23 @@ class _Constant:
         return np.broadcast_to(self.action, (core.n,) + self.action.shape).copy()
 
 
-def open_loop_check(policy: Policy, cfg: ScenarioConfig, episodes: int = 10, seed: int = 0) -> OpenLoopCheck:
-    """Play `episodes` evaluation episodes (run_episodes' seeds) with `policy`, then its modal action."""
+def open_loop_check(
+    policy: Policy,
+    cfg: ScenarioConfig,
+    episodes: int = 10,
+    seed: int = 0,
+    play: Callable[[Policy, int], EvalResult] | None = None,
+) -> OpenLoopCheck:
+    """Play `episodes` evaluation episodes (run_episodes' seeds) with `policy`, then its modal action.
+    `play(policy, n_envs)` plays the policy's run (default: run_episodes), so that a caller that
+    reports the policy's EE reports this one run, not a second one with its RNG advanced."""
     n_envs = max(n for n in range(1, min(episodes, MAX_BATCH) + 1) if episodes % n == 0)  # no padding scenario
     rec = _Recorder(policy, cfg)
-    policy_ee = run_episodes(rec, cfg, episodes, seed, n_envs=n_envs).mean("ee_sys_mean")
+    if play is None:
+        result = run_episodes(rec, cfg, episodes, seed, n_envs=n_envs)
+    else:
+        result = play(rec, n_envs)
+    policy_ee = result.mean("ee_sys_mean")
     acts = np.concatenate(rec.actions)  # [episodes x T, U(, L)]
     acting = np.concatenate(rec.masks)
     flat, flat_mask = acts.reshape(len(acts), -1), acting.reshape(len(acting), -1)
@@ -95,4 +109,4 @@ def open_loop_check(policy: Policy, cfg: ScenarioConfig, episodes: int = 10, see
     share = float((flat == mode)[flat_mask].mean())
     action = mode.reshape(acts.shape[1:]).astype(np.int64)
     modal_ee = run_episodes(_Constant(action), cfg, episodes, seed, n_envs=n_envs).mean("ee_sys_mean")
-    return OpenLoopCheck(share, float(policy_ee), float(modal_ee), action)
+    return OpenLoopCheck(share, float(policy_ee), float(modal_ee), action, result)
