@@ -337,7 +337,7 @@ def test_a_record_with_other_hyperparameters_is_used_and_named(tmp_path, calib_f
     est = cost.estimate(grid, specs, calibration.Store.load(str(calib_file)), machine, VERSION)
     assert est.complete and len(est.approximate) == 2
     assert [r.record["env_steps_per_s"] for r in est.rows] == [50.0, 50.0]  # the newest of the two equally near
-    assert est.rows[0].differs == {"grad_clip": ("unset", clip), "lr": (lr * 3, lr)}
+    assert est.rows[0].match.differs == {"grad_clip": ("unset", clip), "lr": (lr * 3, lr)}
     assert tune_cli.main([str(tmp_path / "grid.yaml"), "--dry-run", "--num-cpus", "3"]) == 0
     out = capsys.readouterr().out
     assert (
@@ -395,7 +395,7 @@ def test_a_speed_hyperparameter_never_stands_in(tmp_path, calib_file, capsys):
     store.put(record_with_hparams(tcell, machine, {**hp, "lr": 1.0, "gamma": 0.5}, "2026-01-01T00:00:00+00:00", 100.0))
     est = cost.estimate(grid, specs, calibration.Store.load(str(calib_file)), machine, VERSION)
     assert [r.record["env_steps_per_s"] for r in est.rows] == [100.0, 100.0]
-    assert set(est.rows[0].differs) == {"lr", "gamma"}
+    assert set(est.rows[0].match.differs) == {"lr", "gamma"}
 
 
 def test_scenario_constants_stand_in_geometry_does_not(tmp_path, calib_file, capsys):
@@ -413,7 +413,7 @@ def test_scenario_constants_stand_in_geometry_does_not(tmp_path, calib_file, cap
     store.put(train_record(moved(tcell, altitude_m=120.0), machine, **HAND))  # geometry: never a stand-in
     store.put(baseline_record(moved(bcell, altitude_m=120.0), machine, 30.0, 4))
     est = cost.estimate(grid, specs, calibration.Store.load(str(calib_file)), machine, VERSION)
-    assert [r.record for r in est.rows] == [None, None] and est.baselines[0][2] is None
+    assert [r.record for r in est.rows] == [None, None] and est.baselines[0].record is None
     store.put(train_record(moved(tcell, reward=reward), machine, **HAND))
     store.put(baseline_record(moved(bcell, reward=reward), machine, 30.0, 4))  # a baseline's searches follow it
     assert tune_cli.main([str(tmp_path / "grid.yaml"), "--dry-run", "--num-cpus", "3"]) == 0

@@ -29,30 +29,45 @@ from uavlora_rllib.experiment.sweep import grid_search_size
 
 
 @dataclass
-class TrialCost:
+class Priced:
+    """A cell of the grid and the calibration record that prices it, with how that record differs
+    (calibration.Store.nearest); match None: not calibrated."""
+
+    cell: calibration.Cell
+    match: calibration.Match | None
+
+    @property
+    def record(self) -> dict[str, Any] | None:
+        return None if self.match is None else self.match.record
+
+    @property
+    def approximate(self) -> bool:
+        """Priced by a stand-in: other hyperparameters or scenario constants, or other code."""
+        return self.match is not None and (bool(self.match.differs) or self.match.other_code)
+
+
+@dataclass
+class TrialCost(Priced):
     """One row of the trial table: `trials` trials (more than 1 in a sweep) of one cell."""
 
     index: int  # 1-based, as in the trial table
     name: str
     trials: int
-    cell: calibration.Cell
-    record: dict[str, Any] | None  # None: not calibrated
     wall_s: float = math.nan  # one trial
-    # hyperparameters in which `record` differs from the trial (calibration.nearest); empty: its own cell
-    differs: dict[str, tuple[Any, Any]] = field(default_factory=dict)
-    other_code: bool = False  # `record` was measured with other code (calibration.package_version)
 
-    @property
-    def approximate(self) -> bool:
-        return self.record is not None and (bool(self.differs) or self.other_code)
+
+@dataclass
+class BaselineCost(Priced):
+    """The `runs` baseline runs of one cell (1 CPU each)."""
+
+    runs: int
 
 
 @dataclass
 class GridCost:
     rows: list[TrialCost]
     cpus_per_trial: float
-    # (cell, runs, its record or None, what differs where the record is a stand-in: "" for its own)
-    baselines: list[tuple[calibration.Cell, int, dict[str, Any] | None, str]]
+    baselines: list[BaselineCost]
     machine: dict[str, Any]
     version: str
     path: str
@@ -60,7 +75,7 @@ class GridCost:
 
     @property
     def complete(self) -> bool:
-        return all(r.record is not None for r in self.rows) and all(rec is not None for _, _, rec, _ in self.baselines)
+        return all(p.record is not None for p in [*self.rows, *self.baselines])
 
     @property
     def approximate(self) -> list[TrialCost]:
@@ -73,7 +88,11 @@ class GridCost:
     def baseline_cpu_s(self) -> float:
         from uavlora_rllib.experiment.baseline_tasks import BASELINE_CPUS
 
-        return sum(rec["seconds"] * n * BASELINE_CPUS for _, n, rec, _ in self.baselines if rec is not None)
+        return sum(b.record["seconds"] * b.runs * BASELINE_CPUS for b in self.baselines if b.record is not None)
+
+    def records(self) -> list[dict[str, Any]]:
+        """The records the estimate uses, trials' then baselines'."""
+        return [p.record for p in [*self.rows, *self.baselines] if p.record is not None]
 
 
 def periodic_evaluations(budget: int, interval: int, steps_per_iteration: float) -> int:
@@ -118,18 +137,16 @@ def estimate(grid, specs, store: calibration.Store, machine: Mapping[str, Any], 
             continue
         cell = calibration.train_cell(spec, grid.resources)
         match = store.nearest(cell, machine, version, speed_neutral(spec))  # its own record first
-        row = TrialCost(i, spec.name, n, cell, None)
+        row = TrialCost(cell, match, i, spec.name, n)
         if match is not None:
-            row.record, row.differs, row.other_code = match.record, match.differs, match.other_code
             row.wall_s = trial_seconds(match.record, budget, interval, episodes)
         rows.append(row)
-    baselines: list[tuple[calibration.Cell, int, dict[str, Any] | None, str]] = []
-    for cell, members in calibration.grid_baseline_cells(grid).values():
-        found = store.nearest(cell, machine, version)
-        why = "" if found is None else _stand_in(found.differs, found.other_code)
-        baselines.append((cell, len(members), found.record if found else None, why))
+    baselines = [
+        BaselineCost(cell, store.nearest(cell, machine, version), len(members))
+        for cell, members in calibration.grid_baseline_cells(grid).values()
+    ]
     cost = GridCost(rows, calibration.trial_cpus(grid.resources), baselines, dict(machine), version, store.path)
-    used = [r.record for r in rows if r.record is not None] + [rec for _, _, rec, _ in baselines if rec is not None]
+    used = cost.records()
     bad = store.unusable()
     if bad:
         cost.notes.append(
@@ -205,19 +222,21 @@ def _approximate_notes(cost: GridCost) -> list[str]:
     group of baselines."""
     groups: dict[tuple[str, str], list[int]] = {}
     for r in cost.approximate:
-        assert r.record is not None
-        code = f"{r.record['version']}, {str(r.record.get('measured_at', ''))[:10]}; this is {cost.version}"
-        why = _stand_in(r.differs, r.other_code, code)
-        algo = str(r.cell.content["algorithm"]) if r.differs else ""  # other code alone: one note for all
+        assert r.match is not None
+        rec = r.match.record
+        code = f"{rec['version']}, {str(rec.get('measured_at', ''))[:10]}; this is {cost.version}"
+        why = _stand_in(r.match.differs, r.match.other_code, code)
+        algo = str(r.cell.content["algorithm"]) if r.match.differs else ""  # other code alone: one note for all
         groups.setdefault((algo, why), []).append(r.index)
     notes = [
         f"note: approximate for trials {_ranges(ix)}{f' ({algo})' if algo else ''}: measured with {why}"
         for (algo, why), ix in groups.items()
     ]
     kinds: dict[str, list[str]] = {}
-    for cell, _, rec, why in cost.baselines:
-        if rec is not None and why:
-            kinds.setdefault(why, []).append(str(cell.content["baseline"]))
+    for b in cost.baselines:
+        if b.match is not None and b.approximate:
+            why = _stand_in(b.match.differs, b.match.other_code)
+            kinds.setdefault(why, []).append(str(b.cell.content["baseline"]))
     notes += [
         f"note: approximate baselines ({', '.join(sorted(set(b)))}): measured with {why}" for why, b in kinds.items()
     ]
@@ -237,7 +256,7 @@ def wall_clock_s(cost: GridCost, cpus: float, max_concurrent: int | None) -> tup
         for _ in range(row.trials):
             heapq.heappush(free, heapq.heappop(free) + row.wall_s)
     busy = (cost.trial_cpu_s() + cost.baseline_cpu_s()) / cpus
-    longest_baseline = max((rec["seconds"] for _, _, rec, _ in cost.baselines if rec), default=0.0)
+    longest_baseline = max((b.record["seconds"] for b in cost.baselines if b.record), default=0.0)
     return max(max(free), busy, longest_baseline), min(slots, sum(r.trials for r in cost.rows))
 
 
@@ -254,7 +273,7 @@ def _ranges(indices: list[int]) -> str:
 
 def _measured(cost: GridCost) -> str:
     """'; measured FIRST to LAST' (UTC days) of the records the estimate uses, or ''."""
-    used = [r.record for r in cost.rows if r.record] + [rec for _, _, rec, _ in cost.baselines if rec]
+    used = cost.records()
     days = sorted(str(r.get("measured_at", ""))[:10] for r in used if r.get("measured_at"))
     if not days:
         return ""
@@ -269,7 +288,7 @@ def _minutes(hours: float) -> str:
 def report_lines(cost: GridCost, grid, grid_file: str, cpus: float, cpus_given: bool) -> list[str]:
     """The dry run's cost section."""
     lines = [f"cost estimate (calibration {cost.path}, code {cost.version}{_measured(cost)}):"]
-    if not any(r.record for r in cost.rows) and not any(rec for _, _, rec, _ in cost.baselines):
+    if not cost.records():
         n_cells = len({r.cell.key for r in cost.rows})
         return lines + [
             f"  not calibrated: none of the grid's {n_cells} trial cell(s) and {len(cost.baselines)} "
@@ -342,7 +361,7 @@ def _missing_lines(cost: GridCost, grid_file: str, most: int = 12) -> list[str]:
     for r in cost.rows:
         if r.record is None:
             by_cell.setdefault(r.cell.key, (r.cell, []))[1].append(r.index)
-    missing_b = [(c, n) for c, n, rec, _ in cost.baselines if rec is None]
+    missing_b = [(b.cell, b.runs) for b in cost.baselines if b.record is None]
     cells = [f"  {cell.label} (trials {_ranges(ix)})" for cell, ix in by_cell.values()] + [
         f"  {cell.label} ({n} baseline runs)" for cell, n in missing_b
     ]
@@ -358,9 +377,9 @@ def _missing_lines(cost: GridCost, grid_file: str, most: int = 12) -> list[str]:
 def _baseline_lines(cost: GridCost) -> list[str]:
     """Baseline CPU-hours per kind (seconds per run are measured per cell)."""
     kinds: dict[str, list[tuple[int, dict[str, Any]]]] = {}
-    for cell, n, rec, _ in cost.baselines:
-        if rec is not None:
-            kinds.setdefault(str(cell.content["baseline"]), []).append((n, rec))
+    for b in cost.baselines:
+        if b.record is not None:
+            kinds.setdefault(str(b.cell.content["baseline"]), []).append((b.runs, b.record))
     if not kinds:
         return []
     lines = ["baselines (1 CPU per run):"]
