@@ -456,6 +456,46 @@ def test_per_agent_gae_bootstraps_truncation_and_splits_chunks():
     np.testing.assert_allclose(adv[l1 + l2], r2[-1] - v2[-2])
 
 
+def test_value_clip_centres_on_the_critics_own_output():
+    """PerAgentGAE's VF_PREDS (the value clip's centre) is the critic's raw output before the update,
+    so the first step's clipped and unclipped errors agree and the critic gets its full gradient,
+    even when the batch moves the value normalisation by far more than the clip
+    (docs/model.md#mappo-value-clip)."""
+    from ray.rllib.core.columns import Columns
+    from ray.rllib.evaluation.postprocessing import Postprocessing
+
+    from uavlora_rllib.algorithms.common.columns import VF_PREDS
+    from uavlora_rllib.algorithms.mappo.mappo_learner import PerAgentGAE
+
+    torch.manual_seed(0)
+    m = _module(SMALL, "central")
+    b, t, u = 2, 6, SMALL.n_uavs
+    seq_lens = torch.tensor([6, 4])  # each chunk ends with its phantom step; the second is padded
+    loss_mask = torch.zeros(b, t, dtype=torch.bool)
+    loss_mask[0, :5], loss_mask[1, :3] = True, True
+    mb = {
+        "state": torch.rand(b, t, state_dim(SMALL)),
+        Columns.SEQ_LENS: seq_lens,
+        Columns.REWARDS: torch.full((b, t), 50.0),  # targets ~50 normalised-std away from V ~ 0
+        Columns.TERMINATEDS: torch.zeros(b, t, dtype=torch.bool),
+        Columns.LOSS_MASK: loss_mask,
+    }
+    before = m.compute_values(mb).detach()
+    PerAgentGAE(gamma=0.99, lambda_=0.95)(rl_module={"p": m}, batch={"p": mb}, episodes=[])
+    assert m.critic.value_norm.debias > 0  # the statistics moved
+    real = loss_mask.unsqueeze(-1).expand(b, t, u)
+    torch.testing.assert_close(mb[VF_PREDS][real], before[real])
+    values = m.compute_values(mb)
+    targets = m.normalize(mb[Postprocessing.VALUE_TARGETS])
+    clipped = mb[VF_PREDS] + torch.clamp(values - mb[VF_PREDS], -0.2, 0.2)
+    loss = torch.max((values - targets) ** 2, (clipped - targets) ** 2)[real].mean()
+    unclipped = ((values - targets) ** 2)[real].mean()
+    w = m.critic.net[-1].weight
+    grad, full = (torch.autograd.grad(x, w, retain_graph=True)[0] for x in (loss, unclipped))
+    assert full.abs().sum() > 0
+    torch.testing.assert_close(grad, full)
+
+
 # ---------------------------------------------------------------- training (Ray)
 @pytest.mark.slow
 @pytest.mark.parametrize(

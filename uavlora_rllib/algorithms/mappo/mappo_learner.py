@@ -21,8 +21,9 @@ Loss (per agent u, per real step t; masked means over (t, u)):
     ratio_u = exp(logp_u - logp_old_u)                          (each agent's own ratio)
     L_pi  = -mean(min(ratio_u A_u, clip(ratio_u, 1-eps, 1+eps) A_u))
     L_v   = mean(max((V - V^tgt)^2, (V_old + clip(V - V_old, -c, c) - V^tgt)^2)) / 2
-            (targets and values in value-normalised units when value_norm; the clipped term
-             only with value_clip)
+            (V and V_old the critic's raw outputs now and before this batch's update; the targets normalised
+             with the statistics updated on this batch when value_norm; the clipped term only
+             with value_clip)
     L     = L_pi + vf_coeff L_v - entropy_coeff mean(H(pi_u))
 Gradient-norm clipping: RLlib's `grad_clip` (global norm).
 """
@@ -117,6 +118,7 @@ class PerAgentGAE(ConnectorV2):
             b, t = v.shape[:2]
             valid = np.arange(t)[None, :] < seq_lens[:, None]  # [B, T] real or phantom, not padding
             flat_v = v.cpu().numpy()[valid]
+            flat_v_norm = v_norm.cpu().numpy()[valid]
             rewards = mb[Columns.REWARDS].cpu().numpy()[valid]
             terminated = mb[Columns.TERMINATEDS].cpu().numpy()[valid].astype(bool)
             real = mb[Columns.LOSS_MASK].cpu().numpy()[valid].astype(bool)
@@ -128,8 +130,6 @@ class PerAgentGAE(ConnectorV2):
             vn = getattr(getattr(module, "critic", None), "value_norm", None)
             if vn is not None:
                 vn.update(torch.as_tensor(targets[real], device=device))
-            # Old predictions in the (just updated) normalised space, for value clipping.
-            old = module.normalize(torch.as_tensor(flat_v, device=device, dtype=torch.float32)).cpu().numpy()
 
             def pad(x: np.ndarray) -> torch.Tensor:
                 out = np.zeros((b, t) + x.shape[1:], dtype=np.float32)  # noqa: B023 (called in this iteration)
@@ -138,7 +138,9 @@ class PerAgentGAE(ConnectorV2):
 
             mb[Postprocessing.ADVANTAGES] = pad(adv)
             mb[Postprocessing.VALUE_TARGETS] = pad(targets)
-            mb[VF_PREDS] = pad(old)
+            # the critic's output before this batch's update, the centre of the value clip: equal to the
+            # loss's `values` until the first step moves the critic (docs/model.md#mappo-value-clip)
+            mb[VF_PREDS] = pad(flat_v_norm)
         return batch
 
 
