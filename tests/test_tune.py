@@ -174,6 +174,17 @@ def test_two_trial_grid_end_to_end(ray_address, tmp_path, capsys):
     assert {
         r.info.run_id: len(client.get_metric_history(r.info.run_id, "episode_return_mean")) for r in train
     } == history
+    # --resume of an edited grid (a longer budget) is refused in one line, before anything is touched
+    # (Tune would restore the two finished trials only and report the grid interrupted at every --resume)
+    make_grid(tmp_path, "e2e", 2 * budget)
+    rc = tune_cli.main([grid_file, "--resume"])
+    _, err = capsys.readouterr()
+    assert rc == 2 and "not the one experiment 'e2e' started with (stop.env_steps 60 -> 120)" in err, err[-3000:]
+    client, runs3 = mlflow_runs(tmp_path, "e2e")
+    assert {(r.info.run_id, r.info.status) for r in runs3} == {(r.info.run_id, r.info.status) for r in runs2}
+    (parent,) = client.search_runs([runs3[0].info.experiment_id], "tags.kind = 'grid'")
+    assert parent.info.status == "FINISHED"
+    make_grid(tmp_path, "e2e", budget)
 
     # the evaluate CLI on a trial's final checkpoint replays that trial's execution phase exactly
     from uavlora_rllib import evaluate as evaluate_cli

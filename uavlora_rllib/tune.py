@@ -32,7 +32,8 @@
   not rerun, interrupted or errored ones continue from their last checkpoint, and each trial
   keeps its one MLflow run (found again by its trial_id tag). If the driver died before Tune
   saved anything, ``--resume`` starts the trials. Without ``--resume`` an existing
-  experiment is an error (no silent second copy of the grid).
+  experiment is an error (no silent second copy of the grid), and so is ``--resume`` of a grid
+  whose trials differ from those the experiment started with (Tune cannot add or change one).
 * Interrupt with Ctrl+C (SIGINT) once: Tune saves the experiment state and the MLflow runs of
   unfinished trials are marked KILLED; ``--resume`` picks them up. A driver killed outright
   (SIGKILL, lost machine) is also resumable: see `experiment.mlflow_callback`. Exit codes: 0 all

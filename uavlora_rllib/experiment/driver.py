@@ -12,7 +12,7 @@ from uavlora_rllib.cli_args import write_problem
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.experiment import cluster
 from uavlora_rllib.experiment.grid import GridConfig, TrialSpec, baseline_runs, trial_count, trials
-from uavlora_rllib.experiment.tuner import trial_resources, tuner_for
+from uavlora_rllib.experiment.tuner import grid_identity, trial_resources, tuner_for
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 
@@ -94,7 +94,7 @@ def _run_locked(
         _preflight(grid)
         if args.address and "://" not in storage:  # (after connecting: a failed connect stays one line)
             print(f"note: on a cluster, storage {storage} must be a path shared by every node", file=sys.stderr)
-        tracker = _open_tracker(grid, grid_file, uri)
+        tracker = _open_tracker(grid, grid_file, uri, grid_identity(grid, specs), args.resume and restorable)
         pool = _start_baselines(grid, tracker)
         tuner = tuner_for(grid, specs, storage, uri, grid_file, exp_path, tracker.commit, args.resume and restorable)
         results = _fit(tuner, pool)
@@ -159,16 +159,42 @@ def _preflight(grid: GridConfig) -> None:
     print(f"Ray: {cluster.describe_cluster()}", flush=True)
 
 
-def _open_tracker(grid: GridConfig, grid_file: str, uri: str):
-    """The grid's MLflow experiment; MLflow unreachable is a failed preflight check (exit code 2)."""
+def _open_tracker(grid: GridConfig, grid_file: str, uri: str, identity: dict[str, str], restoring: bool):
+    """The grid's MLflow experiment; MLflow unreachable is a failed preflight check (exit code 2).
+    A grid that restores Tune state must be the grid the experiment started with (`identity`,
+    tuner.grid_identity, kept as tags of the grid run): Tune restores the trials it started with
+    and would leave the new ones unrun, reporting the grid interrupted at every --resume."""
     from uavlora_rllib.experiment.mlflow_client import Tracker, TrackingUnavailable
 
     try:
         tracker = Tracker(uri, grid.experiment, grid_file, retry_timeout_s=grid.mlflow.retry_timeout_s)
+        tags = {f"grid_{k}": v for k, v in identity.items()}
+        if restoring:
+            _check_same_grid(tracker.get_run(tracker.grid_run()).data.tags, tags, grid)
         tracker.open_grid_run()  # the parent of this grid's runs (kept by --resume)
+        if not restoring:
+            for key, value in tags.items():
+                tracker.set_tag(tracker.grid_run(), key, value)
         return tracker
     except TrackingUnavailable as exc:  # unreachable, or refused (TrackingRefused: credentials)
         raise ConfigError(str(exc)) from None
+
+
+def _check_same_grid(started: dict[str, str], now: dict[str, str], grid: GridConfig) -> None:
+    """ConfigError (nothing touched yet) where the experiment was started from another grid; an
+    experiment started before these tags were kept is not checked."""
+    if "grid_digest" not in started or started["grid_digest"] == now["grid_digest"]:
+        return
+    changed = [
+        f"{what} {started.get(key)} -> {now[key]}"
+        for what, key in (("trials", "grid_trials"), ("stop.env_steps", "grid_budget"))
+        if started.get(key) != now[key]
+    ] or ["the trials' settings"]
+    raise ConfigError(
+        f"--resume: this grid is not the one experiment {grid.experiment!r} started with ({', '.join(changed)}); "
+        "a resumed experiment runs only the trials it started with: restore that YAML (the grid run's "
+        "grid.yaml in MLflow), or run the changed grid under a new `experiment` name"
+    )
 
 
 def _start_baselines(grid: GridConfig, tracker):

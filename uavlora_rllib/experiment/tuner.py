@@ -14,6 +14,7 @@ from uavlora_rllib.experiment.grid import (
     eval_interval,
     hparams_dict,
     is_sweep,
+    trial_count,
     trial_run_name,
 )
 
@@ -45,6 +46,35 @@ def trial_config(spec: TrialSpec, grid: GridConfig, sweeping: bool = False) -> d
             grid.evaluation.interval_env_steps, grid.stop.env_steps
         ),
         "plugins": list(grid.plugins),
+    }
+
+
+def grid_identity(grid: GridConfig, specs: list[TrialSpec]) -> dict[str, Any]:
+    """What a Tune experiment fixes when it starts, which `--resume` restores and cannot change:
+    every trial's config (a sampled hyperparameter as its space), the samples, the scheduler and
+    the search algorithm. Plain JSON data; `digest` is its SHA-256 (16 hex digits)."""
+    import hashlib
+    import json
+
+    configs = []
+    for spec in specs:
+        config = trial_config(spec, grid, is_sweep(grid, specs))
+        config["overrides"] = {
+            k: ({"space": spec.spaces[k].kind, "values": list(spec.spaces[k].values)} if k in spec.spaces else v)
+            for k, v in config["overrides"].items()
+        }
+        configs.append(config)
+    body = {
+        "trials": configs,
+        "num_samples": grid.num_samples,
+        "scheduler": dataclasses.asdict(grid.scheduler) if grid.scheduler else None,
+        "search_alg": dataclasses.asdict(grid.search_alg) if grid.search_alg else None,
+    }
+    text = json.dumps(body, sort_keys=True, default=str)
+    return {
+        "digest": hashlib.sha256(text.encode()).hexdigest()[:16],
+        "trials": str(trial_count(grid, specs)),
+        "budget": str(grid.stop.env_steps),
     }
 
 
