@@ -10,7 +10,9 @@ over vdn, and the ratio mappo / qmix, each with its 95% Fieller interval over se
 (analysis.stats.ratio_ci95). Verdicts: "not run" (a cell is missing), "too few seeds" (fewer
 than MIN_SEEDS on a side: the interval would not mean much), "inside our CI" / "outside our CI"
 for the VDN numbers, and for the QMIX claim "agrees" (interval above 2), "disagrees" (below 2)
-or "undecided" (interval contains 2).
+or "undecided" (interval contains 2); "not comparable" where the runs are not of the paper's
+scenario (another action mode, rate model, reward, episode length, ...: any scenario.* param off
+ScenarioConfig's defaults).
 """
 
 from __future__ import annotations
@@ -39,6 +41,30 @@ PAPER_COLUMNS = (
     "n_seeds_other",
     "verdict",
 )
+
+
+def paper_scenario_params(v: int) -> dict[str, str]:
+    """The scenario.* params of the paper's scenario at V EDs and U = 2 (ScenarioConfig's defaults
+    are the paper's model, docs/model.md), as a run logs them."""
+    from uavlora_rllib.experiment.run_schema import run_params
+    from uavlora_rllib.sim.scenario import ScenarioConfig
+
+    params = run_params(ScenarioConfig(n_eds=v, n_uavs=PAPER_U), None, 1)
+    return {k: val for k, val in params.items() if k.startswith("scenario.")}
+
+
+def _not_the_papers(org: Organised, v: int, names: tuple[str, ...]) -> list[str]:
+    """The scenario settings in which the cells' runs differ from the paper's ("key value"); a
+    param an older run did not log is not counted."""
+    paper = paper_scenario_params(v)
+    found: dict[str, set[str]] = {}
+    for name in names:
+        cell = org.cells.get((v, PAPER_U, name))
+        for run in cell.runs if cell is not None else []:
+            for k, val in run.params.items():
+                if k in paper and val != paper[k]:
+                    found.setdefault(k, set()).add(val)
+    return [f"{k} {'/'.join(sorted(vals))}" for k, vals in sorted(found.items())]
 
 
 def _values(org: Organised, v: int, name: str):
@@ -71,6 +97,9 @@ def paper_rows(org: Organised) -> list[dict[str, Any]]:
                 else:
                     point, lo, hi = ratio, rlo, rhi
             verdict = _verdict_common(a, b)
+            other_scenario = _not_the_papers(org, v, (OURS, other))
+            if verdict is None and other_scenario:  # the paper's numbers are of its own scenario only
+                verdict = f"not comparable: not the paper's scenario ({', '.join(other_scenario)})"
             if verdict is None:
                 if not (math.isfinite(lo) and math.isfinite(hi)):
                     verdict = "undecided (our CI is unbounded)"
