@@ -47,10 +47,9 @@ KNOWN_BWS_KHZ = (125, 250, 500)
 
 _STRICT = pydantic.ConfigDict(extra="forbid", frozen=True)
 
-# reward.w1 when it is null, per rate model (docs/model.md#metrics-and-reward). The paper's 4e-4 puts the EE
-# term at ~95 per slot in its scenario (greedy EE ~2.4e5 bit/J under Eq. (shannon)), above the success (w2 = 5)
-# and margin (<= 1) terms; the LoRa PHY rates give ~1e3 bit/J there, where 4e-4 would leave EE 0.4 per slot and
-# learners maximise the success and margin terms instead (robust SFs at high TP). 0.1 restores the paper's balance.
+# reward.w1 when it is null, per rate model, sized in per_device mode (docs/model.md#metrics-and-reward): there
+# the LoRa PHY rates give ~1/240 of the Shannon EE, where 4e-4 would leave the EE term below the success and margin
+# terms and learners would maximise those instead (robust SFs at high TP); 0.1 restores the paper's balance there.
 DEFAULT_W1: dict[str, float] = {"shannon": 4e-4, "lora_phy": 0.1}
 
 
