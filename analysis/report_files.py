@@ -46,7 +46,7 @@ from analysis.tables import (
     open_loop_table,
     write_csv,
 )
-from analysis.verdicts import TABLE_LEARNING_COLUMNS, learning_md, learning_table
+from analysis.verdicts import TABLE_LEARNING_COLUMNS, learning_md, learning_table, stopped_before_budget
 
 # Every file the report may write (nothing else in --out is touched or logged).
 OUTPUT_FILES = tuple(
@@ -128,7 +128,17 @@ def _build_report(sources: list[Source], out_dir: str, args) -> dict[str, Any]:
     history = mlflow_history(sources)
     notes: list[str] = []
     if reference is None:
-        notes.append(f"No training runs of the reference algorithm {args.reference!r}: no improvement table.")
+        configs = [a for a in org.algorithms("train") if a.startswith(f"{args.reference}[")]
+        notes.append(
+            f"No training runs of the reference algorithm {args.reference!r}: no improvement table."
+            + (
+                f" A sweep's configurations of it are cells of their own ({', '.join(configs[:3])}"
+                f"{', ...' if len(configs) > 3 else ''}): pass one as --reference."
+                if configs
+                else ""
+            )
+        )
+    notes += stopped_before_budget(org, history)
     bar = progress(2 * sum(1 for r in records if r.kind == "train") + 4, "report")
     tables = write_tables(org, reference, args.reference, out_dir)
     tables.update(write_learning_table(org, history, out_dir))

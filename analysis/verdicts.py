@@ -40,6 +40,7 @@ TABLE_LEARNING_COLUMNS = (
     "n_seeds",  # seeds that the learner, the reference and best_fixed all ran; every ratio is over these
     "unmatched_seeds",  # the learner's other seeds, left out of every ratio
     "env_steps",  # the runs' budget (stop.env_steps)
+    "trained_env_steps",  # where their last evaluation was: below the budget for a run a scheduler stopped
     "reference_baseline",
     "share_of_reference",
     "best_fixed_share_of_reference",
@@ -62,6 +63,29 @@ def last_evals_spread(values: list[float] | np.ndarray, last: int = LAST_EVALS) 
     return float((tail.max() - tail.min()) / tail.max())
 
 
+def stopped_before_budget(org: Organised, history: History) -> list[str]:
+    """A note per learner cell with runs whose last evaluation came before their budget
+    (stop.env_steps): a scheduler stopped them early, so their EE is of a shorter training than a
+    full run's and a comparison with one is not like for like."""
+    notes = []
+    for cell in sorted(org.cells.values(), key=lambda c: c.key):
+        if cell.kind != "train":
+            continue
+        short = []
+        for r in cell.runs:
+            budget = r.params.get("stop.env_steps", "")
+            steps, _ = history(r, EE_KEY)
+            if budget.isdigit() and len(steps) and steps[-1] < int(budget):
+                short.append(f"seed {r.seed} at {int(steps[-1])}")
+        if short:
+            notes.append(
+                f"V={cell.n_eds} U={cell.n_uavs} {cell.algorithm}: {len(short)} of {len(cell.runs)} run(s) stopped "
+                f"before the budget {cell.runs[0].params.get('stop.env_steps')} ({', '.join(short)} env steps; "
+                "a scheduler's early stop): their EE is of a shorter training"
+            )
+    return notes
+
+
 def learning_table(org: Organised, history: History) -> list[dict[str, Any]]:
     """One row per learner (kind=train) of each scenario that has a reference baseline."""
     rows = []
@@ -79,15 +103,19 @@ def learning_table(org: Organised, history: History) -> list[dict[str, Any]]:
                 continue
             runs = [r for r in cell.runs if str(r.seed) in seeds]
             ee, bf = cell.summary(seeds=seeds).mean, org.baseline_mean(scen, BEST_FIXED, seeds)
-            spreads = [last_evals_spread(history(r, EE_KEY)[1]) for r in runs]
+            curves = [history(r, EE_KEY) for r in runs]
+            spreads = [last_evals_spread(values) for _, values in curves]
             spread = max(spreads) if spreads and all(math.isfinite(s) for s in spreads) else math.nan
             budgets = sorted({r.params.get("stop.env_steps", "") for r in runs})
+            trained = sorted({int(steps[-1]) for steps, _ in curves if len(steps)})
             share, target = ee / ref.mean, share_target(ref.mode, scen[1])
             judged = len(runs) >= JUDGED_SEEDS and all(b.isdigit() and int(b) >= JUDGED_ENV_STEPS for b in budgets)
+            judged = judged and all(t >= JUDGED_ENV_STEPS for t in trained)
             rows.append({
                 "n_eds": scen[0], "n_uavs": scen[1], "action_mode": ref.mode, "algorithm": cell.algorithm,
                 "n_seeds": len(runs), "unmatched_seeds": " ".join(s for s in cell.seeds if s not in seeds),
                 "env_steps": "/".join(b for b in budgets if b) or "",
+                "trained_env_steps": "/".join(str(t) for t in trained),
                 "reference_baseline": ref.name, "share_of_reference": share,
                 "best_fixed_share_of_reference": bf / ref.mean, "share_of_best_fixed": ee / bf,
                 "above_best_fixed": "" if not math.isfinite(bf) else str(ee > bf).lower(),
@@ -108,7 +136,7 @@ def learning_md(rows: list[dict[str, Any]]) -> str:
         "mode",
         "learner",
         "matched seeds",
-        "env steps",
+        "env steps trained (budget)",
         "share of reference",
         "best_fixed share",
         "x best_fixed",
@@ -119,7 +147,7 @@ def learning_md(rows: list[dict[str, Any]]) -> str:
         "met",
     ]
     body = [[str(r["n_eds"]), str(r["n_uavs"]), r["action_mode"], r["algorithm"],
-             str(r["n_seeds"]) + (f" (left out: {r['unmatched_seeds']})" if r["unmatched_seeds"] else ""), r["env_steps"] or "n/a",
+             str(r["n_seeds"]) + (f" (left out: {r['unmatched_seeds']})" if r["unmatched_seeds"] else ""), f"{r['trained_env_steps'] or 'n/a'} ({r['env_steps'] or 'n/a'})",
              fmt(r["share_of_reference"], ".3f"), fmt(r["best_fixed_share_of_reference"], ".3f"),
              fmt(r["share_of_best_fixed"], ".3f"), r["above_best_fixed"] or "n/a",
              fmt(r["max_last_evals_spread"], ".3f"), r["settled"] or "n/a (too few evaluations)",

@@ -8,7 +8,14 @@ import pytest
 
 from analysis.data import organise
 from analysis.runs import EE_KEY, RunRecord
-from analysis.verdicts import SWING_LIMIT, last_evals_spread, learning_md, learning_table, share_target
+from analysis.verdicts import (
+    SWING_LIMIT,
+    last_evals_spread,
+    learning_md,
+    learning_table,
+    share_target,
+    stopped_before_budget,
+)
 
 
 def _run(i, alg, ee, kind="train", seed="0", scen=(10, 2)):
@@ -35,10 +42,15 @@ CURVES = {
 }
 
 
+STOPPED = {"r4": 100_000}  # a run a scheduler stopped at half its budget: its last evaluation's env steps
+
+
 def _history(record, key):
+    """Evaluations spread evenly up to the run's budget (200k), or to where it was stopped."""
     assert key == EE_KEY
     vals = CURVES[record.run_id]
-    return list(range(len(vals))), vals
+    end = STOPPED.get(record.run_id, 200_000)
+    return [end * (i + 1) / len(vals) for i in range(len(vals))], vals
 
 
 def test_last_evals_spread():
@@ -64,22 +76,38 @@ def test_learning_rows_shares_best_fixed_and_swings():
     assert m["share_of_reference"] == pytest.approx(0.96) and m["n_seeds"] == 2
     assert m["share_of_best_fixed"] == pytest.approx(96 / 80) and m["above_best_fixed"] == "true"
     assert m["max_last_evals_spread"] == pytest.approx(18 / 98)  # the worse seed counts
-    assert m["settled"] == "false" and m["env_steps"] == "200000"
+    assert m["settled"] == "false" and m["env_steps"] == "200000" and m["trained_env_steps"] == "200000"
     assert m["share_target"] == 0.9 and m["meets_share_target"] == ""  # 2 seeds: not judged
     i = rows["ippo"]
     assert i["above_best_fixed"] == "false"
     assert i["max_last_evals_spread"] == pytest.approx(12 / 72) and i["settled"] == str(12 / 72 <= SWING_LIMIT).lower()
     md = learning_md(list(rows.values()))
     assert (
-        "| 10 | 2 | per_device | mappo | 2 | 200000 | 0.960 | 0.800 | 1.200 | true | 0.184 | false | 0.90 | n/a (needs 3 seeds"
+        "| 10 | 2 | per_device | mappo | 2 | 200000 (200000) | 0.960 | 0.800 | 1.200 | true | 0.184 | false | 0.90 | n/a (needs 3 seeds"
         in md
     )
 
 
-def test_share_target_is_judged_on_three_seeds_at_the_budget():
+def test_a_run_stopped_before_its_budget_is_shown_noted_and_not_judged():
+    runs = [_run(10 + k, "greedy", 100.0, kind="baseline", seed=str(k)) for k in range(3)] + [
+        _run(2 + k, "mappo", v, seed=str(k)) for k, v in enumerate((95.0, 97.0, 93.0))
+    ]
+    org = organise(runs)
+    (row,) = learning_table(org, _history)
+    assert row["trained_env_steps"] == "100000/200000" and row["meets_share_target"] == ""
+    assert "| 100000/200000 (200000) |" in learning_md([row])
+    assert stopped_before_budget(org, _history) == [
+        "V=10 U=2 mappo: 1 of 3 run(s) stopped before the budget 200000 (seed 2 at 100000 env steps; a scheduler's "
+        "early stop): their EE is of a shorter training"
+    ]
+
+
+def test_share_target_is_judged_on_three_seeds_at_the_budget(monkeypatch):
+    monkeypatch.delitem(STOPPED, "r4")  # every run trained its budget
     runs = [_run(10 + k, "greedy", 100.0, kind="baseline", seed=str(k)) for k in range(3)] + [
         _run(2 + k, "mappo", v, seed=str(k)) for k, v in enumerate((95.0, 97.0, 72.0))
     ]
+
     (row,) = learning_table(organise(runs), _history)
     assert row["n_seeds"] == 3 and row["share_of_reference"] == pytest.approx(88 / 100)
     assert row["meets_share_target"] == "false"  # 0.88 < 0.9
