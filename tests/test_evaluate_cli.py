@@ -243,6 +243,35 @@ def test_checkpoint_fit_check():
     derived = ScenarioConfig(n_eds=10, n_uavs=2)
     problem = checkpoint_fit_problem(derived, derived.replace(n_eds=20))
     assert problem and "moved 8 -> 15: keep it by setting max_eds_per_uav: 8 in the scenario" in problem, problem
+    # ... but not where the UAVs changed too, which no quota setting can undo
+    problem = checkpoint_fit_problem(derived, derived.replace(n_uavs=3))
+    assert problem and "was trained for 2 UAVs" in problem and "keep it by setting" not in problem, problem
+
+
+def test_a_trials_plugins_are_imported_before_its_checkpoint(tmp_path, monkeypatch):
+    """A grid trial's checkpoint of a plugin algorithm restores only with the plugin's module
+    imported: evaluate imports the modules its trial listed (params.json beside the checkpoint),
+    and a module it cannot import is one line naming it, before Ray starts."""
+    import json
+    import sys
+
+    from uavlora_rllib.config_errors import ConfigError
+    from uavlora_rllib.evaluate import _import_trial_plugins
+
+    checkpoint = tmp_path / "trial" / "checkpoint_000001"
+    checkpoint.mkdir(parents=True)
+    params = tmp_path / "trial" / "params.json"
+    params.write_text(json.dumps({"trial": {"algorithm": "stock_ppo", "plugins": ["tune_stock_ppo"]}}))
+    monkeypatch.syspath_prepend(os.path.dirname(os.path.abspath(__file__)))
+    monkeypatch.delitem(sys.modules, "tune_stock_ppo", raising=False)
+    _import_trial_plugins(str(checkpoint))
+    assert "tune_stock_ppo" in sys.modules
+    params.write_text(json.dumps({"trial": {"algorithm": "mine", "plugins": ["no_such_plugin_xyz"]}}))
+    with pytest.raises(
+        ConfigError, match=r"plugins \(in .*params.json\)\.0: cannot import module 'no_such_plugin_xyz'"
+    ):
+        _import_trial_plugins(str(checkpoint))
+    _import_trial_plugins(str(tmp_path / "elsewhere" / "checkpoint"))  # no trial config: nothing to import
 
 
 @pytest.mark.slow

@@ -129,6 +129,7 @@ def load_checkpoint_policy(
     from uavlora_rllib.experiment.quiet import quiet_known_warnings
 
     quiet_known_warnings()  # RLlib's notices on restoring, which need no action (experiment/quiet.py)
+    _import_trial_plugins(path)  # before Ray starts: a missing module is one line
     if not ray.is_initialized():  # a private local Ray, not RLlib's bare ray.init(), which would attach to
         try:  # a `ray start` cluster on this machine, and start a dashboard
             cluster.connect(None, None)
@@ -159,6 +160,23 @@ def load_checkpoint_policy(
         raise ConfigError(f"--policy: the checkpoint at {path!r} does not fit this scenario: {exc}") from None
 
 
+def _import_trial_plugins(path: str) -> None:
+    """Import the plugin modules a grid trial's checkpoint needs, as its trial did: the `plugins` of
+    the trial config Tune keeps beside its checkpoints (params.json); a checkpoint outside a Tune
+    trial needs none, or its modules imported by the caller."""
+    params = os.path.join(os.path.dirname(os.path.abspath(path)), "params.json")
+    try:
+        with open(params) as fh:
+            trial = json.load(fh).get("trial", {})
+    except (OSError, ValueError, AttributeError):
+        return
+    plugins = trial.get("plugins", []) if isinstance(trial, Mapping) else []
+    if plugins:
+        from uavlora_rllib.experiment.grid import import_plugins
+
+        import_plugins([str(m) for m in plugins], prefix=f"--policy: the checkpoint's trial's plugins (in {params})")
+
+
 def checkpoint_fit_problem(trained: ScenarioConfig, scenario: ScenarioConfig) -> str | None:
     """Why a policy trained on `trained` cannot act in `scenario`, or None.
 
@@ -178,7 +196,8 @@ def checkpoint_fit_problem(trained: ScenarioConfig, scenario: ScenarioConfig) ->
     t_u, t_obs, t_act = spaces(trained)
     u, obs, act = spaces(scenario)
     quota = ""
-    if trained.quota != scenario.quota and "max_eds_per_uav" not in differ:  # derived from n_eds / n_uavs
+    # derived from n_eds / n_uavs; the hint helps only where the UAVs are the trained ones
+    if trained.quota != scenario.quota and "max_eds_per_uav" not in differ and t_u == u:
         quota = (
             f"; the quota max_eds_per_uav, ceil(1.5 V / U) unless set, moved {trained.quota} -> {scenario.quota}: "
             f"keep it by setting max_eds_per_uav: {trained.quota} in the scenario (evaluate: --scenario-yaml)"
