@@ -46,10 +46,11 @@ PAPER_COLUMNS = (
 def paper_scenario_params(v: int) -> dict[str, str]:
     """The scenario.* params of the paper's scenario at V EDs and U = 2 (ScenarioConfig's defaults
     are the paper's model, docs/model.md), as a run logs them."""
+    from analysis.runs import resolved_params
     from uavlora_rllib.experiment.run_schema import run_params
     from uavlora_rllib.sim.scenario import ScenarioConfig
 
-    params = run_params(ScenarioConfig(n_eds=v, n_uavs=PAPER_U), None, 1)
+    params = resolved_params(run_params(ScenarioConfig(n_eds=v, n_uavs=PAPER_U), None, 1))
     return {k: val for k, val in params.items() if k.startswith("scenario.")}
 
 

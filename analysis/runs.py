@@ -20,6 +20,7 @@ import json
 import logging
 import math
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -215,9 +216,25 @@ def resolve_sources(tracking_uris: list[str], patterns: list[str]) -> list[Sourc
     return out
 
 
+W1_PARAM = "scenario.reward.w1"
+
+
+def resolved_params(params: Mapping[str, str]) -> dict[str, str]:
+    """A run's params with a null reward.w1 (logged "None") replaced by the w1 the env applied, its
+    rate model's default (ScenarioConfig.reward_weights), so that a run that left w1 unset and one
+    that set that same value are the same scenario to every comparison of the report."""
+    from uavlora_rllib.sim.scenario import DEFAULT_W1
+
+    out = dict(params)
+    rate = out.get("scenario.rate_model", "shannon")
+    if out.get(W1_PARAM) == "None" and rate in DEFAULT_W1:
+        out[W1_PARAM] = str(DEFAULT_W1[rate])
+    return out
+
+
 def _record(run) -> RunRecord:
     tags = dict(run.data.tags)
-    params = dict(run.data.params)
+    params = resolved_params(run.data.params)
     n_eds = _as_int(tags.get("n_eds", params.get("scenario.n_eds")))
     n_uavs = _as_int(tags.get("n_uavs", params.get("scenario.n_uavs")))
     algorithm = tags.get("algorithm") or None

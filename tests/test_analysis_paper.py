@@ -56,3 +56,15 @@ def test_another_scenario_is_not_comparable():
 def test_params_an_older_run_did_not_log_are_not_counted():
     rows = _rows({"scenario.n_eds": "10", "scenario.n_uavs": "2"})
     assert rows[(10, "vdn")]["verdict"] == "inside our CI"
+
+
+def test_an_unset_w1_is_the_default_it_applied():
+    """A run that left reward.w1 null (logged "None") and one that set the rate model's default are
+    one scenario: the paper's own w1 set explicitly is still the paper's scenario."""
+    from analysis.runs import resolved_params
+
+    assert resolved_params({"scenario.reward.w1": "None"})["scenario.reward.w1"] == "0.0004"
+    lora = {"scenario.reward.w1": "None", "scenario.rate_model": "lora_phy"}
+    assert resolved_params(lora)["scenario.reward.w1"] == "0.1"
+    rows = _rows({**paper_scenario_params(10), "scenario.reward.w1": "0.0004"})
+    assert rows[(10, "vdn")]["verdict"] == "inside our CI"
