@@ -88,9 +88,12 @@ def test_search_spaces_expand_with_num_samples_and_grid_search(tmp_path, capsys)
     assert specs[0].hparams.num_epochs == 15 and specs[0].hparams.batch_episodes == 2  # sampled: default; fixed: set
     rc, out, err = cli([write(tmp_path, data), "--dry-run"], capsys)
     assert rc == 0, err
-    assert "2 grid points" in out and "sweep: 12 trials" in out
+    assert "sweep: 12 trials = 2 grid points x grid_search values x num_samples 3" in out
     assert "algorithms.mappo.lr: loguniform[0.0001, 0.01]" in out
     assert "algorithms.mappo.share_actor: grid_search[True, False]" in out
+    del data["algorithms"]["mappo"]["share_actor"]  # no grid_search space left: the line says so
+    rc, out, err = cli([write(tmp_path, data), "--dry-run"], capsys)
+    assert rc == 0 and "sweep: 6 trials = 2 grid points x num_samples 3\n" in out, err
 
 
 def test_the_plain_grid_is_no_sweep(tmp_path):

@@ -32,9 +32,11 @@ def sweep_lines(grid: GridConfig, specs: list[TrialSpec]) -> list[str]:
     """The dry run's description of a sweep: spaces, samples, scheduler, search algorithm."""
     from uavlora_rllib.experiment import sweep
 
+    searched = any(space.kind == "grid_search" for s in specs for space in s.spaces.values())
     lines = [
-        f"sweep: {trial_count(grid, specs)} trials = {len(specs)} grid points x grid_search values x "
-        f"num_samples {grid.num_samples}"
+        f"sweep: {trial_count(grid, specs)} trials = {len(specs)} grid points"
+        + (" x grid_search values" if searched else "")
+        + f" x num_samples {grid.num_samples}"
         if grid.search_alg is None
         else f"sweep: {grid.num_samples} trials (num_samples) suggested by {grid.search_alg.type}"
     ]
