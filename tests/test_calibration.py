@@ -119,6 +119,23 @@ def write_hand_calibration(tmp_path, calib_file, machine) -> tuple:
     return grid, specs
 
 
+def test_a_write_keeps_the_files_mode(tmp_path, calib_file):
+    """The file is replaced atomically by a temporary one; it keeps the mode it had (a shared
+    $UAVLORA_CALIBRATION stays readable to the others), and a new file gets the umask's."""
+    import stat
+
+    machine = calibration.this_machine()
+    old = os.umask(0o022)
+    try:
+        write_hand_calibration(tmp_path, calib_file, machine)
+        assert stat.S_IMODE(os.stat(calib_file).st_mode) == 0o644
+        os.chmod(calib_file, 0o664)
+        write_hand_calibration(tmp_path, calib_file, machine)
+        assert stat.S_IMODE(os.stat(calib_file).st_mode) == 0o664
+    finally:
+        os.umask(old)
+
+
 # --------------------------------------------------------------------------- cells
 def test_cell_key_ignores_the_seed_and_follows_what_sets_the_speed(tmp_path):
     def keys(**changes):

@@ -33,6 +33,7 @@ import hashlib
 import json
 import math
 import os
+import stat
 import sys
 import tempfile
 import time
@@ -343,6 +344,9 @@ class Store:
             current[_record_id(record["cell_key"], record["machine"], record["version"])] = record
             fd, tmp = tempfile.mkstemp(prefix=".calibration-", suffix=".tmp", dir=directory)
             try:
+                # the file's own mode, or a new file's under the umask (mkstemp's 0600 would make a
+                # shared $UAVLORA_CALIBRATION unreadable to the others after one write)
+                os.fchmod(fd, _mode_of(self.path))
                 with os.fdopen(fd, "w", encoding="utf-8") as fh:
                     json.dump({"format": FORMAT, "records": current}, fh, indent=1, sort_keys=True)
                     fh.flush()
@@ -353,6 +357,16 @@ class Store:
                     os.unlink(tmp)
                 raise
         self.records = current
+
+
+def _mode_of(path: str) -> int:
+    """The permission bits of `path`, or those a new file gets (0666 less the umask)."""
+    try:
+        return stat.S_IMODE(os.stat(path).st_mode)
+    except OSError:
+        umask = os.umask(0)
+        os.umask(umask)
+        return 0o666 & ~umask
 
 
 def _own_then_newest(found: list[dict[str, Any]], machine: Mapping[str, Any]) -> dict[str, Any]:
