@@ -200,8 +200,10 @@ def test_two_trial_grid_end_to_end(ray_address, tmp_path, capsys):
     assert result["success_rate"] == pytest.approx(run.data.metrics["eval/success_rate"], rel=1e-9)
 
 
-def test_interrupted_grid_resumes_with_one_run_per_trial(ray_address, tmp_path, capsys):
-    budget = 600  # 30 iterations: the first trial is still training when SIGINT arrives
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["ctrl_c", "sigterm"])
+def test_interrupted_grid_resumes_with_one_run_per_trial(ray_address, tmp_path, capsys, stop):
+    """Ctrl+C, or SIGTERM (a scheduler's stop), which the driver treats as one Ctrl+C."""
+    budget = 600  # 30 iterations: the first trial is still training when the signal arrives
     grid_file = make_grid(tmp_path, "resume", budget, max_concurrent=1)
     env = dict(os.environ)
     proc = subprocess.Popen(
@@ -219,7 +221,7 @@ def test_interrupted_grid_resumes_with_one_run_per_trial(ray_address, tmp_path, 
             assert proc.poll() is None, proc.stdout.read()[-3000:]
             assert time.monotonic() < deadline, "no checkpoint within 180 s"
             time.sleep(0.2)
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(stop)
         out, _ = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:

@@ -34,8 +34,8 @@
   saved anything, ``--resume`` starts the trials. Without ``--resume`` an existing
   experiment is an error (no silent second copy of the grid), and so is ``--resume`` of a grid
   whose trials differ from those the experiment started with (Tune cannot add or change one).
-* Interrupt with Ctrl+C (SIGINT) once: Tune saves the experiment state and the MLflow runs of
-  unfinished trials are marked KILLED; ``--resume`` picks them up. A driver killed outright
+* Interrupt with Ctrl+C (SIGINT) once, or SIGTERM (treated the same): Tune saves the experiment
+  state and the MLflow runs of unfinished trials are marked KILLED; ``--resume`` picks them up. A driver killed outright
   (SIGKILL, lost machine) is also resumable: see `experiment.mlflow_callback`. Exit codes: 0 all
   trials and baselines finished, 1 some failed (or MLflow stayed unreachable), 130
   interrupted, 2 bad input or a failed preflight check.

@@ -87,6 +87,7 @@ def _run_locked(
 
     restorable = _check_resume(args, exp_path, storage)
     started_ray = _connect_ray(args)
+    _sigterm_as_ctrl_c()  # after Ray's start, which installs its own (a core dump, exit 134)
     pool = tracker = None
     grid_status = "KILLED"  # the parent run's status when this driver stops (FINISHED, FAILED, KILLED)
     t_start = time.perf_counter()
@@ -139,6 +140,17 @@ def _check_resume(args: argparse.Namespace, exp_path: str, storage: str) -> bool
             file=sys.stderr,
         )
     return restorable
+
+
+def _sigterm_as_ctrl_c() -> None:
+    """SIGTERM (`kill`, a job scheduler, Kubernetes) stops the grid as one Ctrl+C does: Tune saves
+    its state, unfinished runs are marked KILLED, exit 130, resumable. The handler sends this
+    process SIGINT, whose handler is Tune's inside fit() and KeyboardInterrupt elsewhere."""
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, lambda signum, frame: os.kill(os.getpid(), signal.SIGINT))
 
 
 def _connect_ray(args: argparse.Namespace) -> bool:
