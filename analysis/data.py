@@ -371,10 +371,16 @@ def curves(
 
 
 def mlflow_history(sources):
-    """history(record, key) reading each record's own tracking store."""
+    """history(record, key) reading each record's own tracking store, each (run, metric) once: the
+    learning table, the early-stop notes and Fig. 3a all read the execution curve (one request
+    each to a remote server otherwise)."""
+    cache: dict[tuple[int, str, str], tuple[list[float], list[float]]] = {}
 
     def history(record: RunRecord, key: str):
-        return metric_history(sources[record.source].client, record.run_id, key)
+        k = (record.source, record.run_id, key)
+        if k not in cache:
+            cache[k] = metric_history(sources[record.source].client, record.run_id, key)
+        return cache[k]
 
     return history
 

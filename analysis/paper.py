@@ -54,10 +54,9 @@ def paper_scenario_params(v: int) -> dict[str, str]:
     return {k: val for k, val in params.items() if k.startswith("scenario.")}
 
 
-def _not_the_papers(org: Organised, v: int, names: tuple[str, ...]) -> list[str]:
-    """The scenario settings in which the cells' runs differ from the paper's ("key value"); a
-    param an older run did not log is not counted."""
-    paper = paper_scenario_params(v)
+def _not_the_papers(org: Organised, v: int, names: tuple[str, ...], paper: dict[str, str]) -> list[str]:
+    """The scenario settings in which the cells' runs differ from the paper's (`paper`,
+    paper_scenario_params) as "key value"; a param an older run did not log is not counted."""
     found: dict[str, set[str]] = {}
     for name in names:
         cell = org.cells.get((v, PAPER_U, name))
@@ -87,6 +86,7 @@ def paper_rows(org: Organised) -> list[dict[str, Any]]:
     rows = []
     for v, paper_pct in PAPER_VDN_IMPROVEMENT_PCT.items():
         a = _values(org, v, OURS)
+        paper = paper_scenario_params(v)
         for other in (VDN, QMIX):
             b = _values(org, v, other)
             point = lo = hi = math.nan
@@ -98,7 +98,7 @@ def paper_rows(org: Organised) -> list[dict[str, Any]]:
                 else:
                     point, lo, hi = ratio, rlo, rhi
             verdict = _verdict_common(a, b)
-            other_scenario = _not_the_papers(org, v, (OURS, other))
+            other_scenario = _not_the_papers(org, v, (OURS, other), paper)
             if verdict is None and other_scenario:  # the paper's numbers are of its own scenario only
                 verdict = f"not comparable: not the paper's scenario ({', '.join(other_scenario)})"
             if verdict is None:

@@ -101,6 +101,26 @@ TINY_MAPPO = {
 }
 
 
+def finished_record(i: int, algorithm: str, *, kind="train", seed="0", scen=(10, 2), params=None, metrics=None):
+    """A FINISHED run as analysis.runs reads one from MLflow (id r<i>, started at i): the analysis
+    tests' hand-made stores."""
+    from analysis.runs import RunRecord
+
+    return RunRecord(
+        run_id=f"r{i}",
+        run_name="",
+        status="FINISHED",
+        start_time=i,
+        kind=kind,
+        algorithm=algorithm,
+        seed=seed,
+        n_eds=scen[0],
+        n_uavs=scen[1],
+        params=dict(params or {}),
+        metrics=dict(metrics or {}),
+    )
+
+
 def write_tiny_grid(
     tmp_path,
     name: str,

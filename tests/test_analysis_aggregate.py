@@ -16,7 +16,8 @@ from scipy import stats as st
 
 from analysis import aggregate, stats
 from analysis.data import organise
-from analysis.runs import EE_KEY, RunRecord
+from analysis.runs import EE_KEY
+from tests.conftest import finished_record
 
 
 def strata(m) -> list[np.ndarray]:
@@ -128,19 +129,8 @@ def test_one_seed_strata_stay_fixed_and_no_interval_without_two_seeds():
 
 
 def _run(i, alg, ee, kind="train", seed="0", scen=(10, 2)):
-    return RunRecord(
-        run_id=f"r{i}",
-        run_name="",
-        status="FINISHED",
-        start_time=i,
-        kind=kind,
-        algorithm=alg,
-        seed=seed,
-        n_eds=scen[0],
-        n_uavs=scen[1],
-        params={"scenario.action_mode": "per_device"},
-        metrics={EE_KEY: ee},
-    )
+    params = {"scenario.action_mode": "per_device"}
+    return finished_record(i, alg, kind=kind, seed=seed, scen=scen, params=params, metrics={EE_KEY: ee})
 
 
 def test_rows_use_the_scenarios_reference_shares():

@@ -7,25 +7,15 @@ import math
 import pytest
 
 from analysis.data import BOUND_KEY, organise
-from analysis.runs import EE_KEY, RunRecord
+from analysis.runs import EE_KEY
 from analysis.tables import OPEN_LOOP_SHARE, open_loop_md, open_loop_table
+from tests.conftest import finished_record
 
 
 def _run(i, alg, scen, ee, mode, bound=None, seed="0"):
     metrics = {EE_KEY: ee} | ({BOUND_KEY: bound} if bound is not None else {})
-    return RunRecord(
-        run_id=f"r{i}",
-        run_name="",
-        status="FINISHED",
-        start_time=i,
-        kind="baseline",
-        algorithm=alg,
-        seed=seed,
-        n_eds=scen[0],
-        n_uavs=scen[1],
-        params={"scenario.action_mode": mode},
-        metrics=metrics,
-    )
+    params = {"scenario.action_mode": mode}
+    return finished_record(i, alg, kind="baseline", seed=seed, scen=scen, params=params, metrics=metrics)
 
 
 def test_open_loop_rows_shares_modes_and_bracket():

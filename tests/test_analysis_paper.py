@@ -8,23 +8,12 @@ import pytest
 
 from analysis.data import organise
 from analysis.paper import paper_rows, paper_scenario_params
-from analysis.runs import EE_KEY, RunRecord
+from analysis.runs import EE_KEY
+from tests.conftest import finished_record
 
 
 def _run(i, alg, seed, ee, params):
-    return RunRecord(
-        run_id=f"r{i}",
-        run_name="",
-        status="FINISHED",
-        start_time=i,
-        kind="train",
-        algorithm=alg,
-        seed=str(seed),
-        n_eds=10,
-        n_uavs=2,
-        params=dict(params),
-        metrics={EE_KEY: ee},
-    )
+    return finished_record(i, alg, seed=str(seed), params=params, metrics={EE_KEY: ee})
 
 
 def _rows(params):

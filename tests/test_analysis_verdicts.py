@@ -7,7 +7,7 @@ import math
 import pytest
 
 from analysis.data import organise
-from analysis.runs import EE_KEY, RunRecord
+from analysis.runs import EE_KEY
 from analysis.verdicts import (
     SWING_LIMIT,
     last_evals_spread,
@@ -16,22 +16,12 @@ from analysis.verdicts import (
     share_target,
     stopped_before_budget,
 )
+from tests.conftest import finished_record
 
 
 def _run(i, alg, ee, kind="train", seed="0", scen=(10, 2)):
-    return RunRecord(
-        run_id=f"r{i}",
-        run_name="",
-        status="FINISHED",
-        start_time=i,
-        kind=kind,
-        algorithm=alg,
-        seed=seed,
-        n_eds=scen[0],
-        n_uavs=scen[1],
-        params={"scenario.action_mode": "per_device", "stop.env_steps": "200000"},
-        metrics={EE_KEY: ee},
-    )
+    params = {"scenario.action_mode": "per_device", "stop.env_steps": "200000"}
+    return finished_record(i, alg, kind=kind, seed=seed, scen=scen, params=params, metrics={EE_KEY: ee})
 
 
 CURVES = {
@@ -145,3 +135,23 @@ def test_ratios_compare_matched_seeds_only():
     assert i["n_seeds"] == 1 and i["unmatched_seeds"] == "5"
     assert i["share_of_reference"] == pytest.approx(0.72)
     assert "| ippo | 1 (left out: 5) |" in learning_md([i])
+
+
+def test_the_report_reads_each_metric_history_once():
+    """The learning table, the early-stop notes and Fig. 3a all read a run's execution curve: the
+    report's history asks the tracking store once per (run, metric)."""
+    from types import SimpleNamespace
+
+    from analysis.data import mlflow_history
+
+    calls = []
+
+    def get_metric_history(run_id, key):
+        calls.append((run_id, key))
+        return [SimpleNamespace(step=s, timestamp=s, value=float(s)) for s in (0, 10)]
+
+    history = mlflow_history([SimpleNamespace(client=SimpleNamespace(get_metric_history=get_metric_history))])
+    record = _run(2, "mappo", 95.0)
+    assert history(record, EE_KEY) == history(record, EE_KEY) == ([0.0, 10.0], [0.0, 10.0])
+    history(record, "episode_return_mean")
+    assert calls == [("r2", EE_KEY), ("r2", "episode_return_mean")]
