@@ -303,6 +303,27 @@ def test_tune_objects(tmp_path):
     assert sweep.make_scheduler(parse_grid(sweep_grid(tmp_path)), {}, 40) is None
 
 
+def test_status_table_shows_the_latest_greedy_evaluation():
+    """A finished trial whose last iteration ended no episode has no training EE in its last result;
+    its row still shows the latest greedy evaluation, the number the project judges by."""
+    from ray.tune.experiment import Trial
+    from ray.tune.progress_reporter import _get_trial_info
+
+    from uavlora_rllib.experiment.tuner import status_reporter
+
+    reporter = status_reporter(["lr"])
+    trial = Trial(
+        "UavLoraTrainable",
+        config={"trial": {"algorithm": "mappo", "n_eds": 10, "n_uavs": 2, "seed": 0, "overrides": {"lr": 3e-4}}},
+        stub=True,
+    )
+    trial.update_last_result({"env_steps": 4000, sweep.SWEEP_METRIC: 812.5, "training_iteration": 5})
+    trial.set_status(Trial.TERMINATED)
+    row = _get_trial_info(trial, list(reporter._parameter_columns), list(reporter._metric_columns))
+    assert row[3:] == ["mappo", 10, 2, 0, 3e-4, 4000, 812.5]
+    assert reporter._metric_columns[sweep.SWEEP_METRIC] == "greedy EE"
+
+
 def test_tune_resolves_the_spaces_inside_the_grid(tmp_path):
     """Tune's variant generator samples the spaces nested in the grid's trial dicts, per grid
     point and sample, and each resolved trial config builds its hyperparameters."""

@@ -100,8 +100,12 @@ def status_reporter(sampled: Sequence[str] = ()):
     trial dict, cut short; the CLIReporter shows chosen config and metric columns instead.
     Tune uses it only with RAY_AIR_NEW_OUTPUT=0 (read when `fit` starts: the driver sets
     it before `fit`, for restored experiments too, whose pickled run config holds this reporter).
+    Its EE column is the latest greedy evaluation (sweep.SWEEP_METRIC, in every result): what the
+    project judges by, and not blank, as the training EE is after an iteration that ended no episode.
     """
     from ray.tune import CLIReporter
+
+    from uavlora_rllib.experiment.sweep import SWEEP_METRIC
 
     return CLIReporter(
         parameter_columns={
@@ -111,7 +115,7 @@ def status_reporter(sampled: Sequence[str] = ()):
             "trial/seed": "seed",
             **{f"trial/overrides/{k}": k for k in sampled},
         },
-        metric_columns={"env_steps": "env steps", "episode_return_mean": "return", "ee_sys_mean": "EE"},
+        metric_columns={"env_steps": "env steps", SWEEP_METRIC: "greedy EE"},
         max_report_frequency=30,
         sort_by_metric=False,
     )
