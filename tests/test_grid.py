@@ -436,6 +436,7 @@ def test_missing_file(tmp_path, capsys):
         (["GRID", "--address", " "], "error: --address: empty; allowed: auto, HOST:PORT or ray://HOST:10001"),
         (["", "--dry-run"], "error: grid: empty path; give a grid YAML file"),
         (["GRID", "--list-hparams", "mappo"], "error: --list-hparams: lists and exits; drop the grid"),
+        (["GRID", "--dry-run", "--resume"], "error: --dry-run: previews the grid and starts nothing, so --resume"),
     ],
 )
 def test_flags_that_would_be_ignored_are_refused(tmp_path, capsys, argv, message):
