@@ -129,6 +129,43 @@ def test_precision_route_tag_keeps_every_route_a_trial_ran_in(sqlite_tracker, mo
     assert tag() == "bfloat16/autocast,bfloat16/onednn"
 
 
+def test_reconciling_a_finished_trial_logs_each_result_once(sqlite_tracker, tmp_path):
+    """A trial that finished while its driver died: the next driver logs the results its run lacks
+    from result.json, each evaluation point once (the rows logged before the death are not repeated)."""
+    import json
+
+    from uavlora_rllib.experiment.grid import load_grid, trials
+    from uavlora_rllib.experiment.mlflow_callback import MlflowTrialCallback
+    from uavlora_rllib.experiment.tuner import trial_config
+
+    t = sqlite_tracker
+    t.open_grid_run()
+    grid = load_grid(write_tiny_grid(tmp_path, "nest", mappo=TINY_MAPPO, episode_len=4, budget=60))
+    trial = SimpleNamespace(
+        trial_id="t0", config={"trial": trial_config(trials(grid)[0], grid)}, path=str(tmp_path), last_result={}
+    )
+    rows = [
+        {run_schema.ENV_STEPS: s, run_schema.TRIAL_WALL_METRIC: s / 10, "eval/ee_sys_mean": s + 0.5}
+        for s in (20, 40, 60)
+    ]
+    (tmp_path / "result.json").write_text("".join(json.dumps(r) + "\n" for r in rows))
+
+    def driver() -> MlflowTrialCallback:
+        cb = MlflowTrialCallback(t.tracking_uri, "nest", t.grid_file, commit="c0ffee")
+        cb._tracker = t
+        return cb
+
+    first = driver()
+    for row in rows[:2]:  # then the driver died: the trial's last result never reached MLflow
+        first._log_result(trial, row)
+    assert driver().reconcile_trial(trial)
+    run = t.run_for_trial("t0")
+    assert run.info.status == "FINISHED"
+    history = t.client.get_metric_history(run.info.run_id, "eval/ee_sys_mean")
+    assert sorted((m.step, m.value) for m in history) == [(20, 20.5), (40, 40.5), (60, 60.5)]
+    assert not driver().reconcile_trial(trial)  # FINISHED with its evaluations: nothing to do
+
+
 def test_creating_an_existing_experiment_finds_it(sqlite_tracker):
     """A create retried after a timeout the server did carry out (seen against a loaded server)."""
     assert sqlite_tracker._create_experiment("nest") == sqlite_tracker.experiment_id

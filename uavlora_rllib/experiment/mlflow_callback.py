@@ -9,7 +9,8 @@ FINISHED when its trial terminates, FAILED when it errors, and KILLED when the g
 Crash safety (a driver killed at any point, then the same command with ``--resume``): a
 trial's run is found again by its ``trial_id`` and adopted whatever its status; trials Tune
 restores as finished but whose run was not ended (the driver died in between, or MLflow was
-down) are completed from the trial's ``result.json`` (`MlflowTrialCallback.reconcile_trial`).
+down) are completed from the trial's ``result.json`` (`MlflowTrialCallback.reconcile_trial`: the rows after
+the run's last logged step, so no point is logged twice).
 Artifacts (`run_schema`): ``trial_config.yaml`` when the run is created or adopted; when the
 trial ends, ``curves.csv`` (from the run's own metric histories, so it holds exactly what the UI
 draws) and, for a FINISHED trial, its final checkpoint as ``checkpoint/`` when that is on a
@@ -279,9 +280,13 @@ class MlflowTrialCallback(Callback):
             and any(k.startswith(EVAL_PREFIX) for k in existing.data.metrics)
         ):
             return False
+        self.run_id(trial)  # found again: _last_step is then the last step the run holds
+        logged = self._last_step.get(trial.trial_id, -1)
         rows = read_trial_results(getattr(trial, "path", None)) or ([trial.last_result] if trial.last_result else [])
         for row in rows:
-            self._log_result(trial, row)
+            # a row's metrics are logged in one batch: rows up to the run's last step are there already
+            if int(number(row.get(ENV_STEPS)) or 0) > logged:
+                self._log_result(trial, row)
         self._end(trial, "FINISHED")
         return True
 
