@@ -39,7 +39,9 @@ With one experiment the outputs are logged as artifacts of the grid's parent run
 kind=grid), in its folder ``report/`` (replaced on every report), beside the grid's trials and
 baselines; an experiment written before parents existed gets a summary run instead (tag
 kind=summary; reused, its artifacts replaced). With several, nothing is logged (no single experiment owns the
-report; a note says so). Modules: report_files (writes the folder), report_md (report.md),
+report; a note says so). The files are written in a staging folder inside --out and moved into place
+once all are written, so a report stopped midway leaves the previous one whole. Modules: report_files
+(writes the folder), report_md (report.md),
 report_mlflow (the logging), data (cells, references, curves), tables, figures, paper, export,
 stats. Every expected failure (bad flag, unknown experiment, unreachable URI, --out a
 file or not writable) prints one line on stderr, exit code 2.
@@ -150,7 +152,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"report: error: cannot write the report: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("report: interrupted; the output folder may hold a partial report", file=sys.stderr)
+        print("report: interrupted; the output folder holds the previous report, if any, unchanged", file=sys.stderr)
         return 130
     figs = ", ".join(sorted(result["figures"])) or "none"
     print(

@@ -3,7 +3,10 @@ and report.md, from the runs of one or more MLflow experiments."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import shutil
+from collections.abc import Iterator
 from typing import Any
 
 from analysis import style
@@ -87,20 +90,43 @@ def progress(total: int, desc: str):
     return tqdm(total=total, desc=desc, unit="step", disable=None, leave=False)
 
 
-def prepare_out_dir(out_dir: str) -> None:
-    """Create the output folder (ReportError when it is a file or cannot be created) and remove
-    the previous report's files, so stale outputs cannot survive."""
+STAGING = ".report-partial"  # inside --out: the report being written (`staged_out_dir`)
+
+
+@contextlib.contextmanager
+def staged_out_dir(out_dir: str) -> Iterator[str]:
+    """Create the output folder (ReportError when it is a file or cannot be created) and yield an
+    empty staging folder inside it, where the report is written; on success `publish` moves it into
+    place, on an error or Ctrl+C it is removed, so a report stopped while writing (killed outright:
+    all but the hidden staging folder) leaves the previous one whole."""
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise ReportError(f"--out: {out_dir!r} is a file; expected a folder (existing or new)")
+    check_writable_folder(out_dir, "--out")
+    staging = os.path.join(out_dir, STAGING)
     try:
-        os.makedirs(out_dir, exist_ok=True)
-        for name in OUTPUT_FILES:
-            p = os.path.join(out_dir, name)
-            if os.path.isfile(p):
-                os.remove(p)
+        shutil.rmtree(staging, ignore_errors=True)  # a killed report's
+        os.makedirs(staging)
     except OSError as exc:
         raise ReportError(f"--out: cannot write to {out_dir!r}: {exc.strerror or exc}") from None
-    check_writable_folder(out_dir, "--out")
+    try:
+        yield staging
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    publish(staging, out_dir)
+
+
+def publish(staging: str, out_dir: str) -> None:
+    """Replace the previous report's files with the staged ones (renames within one filesystem) and
+    remove those the new report did not write, so stale outputs cannot survive; nothing else in
+    out_dir is touched."""
+    for name in OUTPUT_FILES:
+        new, old = os.path.join(staging, name), os.path.join(out_dir, name)
+        if os.path.isfile(new):
+            os.replace(new, old)
+        elif os.path.isfile(old):
+            os.remove(old)
+    shutil.rmtree(staging, ignore_errors=True)
 
 
 def build_report(sources: list[Source], out_dir: str, args) -> dict[str, Any]:
@@ -124,7 +150,20 @@ def _build_report(sources: list[Source], out_dir: str, args) -> dict[str, Any]:
         raise ReportError(f"--reference: {args.reference!r} has no training runs; learners: {learners}")
     if args.fig2_algorithm is not None and not args.no_fig2:
         fig2_record(org, args.fig2_algorithm)  # a bad name fails here, before anything is written
-    prepare_out_dir(out_dir)
+    with staged_out_dir(out_dir) as staging:
+        result = _write_report(sources, records, org, reference, staging, args)
+    result["summaries"] = summaries
+    result["report"] = os.path.join(out_dir, "report.md")
+    result["figures"] = {
+        k: [os.path.join(out_dir, os.path.basename(f)) for f in v] for k, v in result["figures"].items()
+    }
+    return result
+
+
+def _write_report(
+    sources: list[Source], records: list[RunRecord], org, reference, out_dir: str, args
+) -> dict[str, Any]:
+    """Every file of the report into out_dir (the staging folder); the report's contents."""
     history = mlflow_history(sources)
     notes: list[str] = []
     if reference is None:
@@ -167,15 +206,12 @@ def _build_report(sources: list[Source], out_dir: str, args) -> dict[str, Any]:
         )
     bar.update(1)
     bar.close()
-    report_path = os.path.join(out_dir, "report.md")
-    with open(report_path, "w") as fh:
+    with open(os.path.join(out_dir, "report.md"), "w") as fh:
         fh.write(report_markdown(sources, records, org, notes, figures, captions, tables, reference, args))
     return {
-        "report": report_path,
         "figures": figures,
         "warnings": org.warnings,
         "notes": notes,
-        "summaries": summaries,
         "rows": tables["rows"],
         "improvements": tables["improvements"],
         "paper": tables["paper"],

@@ -364,6 +364,38 @@ def test_summary_run_logged_and_replaced(store):
     assert "fig2.png" not in names and "report.md" in names  # previous artifacts replaced
 
 
+def test_a_report_stopped_while_writing_leaves_the_previous_one_whole(store, monkeypatch, capsys):
+    from analysis import report_files
+
+    out = store["tmp"] / "report_whole"
+    argv = ["--experiment", EXP, "--tracking-uri", store["uri"], "--out", str(out), "--no-log"]
+    assert report.main(argv) == 0
+    (out / "notes.txt").write_text("mine")  # not the report's: never touched
+
+    def files() -> dict[str, bytes]:
+        return {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+
+    before = files()
+    assert "fig2.png" in before and "report.md" in before
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as m:  # Ctrl+C after the tables and figures were written
+        m.setattr(report_files, "write_aggregates", interrupted)
+        assert report.main([*argv, "--no-fig2"]) == 130
+    assert "previous report, if any, unchanged" in capsys.readouterr().err
+    assert files() == before and sorted(p.name for p in out.iterdir() if p.is_dir()) == []
+    assert report.main([*argv, "--no-fig2"]) == 0  # a complete report replaces it, stale figures removed
+    after = files()
+    assert (
+        "fig2.png" not in after
+        and after["notes.txt"] == b"mine"
+        and set(after) == set(before) - {"fig2.png", "fig2.svg"}
+    )
+    assert not (out / report_files.STAGING).exists()
+
+
 def test_bad_experiment_and_uri(store, tmp_path, capsys):
     assert report.main(["--experiment", "nope", "--tracking-uri", store["uri"], "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip()
