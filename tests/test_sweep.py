@@ -419,6 +419,7 @@ def test_shipped_sweep_examples(name, capsys):
     # is the benchmark grid's, so its best configuration is comparable with the benchmark's rows
     bench = load_grid(os.path.join(REPO, "tune_configs", "benchmark_per_device_10x2.yaml"))
     assert grid.scenario == bench.scenario and (grid.n_eds, grid.n_uavs) == (bench.n_eds, bench.n_uavs)
+    assert {"best_fixed", "greedy"} <= set(grid.baselines)  # the reference and the open-loop constant
     (algo, fields), searched = next(iter(grid.algorithms.items())), set(trials(grid)[0].spaces)
     fixed = {k: v for k, v in fields.items() if k not in searched}
     assert fixed == {k: v for k, v in bench.algorithms[algo].items() if k not in searched}
