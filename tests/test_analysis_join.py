@@ -20,6 +20,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import finished_record
 from scipy import stats as st
 
 mlflow = pytest.importorskip("mlflow")
@@ -349,24 +350,14 @@ def test_error_paths_one_line_exit_2(stores, tmp_path, capsys):
 
 
 def test_cells_joining_different_budgets_warn():
+    import dataclasses
+
     from analysis.data import organise
-    from analysis.runs import RunRecord
 
     def rec(i, budget, exp):
-        return RunRecord(
-            run_id=f"r{i}",
-            run_name="",
-            status="FINISHED",
-            start_time=i,
-            kind="train",
-            algorithm="mappo",
-            seed=str(i),
-            n_eds=10,
-            n_uavs=2,
-            params={"stop.env_steps": budget, "scenario.episode_len": "150"},
-            metrics={"eval/ee_sys_mean": 1.0},
-            experiment=exp,
-        )
+        params = {"stop.env_steps": budget, "scenario.episode_len": "150"}
+        run = finished_record(i, "mappo", seed=str(i), params=params, metrics={"eval/ee_sys_mean": 1.0})
+        return dataclasses.replace(run, experiment=exp)
 
     org = organise([rec(0, "1000", "a"), rec(1, "1000", "a"), rec(2, "2000", "b")])
     # one run per cell, but the learner and the reference evaluated on different episodes: also named
