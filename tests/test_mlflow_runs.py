@@ -166,6 +166,38 @@ def test_reconciling_a_finished_trial_logs_each_result_once(sqlite_tracker, tmp_
     assert not driver().reconcile_trial(trial)  # FINISHED with its evaluations: nothing to do
 
 
+def test_final_checkpoint_uploaded_once_and_again_when_written_again(sqlite_tracker, tmp_path, monkeypatch):
+    """A trial that redid its last iterations after a resume writes its final checkpoint again at the same
+    path: the run's checkpoint/ artifact is then the new one (it is paired with the new final evaluation);
+    the same checkpoint is not uploaded twice."""
+    from uavlora_rllib.experiment.mlflow_callback import MlflowTrialCallback
+
+    t = sqlite_tracker
+    t.open_grid_run()
+    run_id = t.create_run("mappo-V6-U2-s0", t.base_tags("train", "mappo", 0, 6, 2, 100), BASE_PARAMS)
+    ckpt = tmp_path / "checkpoint_000002"
+    ckpt.mkdir()
+    (ckpt / "state.txt").write_text("first pass")
+    trial = SimpleNamespace(trial_id="t0", checkpoint=SimpleNamespace(path=str(ckpt)))
+    cb = MlflowTrialCallback(t.tracking_uri, "nest", t.grid_file, commit="c0ffee")
+    cb._tracker = t
+    uploads = []
+    real = t.log_artifacts
+    monkeypatch.setattr(t, "log_artifacts", lambda *a, **k: uploads.append(a) or real(*a, **k))
+
+    def artifact() -> str:
+        return open(t.client.download_artifacts(run_id, "checkpoint/state.txt", str(tmp_path / "dl"))).read()
+
+    cb._log_final_checkpoint(trial, run_id)
+    cb._log_final_checkpoint(trial, run_id)  # the same checkpoint: once
+    assert len(uploads) == 1 and artifact() == "first pass"
+    (ckpt / "state.txt").write_text("second pass")
+    os.utime(ckpt / "state.txt", ns=(time.time_ns() + 10**9,) * 2)  # written later, whatever the clock's grain
+    cb._log_final_checkpoint(trial, run_id)
+    assert len(uploads) == 2 and artifact() == "second pass"
+    assert t.client.get_run(run_id).data.tags["checkpoint_artifact"] == "checkpoint/"
+
+
 def test_creating_an_existing_experiment_finds_it(sqlite_tracker):
     """A create retried after a timeout the server did carry out (seen against a loaded server)."""
     assert sqlite_tracker._create_experiment("nest") == sqlite_tracker.experiment_id

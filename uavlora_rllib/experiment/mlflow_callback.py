@@ -81,16 +81,18 @@ def checkpoint_uri(checkpoint) -> str:
     return f"{scheme}://{path.lstrip('/')}"
 
 
-def directory_mb(path: str) -> float:
-    """Size of the files under `path` in MB (10^6 bytes)."""
-    total = 0
+def directory_stat(path: str) -> tuple[float, int]:
+    """Size of the files under `path` in MB (10^6 bytes), and the newest one's modification time [ns]:
+    a checkpoint written again at the same path (a trial that redid iterations after a resume) is newer."""
+    total, newest = 0, 0
     for root, _, files in os.walk(path):
         for name in files:
             try:
-                total += os.path.getsize(os.path.join(root, name))
+                st = os.stat(os.path.join(root, name))
             except OSError:
-                pass
-    return total / 1e6
+                continue
+            total, newest = total + st.st_size, max(newest, st.st_mtime_ns)
+    return total / 1e6, newest
 
 
 class MlflowTrialCallback(Callback):
@@ -217,9 +219,9 @@ class MlflowTrialCallback(Callback):
 
     def _log_final_checkpoint(self, trial, run_id: str) -> None:
         """The final checkpoint as the run's ``checkpoint/`` artifact when it is on a local or
-        shared filesystem and at most `checkpoint_artifact_max_mb` MB (once: tag
-        ``checkpoint_artifact_source``); else tag ``checkpoint_artifact`` says why not, and the
-        ``checkpoint`` tag is the pointer. Cloud checkpoints are not copied through the driver."""
+        shared filesystem and at most `checkpoint_artifact_max_mb` MB (once per checkpoint: tags
+        ``checkpoint_artifact_source`` and ``checkpoint_artifact_written_ns``, its path and its newest
+        file's time); else tag ``checkpoint_artifact`` says why not, and the ``checkpoint`` tag is the pointer. Cloud checkpoints are not copied through the driver."""
         ckpt = getattr(trial, "checkpoint", None)
         if not getattr(ckpt, "path", None):
             return
@@ -232,17 +234,20 @@ class MlflowTrialCallback(Callback):
         elif limit <= 0:
             reason = "not uploaded: mlflow.checkpoint_artifact_max_mb is 0 (tag checkpoint is its path)"
         else:
-            size = directory_mb(where)
+            size, written = directory_stat(where)
             if size > limit:
                 reason = (
                     f"not uploaded: {size:.1f} MB > mlflow.checkpoint_artifact_max_mb {limit:g} "
                     "(tag checkpoint is its path)"
                 )
             else:
-                run = self.tracker.get_run(run_id)
-                if run.data.tags.get("checkpoint_artifact_source") != where:
+                tags = self.tracker.get_run(run_id).data.tags
+                # once per checkpoint: again only for another one, or the same path written again
+                uploaded = (tags.get("checkpoint_artifact_source"), tags.get("checkpoint_artifact_written_ns"))
+                if uploaded != (where, str(written)):
                     self.tracker.log_artifacts(run_id, where, CHECKPOINT_ARTIFACT)
                     self.tracker.set_tag(run_id, "checkpoint_artifact_source", where)
+                    self.tracker.set_tag(run_id, "checkpoint_artifact_written_ns", str(written))
                 reason = f"{CHECKPOINT_ARTIFACT}/"
         self.tracker.set_tag(run_id, "checkpoint_artifact", reason)
 
