@@ -8,7 +8,8 @@
   through a longest run far above the median.
 - A baseline: its evaluation's own time on its one CPU (metric `cost/eval_wall_s`); runs logged before
   that metric existed have none and are counted as unmeasured.
-Unfinished runs are left out. Rows: one per scenario and algorithm or baseline.
+Unfinished runs are left out. Rows: one per scenario and cell (an algorithm, or one sampled configuration of
+it: analysis.data.cell_name) or baseline.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import math
 import statistics
 from typing import Any
 
+from analysis.data import cell_name
 from analysis.runs import RunRecord, section_dict
 from analysis.tables import fmt, md_table
 from uavlora_rllib.algorithms.common.registry import Resources
@@ -55,11 +57,12 @@ def timed_by_span(record: RunRecord) -> bool:
 
 
 def cost_table(records: list[RunRecord]) -> list[dict[str, Any]]:
-    """One row per (V, U, algorithm or baseline) over the FINISHED runs."""
+    """One row per (V, U, cell or baseline) over the FINISHED runs."""
     groups: dict[tuple[int, int, str, str], list[RunRecord]] = {}
     for r in records:
         if r.status == "FINISHED" and r.scenario_key is not None and r.algorithm and r.kind in ("train", "baseline"):
-            groups.setdefault((*r.scenario_key, r.algorithm, r.kind), []).append(r)
+            # a trial's cell, as in the other tables: a sweep's configurations are rows of their own
+            groups.setdefault((*r.scenario_key, cell_name(r), r.kind), []).append(r)
     rows = []
     for (v, u, name, kind), runs in sorted(groups.items(), key=lambda kv: (kv[0][:2], kv[0][3] != "train", kv[0][2])):
         measured = [(s, run_cpus(r), timed_by_span(r)) for r in runs if math.isfinite(s := run_seconds(r))]
@@ -99,12 +102,14 @@ def cost_md(rows: list[dict[str, Any]]) -> str:
         for r in rows
     ]  # fmt: skip
     t = cost_totals(rows)
+    unmeasured = sum(r["unmeasured"] for r in rows)
     header = ["V", "U", "algorithm / baseline", "kind", "runs", "CPUs per run", "minutes per run: median (range)",
               "CPU-hours", "unmeasured runs", "runs timed by their span"]  # fmt: skip
     return (
         md_table(header, body)
-        + f"\n\nIn all: {t['total']:.2f} CPU-hours = trials {t['trials']:.2f} + baselines {t['baselines']:.3f}. "
-        "A trial is its own working time (metric cost/trial_wall_s, a pause before --resume left out; runs "
+        + f"\n\nIn all: {t['total']:.2f} CPU-hours = trials {t['trials']:.2f} + baselines {t['baselines']:.3f}"
+        + (f" ({unmeasured} unmeasured runs not counted). " if unmeasured else ". ")
+        + "A trial is its own working time (metric cost/trial_wall_s, a pause before --resume left out; runs "
         "logged before that metric are timed by their span, their MLflow run's start to end, a pause included) "
         "x the CPUs it reserves; "
         "a baseline is its evaluation's time on one CPU."

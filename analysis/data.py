@@ -327,8 +327,9 @@ def curves(
     history, org: Organised, metric: str, smooth: float, points: int, min_points: int = 1, matched: bool = False
 ):
     """{scenario: {algorithm: Curve}} of `metric`'s history (x = env steps) over the train runs,
-    and notes. `history(record, key)` -> (steps, values). FINISHED runs only, unless an
-    algorithm has none (then all its runs). Runs with fewer than `min_points` logged points are
+    and notes. `history(record, key)` -> (steps, values). One run per seed: the tables' where they have
+    the seed (the newest FINISHED one with execution metrics), else the newest; FINISHED runs only, unless
+    an algorithm has none (then all its runs). Runs with fewer than `min_points` logged points are
     left out (the execution curve needs the periodic evaluation: one point is the final one).
     With `matched`, a scenario with a reference keeps only the seeds the reference also ran, so a
     curve divided by the reference over its seeds compares the same episodes (Organised.normalised)."""
@@ -340,7 +341,11 @@ def curves(
             groups[(r.n_eds, r.n_uavs, cell_name(r))].append(r)
     for (v, u, alg), runs in sorted(groups.items()):
         finished = [r for r in runs if r.status == "FINISHED"]
-        use = finished or runs
+        # one run per seed: the newest (runs are in start order), the tables' run where the cell has the seed
+        by_seed = {str(r.seed) if r.seed is not None else r.run_id: r for r in finished or runs}
+        cell = org.cells.get((v, u, alg))
+        by_seed.update({str(r.seed) if r.seed is not None else r.run_id: r for r in (cell.runs if cell else [])})
+        use = list(by_seed.values())
         if not finished:
             notes.append(f"V={v} U={u} {alg}: no FINISHED run; its {metric} curve uses unfinished runs")
         ref = org.reference((v, u)) if matched else None

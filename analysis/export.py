@@ -16,7 +16,8 @@ What marl-eval's loader relies on, and what this writer guarantees: "absolute_me
 LAST key of every run (marl-eval takes the last key as the absolute metrics and the others as
 the time steps); "step_count" is an int, non-decreasing; every metric is a list of numbers; all
 steps and absolute_metrics carry the same metric names; every run of the file has the same
-number of steps (runs are cut to the shortest, a note says when) and every (task, algorithm)
+number of steps, the same places of the evaluation schedule (`marl_eval_data`; a note says when
+some run's points were left out) and every (task, algorithm)
 the same number of runs (a note says when they differ; marl-eval's DiagnoseData keeps the
 smallest count).
 
@@ -42,7 +43,11 @@ from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
+
 from analysis.data import Organised
+from analysis.runs import RunRecord
+from uavlora_rllib.experiment.run_schema import number
 
 ENVIRONMENT = "uavlora"
 MARL_EVAL_FILE = "results_marl_eval.json"  # its name in a report's folder
@@ -60,17 +65,42 @@ def task_name(n_eds: int, n_uavs: int) -> str:
     return f"v{n_eds}_u{n_uavs}"
 
 
+def schedule_places(steps: list[float], interval: float) -> dict[int, float]:
+    """A run's evaluations by their place k in the evaluation schedule -> env step. An evaluation runs
+    at the first iteration at or past each multiple k I of the interval (experiment/periodic_eval.py),
+    so it is the k-th when floor(step / I) = k; a second one in the same interval (a restored trial
+    evaluates at once) is left out: the first is the scheduled one."""
+    out: dict[int, float] = {}
+    for x in sorted(steps):
+        out.setdefault(int(x // interval), x)
+    return out
+
+
+def schedule_interval(gaps: list[float], budget: float | None) -> float | None:
+    """The evaluation interval [env steps], which runs do not log: the budget over the number of
+    intervals the median gap between evaluations gives (a gap is an interval plus or minus an
+    iteration), or that gap without a budget; None without gaps."""
+    if not gaps:
+        return None
+    gap = float(np.median(gaps))
+    return budget / max(1, round(budget / gap)) if budget else gap
+
+
 def marl_eval_data(org: Organised, history: Callable) -> tuple[dict[str, Any], list[str]]:
     """The marl-eval dict of the organised runs, and notes. `history(record, key)` ->
-    (steps, values) as in analysis.data."""
+    (steps, values) as in analysis.data. marl-eval compares runs step by step by position, so every
+    run keeps the evaluations at the places of the schedule that every run has (`schedule_places`):
+    step_i is the same point of training in every run."""
     notes: list[str] = []
-    runs: dict[tuple[str, str, str], dict[str, Any]] = {}
+    # (task, algorithm, seed) -> the run, its metrics' series, their common steps, its absolute metrics
+    found: dict[tuple[str, str, str], tuple[RunRecord, dict[str, dict], list[float], dict[str, list[float]]]] = {}
+    gaps: dict[str, list[float]] = {}
     for cell in sorted(org.cells.values(), key=lambda c: c.key):
         if cell.kind != "train":
             continue
+        task = task_name(cell.n_eds, cell.n_uavs)
         for r in cell.runs:
             series = {name: dict(zip(*history(r, key))) for name, key in METRICS.items()}
-            steps = sorted(set.intersection(*(set(s) for s in series.values())))
             absolute = {
                 name: [float(r.metrics[key])]
                 for name, key in METRICS.items()
@@ -79,25 +109,31 @@ def marl_eval_data(org: Organised, history: Callable) -> tuple[dict[str, Any], l
             if len(absolute) < len(METRICS):
                 notes.append(f"marl-eval export: {r.label} lacks some final metrics; left out")
                 continue
-            run = {
-                f"step_{i}": {"step_count": int(s), **{n: [float(series[n][s])] for n in METRICS}}
-                for i, s in enumerate(steps)
-            }
-            runs[(task_name(cell.n_eds, cell.n_uavs), cell.algorithm, f"seed_{r.seed}")] = run | {ABSOLUTE: absolute}
-    if not runs:
+            steps = sorted(set.intersection(*(set(s) for s in series.values())))
+            found[(task, cell.algorithm, f"seed_{r.seed}")] = (r, series, steps, absolute)
+            gaps.setdefault(task, []).extend(np.diff(steps).tolist())
+    if not found:
         return {ENVIRONMENT: {}}, notes + ["marl-eval export: no learner run with execution metrics; the file is empty"]
-    n_steps = Counter(len(run) - 1 for run in runs.values())
-    shortest = min(n_steps)
-    if len(n_steps) > 1:
+    places: dict[tuple[str, str, str], dict[int, float]] = {}
+    for key, (r, _, steps, _) in found.items():
+        interval = schedule_interval(gaps[key[0]], number(r.params.get("stop.env_steps")))
+        places[key] = schedule_places(steps, interval) if interval else dict(enumerate(steps))
+    common = sorted(set.intersection(*(set(p) for p in places.values())))
+    n_points = Counter(len(p) for p in places.values())
+    if len(n_points) > 1 or any(len(p) > len(common) for p in places.values()):
         notes.append(
-            f"marl-eval export: runs have {', '.join(f'{k} ({v} runs)' for k, v in sorted(n_steps.items()))} "
-            f"evaluation steps; all are cut to the first {shortest} (marl-eval needs equal counts)"
+            f"marl-eval export: runs have {', '.join(f'{k} ({v} runs)' for k, v in sorted(n_points.items()))} "
+            f"evaluation points on the evaluation schedule; each keeps the {len(common)} places every run has "
+            "(marl-eval needs equal counts and compares runs step by step)"
         )
     data: dict[str, Any] = {ENVIRONMENT: {}}
-    for (task, alg, seed), run in runs.items():
-        kept = {f"step_{i}": run[f"step_{i}"] for i in range(shortest)}
-        kept[ABSOLUTE] = run[ABSOLUTE]  # last key, as marl-eval expects
-        data[ENVIRONMENT].setdefault(task, {}).setdefault(alg, {})[seed] = kept
+    for (task, alg, seed), (_, series, _, absolute) in found.items():
+        run: dict[str, Any] = {}
+        for i, k in enumerate(common):
+            s = places[(task, alg, seed)][k]
+            run[f"step_{i}"] = {"step_count": int(s), **{n: [float(series[n][s])] for n in METRICS}}
+        run[ABSOLUTE] = absolute  # last key, as marl-eval expects
+        data[ENVIRONMENT].setdefault(task, {}).setdefault(alg, {})[seed] = run
     counts = Counter(len(seeds) for algs in data[ENVIRONMENT].values() for seeds in algs.values())
     if len(counts) > 1:
         notes.append(

@@ -69,9 +69,9 @@ STATS_TEXT = """\
   evaluation.interval_env_steps env steps on fixed episodes, the last point being the final
   evaluation), unsmoothed; (b): each run's `episode_return_mean` history smoothed with a debiased
   EMA (weight {smooth}; 0 = none). Both are interpolated linearly onto {points} evenly spaced
-  env-step values spanning the range all seeds cover and averaged over seeds (FINISHED runs);
-  the band is a 95% percentile bootstrap of that mean over seeds ({boot} resamples), drawn only
-  for n >= 2.
+  env-step values spanning the range all seeds cover and averaged over seeds (per seed the run the
+  tables use); the band is a 95% percentile bootstrap of that mean over seeds ({boot} resamples), drawn only
+  for n >= 2: with three seeds it is close to the range from the lowest seed to the highest.
 - Fig. 3b/3c error bars: the 95% t CI over seeds above (none for a single seed). Titles state n.
 - aggregates over seeds and scenarios: rliable's definitions (Agarwal et al. 2021), computed
   with scipy because rliable itself does not install on the pinned stack (docs/model.md#aggregate-statistics).

@@ -49,8 +49,18 @@ def test_trials_cost_their_run_time_times_reserved_cpus_and_baselines_their_eval
     three = cost_table([_trial(0, 20.0, runners=2)])[0]
     assert (three["cpus_per_run"], three["cpu_hours"]) == (3.0, pytest.approx(1.0))
     md = cost_md(list(rows.values()))
-    assert "In all: 0.60 CPU-hours = trials 0.50 + baselines 0.100" in md and "| greedy | baseline | 2 |" in md
+    assert "In all: 0.60 CPU-hours = trials 0.50 + baselines 0.100 (1 unmeasured runs not counted)" in md
+    assert "| greedy | baseline | 2 |" in md
     assert cost_md([]).startswith("No finished runs")
+
+
+def test_each_sampled_configuration_is_a_row_of_its_own():
+    """A sweep's configurations cost differently (e.g. more updates per episode): one row each, named as the
+    other tables name their cells."""
+    runs = [_trial(0, 10.0), _trial(1, 40.0)]
+    runs[0].params["hparam.lr"], runs[1].params["hparam.lr"] = "0.001", "0.01"
+    rows = {r["name"]: r for r in cost_table(runs)}
+    assert set(rows) == {"mappo[lr=0.001]", "mappo[lr=0.01]"} and rows["mappo[lr=0.01]"]["minutes_max"] == 40.0
 
 
 def test_a_trial_with_its_working_time_is_costed_by_it_and_older_runs_by_their_span():

@@ -227,16 +227,34 @@ def test_marl_eval_export(stores):
                     assert all(isinstance(x, float) for m in metric_names for x in run[k][m])
                 assert counts == sorted(counts)
                 assert set(run["absolute_metrics"]) == metric_names
-    # vdn at V=20 has two evaluation points: every run is cut to 2 steps (+ absolute_metrics)
+    # vdn at V=20 has no evaluation at 5000: every run keeps the places of the schedule all have, 0 and the
+    # final 10000, so that step_1 is the same point of training in every run (+ absolute_metrics)
     assert n_keys == {3}
     run = env["v10_u2"]["mappo"]["seed_1"]
     assert run["step_0"]["step_count"] == 0 and run["step_0"]["ee_sys_mean"] == [55.0]
-    assert run["step_1"]["step_count"] == 5000 and run["step_1"]["ee_sys_mean"] == [82.5]
+    assert run["step_1"]["step_count"] == 10000 and run["step_1"]["ee_sys_mean"] == [110.0]
+    assert env["v20_u2"]["vdn"]["seed_0"]["step_1"]["step_count"] == 10000
     assert run["absolute_metrics"]["ee_sys_mean"] == [110.0]
     assert run["absolute_metrics"]["return"] == [pytest.approx(11.0)]
     text = (stores["out"] / "report.md").read_text()
-    assert "all are cut to the first 2" in text
+    assert "each keeps the 2 places every run has" in text
     assert "different numbers of runs" in text  # 3 seeds at V=10, 1 at V=20
+
+
+def test_marl_eval_places_on_the_evaluation_schedule():
+    """Evaluations every 20k over a 200k budget land at the first iteration past each multiple; a restored
+    trial's extra evaluation (26,400) is not a place of its own, and a run stopped at 170k has places 1-8."""
+    from analysis.export import schedule_interval, schedule_places
+
+    full = [20400.0, 26400.0, 40800.0, 60000.0, 80400.0, 100800.0, 120000.0, 140400.0, 160800.0, 180000.0, 200400.0]
+    early = [20400.0, 40800.0, 60000.0, 80400.0, 100800.0, 120000.0, 140400.0, 160800.0, 170400.0]
+    gaps = np.diff(full).tolist() + np.diff(early).tolist()
+    interval = schedule_interval(gaps, 200000.0)
+    assert interval == 20000.0
+    places = schedule_places(full, interval)
+    assert sorted(places) == list(range(1, 11)) and places[1] == 20400.0 and 26400.0 not in places.values()
+    assert sorted(schedule_places(early, interval)) == list(range(1, 9))
+    assert schedule_interval([], 200000.0) is None and schedule_interval([5000.0], None) == 5000.0
 
 
 def test_fig2_best_learner_or_flag(stores):

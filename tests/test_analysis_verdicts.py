@@ -155,3 +155,17 @@ def test_the_report_reads_each_metric_history_once():
     assert history(record, EE_KEY) == history(record, EE_KEY) == ([0.0, 10.0], [0.0, 10.0])
     history(record, "episode_return_mean")
     assert calls == [("r2", EE_KEY), ("r2", "episode_return_mean")]
+
+
+def test_curves_take_the_tables_run_of_each_seed():
+    """Two finished runs of one seed: the tables use the newest, and so does the execution curve (a
+    curve of 3 runs over 2 seeds would weigh one seed twice)."""
+    from analysis.data import curves
+
+    runs = [_run(30, "mappo", 10.0, seed="0"), _run(31, "mappo", 20.0, seed="1"), _run(32, "mappo", 40.0, seed="0")]
+    ends = {"r30": 10.0, "r31": 20.0, "r32": 40.0}
+    org = organise(runs)
+    assert org.cells[(10, 2, "mappo")].seeds == ["0", "1"]
+    out, _ = curves(lambda r, k: ([0.0, 200_000.0], [0.0, ends[r.run_id]]), org, EE_KEY, smooth=0.0, points=3)
+    curve = out[(10, 2)]["mappo"]
+    assert sorted(curve.seeds) == ["0", "1"] and curve.mean[-1] == pytest.approx(30.0)  # (40 + 20) / 2
