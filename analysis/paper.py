@@ -99,7 +99,8 @@ def paper_rows(org: Organised) -> list[dict[str, Any]]:
                     point, lo, hi = ratio, rlo, rhi
             verdict = _verdict_common(a, b)
             other_scenario = _not_the_papers(org, v, (OURS, other), paper)
-            if verdict is None and other_scenario:  # the paper's numbers are of its own scenario only
+            # the paper's numbers are of its own scenario only: said before any count of seeds
+            if verdict != "not run" and other_scenario:
                 verdict = f"not comparable: not the paper's scenario ({', '.join(other_scenario)})"
             if verdict is None:
                 if not (math.isfinite(lo) and math.isfinite(hi)):

@@ -42,6 +42,15 @@ def test_another_scenario_is_not_comparable():
     assert rows[(10, "vdn")]["ours_point"] == pytest.approx(100 * (137.0 / 101.0 - 1))  # still shown
 
 
+def test_another_scenario_is_named_before_the_seed_count():
+    """One seed of a non-paper scenario: "too few seeds" would hide that the numbers are not the paper's."""
+    params = {**paper_scenario_params(10), "scenario.episode_len": "50"}
+    runs = [_run(k, alg, 0, ee, params) for k, (alg, ee) in enumerate((("mappo", 136.0), ("vdn", 100.0)))]
+    rows = {(r["n_eds"], r["other"]): r for r in paper_rows(organise(runs))}
+    assert rows[(10, "vdn")]["verdict"] == "not comparable: not the paper's scenario (scenario.episode_len 50)"
+    assert rows[(10, "qmix")]["verdict"] == "not run"
+
+
 def test_params_an_older_run_did_not_log_are_not_counted():
     rows = _rows({"scenario.n_eds": "10", "scenario.n_uavs": "2"})
     assert rows[(10, "vdn")]["verdict"] == "inside our CI"

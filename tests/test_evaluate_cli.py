@@ -67,6 +67,15 @@ def test_table_in_process(capsys, tmp_path):
     )
     text = capsys.readouterr().out
     assert "V=4 U=1 T=3" in text
+    assert "off the paper's defaults" not in text  # only T changed, and the header shows it
+    yaml_file.write_text("episode_len: 3\nrate_model: lora_phy\nreward: {w1: 0.1}\n")
+    assert (
+        main(
+            ["--policy", "fixed", "--n-eds", "4", "--n-uavs", "1", "--episodes", "1", "--scenario-yaml", str(yaml_file)]
+        )
+        == 0
+    )
+    assert "scenario off the paper's defaults: rate_model=lora_phy, reward.w1=0.1\n" in capsys.readouterr().out
     for label in (
         "EE_sys per slot",
         "success rate Xi",

@@ -435,7 +435,6 @@ def test_missing_file(tmp_path, capsys):
     [
         (["GRID", "--address", " "], "error: --address: empty; allowed: auto, HOST:PORT or ray://HOST:10001"),
         (["", "--dry-run"], "error: grid: empty path; give a grid YAML file"),
-        (["GRID", "--list-hparams", "mappo"], "error: --list-hparams: lists and exits; drop the grid"),
         (["GRID", "--dry-run", "--resume"], "error: --dry-run: previews the grid and starts nothing, so --resume"),
     ],
 )
@@ -482,6 +481,7 @@ def test_dry_run_prints_one_row_per_trial(tmp_path, capsys):
     base_rows = [ln for ln in out.splitlines() if re.match(r"^\s*\d+\s+(random|greedy)\s", ln)]
     assert len(base_rows) == 2 * 3 * 2 * 2
     assert "24 trials" in out and "24 baseline evaluations" in out
+    assert "scenario off the paper's defaults: episode_len=10\n" in out  # what makes it not the paper's scenario
     assert not ray.is_initialized()
     assert not (tmp_path / "ray_results").exists() and not (tmp_path / "mlflow.db").exists()
 

@@ -66,5 +66,7 @@ def test_a_changed_grid_is_refused_naming_what_changed(tmp_path):
     assert msg.startswith("--resume: this grid is not the one experiment 'g' started with")
     assert "trials 1 -> 2" in msg and "stop.env_steps 64 -> 128" in msg and "new `experiment` name" in msg
     _, lr = _identity(tmp_path, mappo={**MAPPO, "lr": 1e-3})
-    with pytest.raises(ConfigError, match=r"started with \(the trials' settings\)"):
+    with pytest.raises(
+        ConfigError, match=r"started with \(the trials' settings: a hyperparameter \(a plugin's default too\)"
+    ):
         _check_same_grid(_tags(started), _tags(lr), grid)

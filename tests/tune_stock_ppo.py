@@ -119,5 +119,4 @@ def _entry(name: str) -> registry.AlgorithmEntry:
 
 
 for _name in NAMES:
-    registry.MODULES.setdefault(_name, __name__)
     registry.register(_entry(_name))

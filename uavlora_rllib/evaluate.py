@@ -34,7 +34,7 @@ from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.experiment.evaluation import BOUND_METRIC
 from uavlora_rllib.experiment.grid import parse_yaml, read_yaml_text
 from uavlora_rllib.sim.actions import ActionError
-from uavlora_rllib.sim.scenario import ScenarioConfig
+from uavlora_rllib.sim.scenario import ScenarioConfig, off_defaults
 
 if TYPE_CHECKING:
     from uavlora_rllib.experiment.open_loop import OpenLoopCheck
@@ -247,7 +247,10 @@ def format_table(name: str, cfg: ScenarioConfig, summary: Mapping[str, Any]) -> 
         f"policy {name}  |  V={cfg.n_eds} U={cfg.n_uavs} T={cfg.episode_len} mode={cfg.action_mode}  |  "
         f"{summary['episodes']} episodes, mean +- 95% CI"
     )
-    lines = [head, "-" * len(head)]
+    lines = [head]
+    if changed := off_defaults(cfg, shown=("episode_len", "action_mode")):
+        lines.append(f"scenario off the paper's defaults: {', '.join(changed)}")
+    lines.append("-" * len(head))
     for key, label, unit in REPORTED + ((BOUND_ROW,) if BOUND_METRIC in summary else ()):
         lines.append(f"{label:<24}{summary[key]:>16.4f}  +- {summary['ci95'][key]:<12.4f}{unit}")
     return "\n".join(lines)
@@ -364,7 +367,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             out["open_loop"] = open_loop_json(check)
         print(json.dumps(out))
     else:
-        print(format_table(getattr(policy, "name", args.policy), cfg, summary))
+        name = getattr(policy, "name", args.policy)
+        if args.policy not in BASELINES:  # a checkpoint plays greedily or sampled: say which
+            name = f"{name} ({args.execution} execution)"
+        print(format_table(name, cfg, summary))
         if check is not None:
             print(open_loop_line(check))
     return 0

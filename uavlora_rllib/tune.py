@@ -57,7 +57,7 @@ from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.experiment import cluster
-from uavlora_rllib.experiment.driver import EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, run_grid
+from uavlora_rllib.experiment.driver import EXIT_BROKEN_PIPE, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, run_grid
 from uavlora_rllib.experiment.dry_run import trial_table
 from uavlora_rllib.experiment.grid import check_local_resources, check_storage, load_grid, trials
 
@@ -79,7 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="ALGO",
         default=None,
         help="print ALGO's hyperparameters (grid YAML algorithms.ALGO: ...) with types, defaults, units and "
-        f"descriptions, and exit; ALGO one of {sorted(registry.MODULES)}",
+        f"descriptions, and exit; ALGO one of {sorted(registry.MODULES)}, or a plugin's (give the grid that lists it)",
     )
     p.add_argument("--resume", action="store_true", help="continue the grid's Tune experiment")
     p.add_argument(
@@ -158,8 +158,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise UsageError("grid: empty path; give a grid YAML file")
         args.address = cluster.job_address(args.address)
         if args.list_hparams is not None:
-            if args.grid is not None:  # one job per call: listing ignores a grid, so say so rather than drop it
-                raise UsageError(f"--list-hparams: lists and exits; drop the grid {args.grid!r} or --list-hparams")
+            if args.grid is not None:  # its plugins' algorithms become listable; the rest of it is not read
+                from uavlora_rllib.experiment.grid import import_grid_plugins
+
+                import_grid_plugins(args.grid)
             from uavlora_rllib.algorithms.common.hparams import describe_hparams
 
             entry = registry.spec(args.list_hparams, path="--list-hparams")
@@ -195,6 +197,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return run_grid(grid, args.grid, args)
     except (UsageError, ConfigError) as exc:
         return fail(exc, code=EXIT_USAGE)
+    except BrokenPipeError:  # stdout closed early (`--dry-run | head`): nothing left to say, and no cluster to blame
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # Python's own flush at exit must not fail
+        return EXIT_BROKEN_PIPE
     except ConnectionError as exc:  # ray.init(address=...) found no cluster there
         return fail(f"--address: cannot connect to a Ray cluster at {args.address!r}: {exc}", code=EXIT_USAGE)
 

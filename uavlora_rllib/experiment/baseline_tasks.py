@@ -38,6 +38,13 @@ def evaluate_baseline(spec: BaselineSpec, episodes: int) -> dict[str, Any]:
     return summary
 
 
+def failure_text(exc: BaseException, limit: int = 300) -> str:
+    """What a failed evaluation raised, on one line: the task's own exception (a RayTaskError's cause) as
+    `Type: message`, not the remote traceback that str() of a RayTaskError begins with."""
+    cause = getattr(exc, "cause", None) or exc
+    return f"{type(cause).__name__}: {' '.join(str(cause).split())}"[:limit]
+
+
 class BaselinePool:
     """Submits the baseline tasks and logs each result to MLflow as it arrives."""
 
@@ -100,7 +107,7 @@ class BaselinePool:
                     return
                 self.logged += 1
                 if isinstance(result, BaseException):
-                    msg = " ".join(str(result).split())[:300]
+                    msg = failure_text(result)
                     self.failed.append((spec.name, msg))
                     print(
                         f"baseline {spec.name}: FAILED: {msg} ({self.logged}/{len(self.specs)})",

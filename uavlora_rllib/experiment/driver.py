@@ -15,6 +15,7 @@ from uavlora_rllib.experiment.grid import GridConfig, TrialSpec, baseline_runs, 
 from uavlora_rllib.experiment.tuner import grid_identity, trial_resources, tuner_for
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+EXIT_BROKEN_PIPE = 141  # stdout closed by its reader (`| head`): 128 + SIGPIPE, as a shell's commands end
 
 
 def storage_path(grid: GridConfig, override: str | None) -> str:
@@ -201,7 +202,7 @@ def _check_same_grid(started: dict[str, str], now: dict[str, str], grid: GridCon
         f"{what} {started.get(key)} -> {now[key]}"
         for what, key in (("trials", "grid_trials"), ("stop.env_steps", "grid_budget"))
         if started.get(key) != now[key]
-    ] or ["the trials' settings"]
+    ] or ["the trials' settings: a hyperparameter (a plugin's default too), the scenario, resources or evaluation"]
     raise ConfigError(
         f"--resume: this grid is not the one experiment {grid.experiment!r} started with ({', '.join(changed)}); "
         "a resumed experiment runs only the trials it started with: restore that YAML (the grid run's "

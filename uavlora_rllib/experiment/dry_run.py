@@ -2,7 +2,16 @@
 
 from __future__ import annotations
 
-from uavlora_rllib.experiment.grid import GridConfig, TrialSpec, baseline_runs, eval_interval, is_sweep, trial_count
+from uavlora_rllib.experiment.grid import (
+    GridConfig,
+    TrialSpec,
+    baseline_runs,
+    eval_interval,
+    is_sweep,
+    scenario_for,
+    trial_count,
+)
+from uavlora_rllib.sim.scenario import off_defaults
 
 
 def trial_table(grid: GridConfig, specs: list[TrialSpec]) -> str:
@@ -16,6 +25,8 @@ def trial_table(grid: GridConfig, specs: list[TrialSpec]) -> str:
     ]
     for i, s in enumerate(specs, 1):
         lines.append(f"{i:>4}  {s.algorithm:<12} {s.seed:>6} {s.n_eds:>6} {s.n_uavs:>6} {grid.stop.env_steps:>17}")
+    changed = off_defaults(scenario_for(grid, specs[0].n_eds, specs[0].n_uavs)) if specs else []
+    lines.append(f"scenario off the paper's defaults: {', '.join(changed)}" if changed else "scenario: the paper's")
     if is_sweep(grid, specs):
         lines += sweep_lines(grid, specs)
     lines.append(f"baseline evaluations ({grid.evaluation.episodes} episodes each):")

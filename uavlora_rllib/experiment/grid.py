@@ -39,8 +39,8 @@ Any algorithm hyperparameter may be a Ray Tune search space instead of one value
 `t_max_env_steps` (QMIX/VDN: the epsilon schedule is a fraction of T_max) is NOT tied to
 `stop.env_steps`: it stays at the paper's 2M unless the YAML sets it, so a short grid explores
 as the paper's first env steps do (why: docs/model.md#training-defaults).
-A plugin module registers entries with `registry.register(...)` and adds each name to
-`registry.MODULES` (name -> its own module) so that workers can import it too.
+A plugin module registers its algorithms when imported (`registry.register_algorithm(...)` or
+`registry.register(...)`); trials import the grid's plugins too.
 
 Relative paths (`storage`, a relative sqlite file) are relative to the directory the driver was
 launched from (`experiment.cluster.launch_dir`; under `ray job submit` they need
@@ -362,7 +362,7 @@ def _read_yaml(path: str) -> Any:
 
 
 def import_plugins(modules: list[str], prefix: str = "plugins") -> None:
-    """Import modules that register extra algorithms (each adds itself to registry.MODULES)."""
+    """Import modules that register extra algorithms (each registers its own at import)."""
     for i, module in enumerate(modules):
         try:
             importlib.import_module(module)
@@ -376,6 +376,18 @@ def import_plugins(modules: list[str], prefix: str = "plugins") -> None:
             raise ConfigError(
                 f"{prefix}.{i}: importing plugin module {module!r} failed: {type(exc).__name__}{where}: {detail}"
             ) from None
+
+
+def import_grid_plugins(path: str) -> None:
+    """Import the `plugins:` of a grid file without validating the rest (`--list-hparams` of a plugin's
+    algorithm reads its hyperparameters before the grid that sets them is valid)."""
+    data = _read_yaml(path)
+    plugins = data.get("plugins") if isinstance(data, dict) else None
+    if plugins is None:
+        return
+    if not isinstance(plugins, list) or not all(isinstance(m, str) and m for m in plugins):
+        raise ConfigError(f"{path}: plugins: expected a list of module names, got {plugins!r}")
+    import_plugins(plugins, prefix=f"{path}: plugins")
 
 
 def algorithm_overrides(grid: GridConfig, name: str) -> dict[str, Any]:
@@ -420,6 +432,7 @@ def _validate(grid: GridConfig) -> None:
     spaces = {}
     for name in grid.algorithms:
         entry = registry.spec(name, path=f"algorithms.{name}")  # no RLlib import (dry runs)
+        registry.check_registered(name, f"algorithms.{name}")
         fixed, spaces[name] = algorithm_spaces(grid, entry)
         # every checked combination of sampled values (one, the fixed values, without spaces)
         hparams = [

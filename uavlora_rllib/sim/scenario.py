@@ -251,3 +251,12 @@ def flatten(cfg: ScenarioConfig, prefix: str = "scenario") -> dict[str, Any]:
     walk(cfg.to_dict(), prefix)
     out[f"{prefix}.quota"] = cfg.quota
     return out
+
+
+def off_defaults(cfg: ScenarioConfig, shown: tuple[str, ...] = ()) -> list[str]:
+    """`cfg`'s settings off ScenarioConfig's defaults (the paper's scenario) at its own V and U, as
+    `name=value` in field order, leaving out the `shown` ones (V and U always): what makes a result
+    another scenario's than the paper's."""
+    skip = {f"scenario.{k}" for k in ("n_eds", "n_uavs", "quota", *shown)}
+    ours, paper = flatten(cfg), flatten(ScenarioConfig(n_eds=cfg.n_eds, n_uavs=cfg.n_uavs))
+    return [f"{k[len('scenario.') :]}={v}" for k, v in ours.items() if k not in skip and v != paper.get(k)]

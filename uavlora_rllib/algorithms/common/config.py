@@ -30,6 +30,7 @@ from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 from ray.rllib.utils.annotations import override
 
+from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.algorithms.common.metrics import log_episode_metrics
 from uavlora_rllib.sim.observation import obs_dim, state_dim
 from uavlora_rllib.sim.scenario import ScenarioConfig
@@ -118,7 +119,7 @@ def team_config(config: Any, name: str, scenario: ScenarioConfig, hparams: Any, 
     """`config` (a fresh HParamsConfig AlgorithmConfig) set up for one trial of algorithm `name`."""
     from uavlora_rllib.envs.team import sample_through_team_env
 
-    hparams.check(scenario, resources, f"algorithms.{name}")
+    registry.check_hparams(hparams, scenario, resources, f"algorithms.{name}")
     settings = config.env_runner_settings(scenario)
     config = sample_through_team_env(config, scenario, resources, name, **settings).framework("torch")
     config = apply_resources(config, resources).uavlora(

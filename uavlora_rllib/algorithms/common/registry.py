@@ -13,27 +13,32 @@ return Columns.ACTIONS (then the default `make_policy` runs it, greedy or sample
 `MODULES`; the typed class goes in a module of its own that imports neither Ray nor torch and
 `declare`s it (a line in `HPARAMS_MODULES`), so that a grid is checked, previewed and listed
 without importing RLlib (`spec`). tests/test_algorithm_matrix.py then trains, checkpoints, restores and evaluates it
-with no new test code. A plugin with a builder of its own registers an `AlgorithmEntry`.
+with no new test code. A plugin (a module outside the package, listed under a grid's `plugins:`) calls
+`register_algorithm` (after its own `declare`, or with `action_modes`) or, with a builder of its own,
+`register(AlgorithmEntry(...))` when imported; it needs no MODULES or HPARAMS_MODULES line, and a name of its
+own (`_checked_spec`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
+import typing
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import Field
 from pydantic.dataclasses import dataclass as typed_dataclass
+from pydantic.dataclasses import is_pydantic_dataclass
 
 from uavlora_rllib.config_errors import ConfigError, build
-from uavlora_rllib.sim.scenario import MAX_ENVS
+from uavlora_rllib.sim.scenario import MAX_ENVS, ScenarioConfig
 
 if TYPE_CHECKING:
     from ray.rllib.algorithms import Algorithm, AlgorithmConfig
 
     from uavlora_rllib.experiment.evaluation import Policy
-    from uavlora_rllib.sim.scenario import ScenarioConfig
 
 # name -> module that registers it. Only names whose module exists are offered.
 MODULES: dict[str, str] = {
@@ -127,6 +132,14 @@ def _team_policy(algo: Algorithm, scenario: ScenarioConfig, explore: bool = Fals
     return team_policy(algo, scenario, explore=explore, seed=seed)
 
 
+def check_hparams(hparams: Any, scenario: ScenarioConfig, resources: Resources, path: str) -> None:
+    """A typed config's cross-checks with the trial's scenario and resources (its `check`, ConfigError naming
+    the field), where it has them: a plugin's class may have none."""
+    check = getattr(hparams, "check", None)
+    if check is not None:
+        check(scenario, resources, path)
+
+
 @dataclass(frozen=True)
 class AlgorithmSpec:
     """What a grid is checked against before anything runs: the typed hyperparameters and the
@@ -148,8 +161,9 @@ class AlgorithmSpec:
 
     def check_trial(self, scenario: ScenarioConfig, hparams: Any, resources: Resources, seed: int) -> None:
         """The cross-checks of one trial (hyperparameters x scenario x resources), ConfigError naming
-        the field: the typed config's `check`, which `team_config` runs first when it builds a trial."""
-        hparams.check(scenario, resources, f"algorithms.{self.name}")
+        the field: the typed config's `check` where it has one, which `team_config` runs first when it
+        builds a trial (a plugin's class may have none)."""
+        check_hparams(hparams, scenario, resources, f"algorithms.{self.name}")
 
 
 @dataclass(frozen=True)
@@ -196,9 +210,40 @@ _REGISTRY: dict[str, AlgorithmEntry] = {}
 _SPECS: dict[str, AlgorithmSpec] = {}
 
 
+def _defined_at(cls: type) -> tuple[str, str]:
+    return (cls.__module__, cls.__qualname__)
+
+
+def _checked_spec(name: str, hparams_cls: type, action_modes: Any, known: AlgorithmSpec | None) -> AlgorithmSpec:
+    """The spec of a declaration or registration, or TypeError naming what is wrong with it (raised when
+    the module is imported: a plugin's then fails in one line, grid.import_plugins): action modes a
+    tuple of ScenarioConfig.action_mode values, a typed (pydantic dataclass) hyperparameter class whose
+    defaults pass its own constraints, and a name that is neither a built-in's nor taken by another class."""
+    where = f"algorithm {name!r}"
+    allowed = typing.get_args(typing.get_type_hints(ScenarioConfig)["action_mode"])
+    if isinstance(action_modes, str) or not action_modes or any(m not in allowed for m in action_modes):
+        raise TypeError(f"{where}: action_modes must be a non-empty tuple of {list(allowed)}, got {action_modes!r}")
+    if not (isinstance(hparams_cls, type) and is_pydantic_dataclass(hparams_cls)):
+        raise TypeError(f"{where}: hparams_cls must be a pydantic dataclass (common/hparams.py), got {hparams_cls!r}")
+    if name in HPARAMS_MODULES and hparams_cls.__module__ != HPARAMS_MODULES[name]:
+        raise TypeError(f"{where} is built in; a plugin takes another name (built in: {built_in()})")
+    # the same class defined again (its module imported anew) is the same algorithm; another class is not
+    if known is not None and _defined_at(known.hparams_cls) != _defined_at(hparams_cls):
+        raise TypeError(f"{where} is already taken by {known.hparams_cls.__module__}.{known.hparams_cls.__qualname__}")
+    try:
+        defaults = hparams_cls()
+    except TypeError as exc:
+        raise TypeError(f"{where}: every hyperparameter needs a default ({exc})") from None
+    # pydantic leaves defaults unchecked: a default outside its field's own constraints fails every grid
+    build(hparams_cls, {f.name: getattr(defaults, f.name) for f in dataclasses.fields(hparams_cls)}, where)
+    return AlgorithmSpec(name=name, hparams_cls=hparams_cls, action_modes=tuple(action_modes))
+
+
 def declare(name: str, hparams_cls: type, action_modes: tuple[str, ...]) -> AlgorithmSpec:
-    """Declare algorithm `name`'s typed hyperparameters and action modes (from its HPARAMS_MODULES module)."""
-    _SPECS[name] = AlgorithmSpec(name=name, hparams_cls=hparams_cls, action_modes=tuple(action_modes))
+    """Declare algorithm `name`'s typed hyperparameters and action modes (from its HPARAMS_MODULES module,
+    or a plugin's module that imports neither Ray nor torch); TypeError or ConfigError when they are not
+    usable (`_checked_spec`)."""
+    _SPECS[name] = _checked_spec(name, hparams_cls, action_modes, _SPECS.get(name))
     return _SPECS[name]
 
 
@@ -215,6 +260,10 @@ def spec(name: str, path: str = "algorithm") -> AlgorithmSpec:
 
 
 def register(entry: AlgorithmEntry) -> None:
+    """Register `entry` under its name (checked as a declaration is: `_checked_spec`)."""
+    _checked_spec(
+        entry.name, entry.hparams_cls, entry.action_modes, _REGISTRY.get(entry.name) or _SPECS.get(entry.name)
+    )
     _REGISTRY[entry.name] = entry
 
 
@@ -245,8 +294,8 @@ def register_algorithm(name: str, config_cls: type[Any], action_modes: tuple[str
 
 
 def built_in() -> list[str]:
-    """The algorithms this package implements, in MODULES' order: a plugin adds its own line to MODULES
-    when it is imported (tests/tune_stock_ppo.py), so MODULES alone is not the built-in set."""
+    """The algorithms this package implements, in MODULES' order (a plugin may add a line to MODULES,
+    so MODULES alone is not the built-in set)."""
     return [name for name, module in MODULES.items() if module.startswith("uavlora_rllib.algorithms.")]
 
 
@@ -265,9 +314,30 @@ def available() -> list[str]:
     return out
 
 
+def check_registered(name: str, path: str) -> None:
+    """ConfigError unless a trial of `name` can be built: a built-in (MODULES), or registered by a module
+    imported so far (a plugin's); a plugin that only declares its hyperparameters would pass a dry run and
+    fail in every trial."""
+    if name not in MODULES and name not in _REGISTRY:
+        get(name, path)
+
+
+def known() -> list[str]:
+    """Every name a grid may use now: the built-ins, and what plugins imported so far declared or registered."""
+    return sorted(set(MODULES) | set(_REGISTRY) | set(_SPECS))
+
+
 def get(name: str, path: str = "algorithm") -> AlgorithmEntry:
+    """`name`'s registered entry: registered already (a plugin's, at its import), or by importing its MODULES module."""
+    if name in _REGISTRY:
+        return _REGISTRY[name]
     if name not in MODULES:
-        raise ConfigError(f"{path}: unknown algorithm {name!r}; allowed: {sorted(MODULES)}")
+        if name in _SPECS:
+            raise ConfigError(
+                f"{path}: algorithm {name!r} is declared (its hyperparameters) but no imported module registers "
+                "it; list the module that calls register_algorithm or registry.register under plugins:"
+            )
+        raise ConfigError(f"{path}: unknown algorithm {name!r}; allowed: {known()}")
     if name not in _REGISTRY:
         try:
             importlib.import_module(MODULES[name])
