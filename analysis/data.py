@@ -123,11 +123,17 @@ class Organised:
         return None
 
     def matched_seeds(self, cell: Cell, *baselines: str) -> list[str]:
-        """The cell's seeds that the scenario's reference and each named baseline also ran: the
-        seeds on which a share or ratio compares the same evaluation episodes."""
+        """The cell's seeds that the scenario's reference and each named baseline also ran, on the
+        same task (`same_task`): the seeds on which a share or ratio compares the same evaluation
+        episodes of one scenario (joined experiments may hold another rate model or reward at one V, U)."""
         ref = self.reference(cell.scenario)
         names = ([ref.name] if ref is not None else []) + list(baselines)
-        have = [set(c.seeds) for n in names if (c := self.cells.get((*cell.scenario, n))) is not None]
+        own = {str(r.seed): r for r in cell.runs}
+        have = [
+            {str(r.seed) for r in c.runs if str(r.seed) in own and same_task(r, own[str(r.seed)])}
+            for n in names
+            if (c := self.cells.get((*cell.scenario, n))) is not None
+        ]
         return [s for s in cell.seeds if all(s in h for h in have)]
 
     def normalised(self, cell: Cell) -> np.ndarray:
@@ -252,9 +258,17 @@ def organise(records: list[RunRecord]) -> Organised:
         if unmatched:
             warnings.append(
                 f"V={cell.n_eds} U={cell.n_uavs} {cell.algorithm} ({cell.kind}): seed(s) {', '.join(unmatched)} have no "
-                f"{ref.name} run on their evaluation episodes; left out of every share of the reference"
+                f"{ref.name} run on their evaluation episodes (that seed, the same scenario.* settings); left out of "
+                "every share of the reference"
             )
     return org
+
+
+def same_task(a: RunRecord, b: RunRecord) -> bool:
+    """Whether two runs of one (V, U) ran one task: equal scenario.* params where both logged them (a run
+    logged before a param existed ran its default, which a later run may not have changed)."""
+    keys = {k for k in a.params.keys() & b.params.keys() if k.startswith("scenario.")}
+    return all(a.params[k] == b.params[k] for k in keys)
 
 
 def _scenario_keys(runs: list[RunRecord]) -> set[str]:

@@ -169,3 +169,23 @@ def test_curves_take_the_tables_run_of_each_seed():
     out, _ = curves(lambda r, k: ([0.0, 200_000.0], [0.0, ends[r.run_id]]), org, EE_KEY, smooth=0.0, points=3)
     curve = out[(10, 2)]["mappo"]
     assert sorted(curve.seeds) == ["0", "1"] and curve.mean[-1] == pytest.approx(30.0)  # (40 + 20) / 2
+
+
+def test_a_learner_of_another_scenario_gets_no_share_of_the_reference():
+    """Joined experiments: a learner trained with another rate model at the same V, U is not divided by
+    this scenario's reference (a share of 5x greedy was shown); a run that did not log a param matches."""
+    lora = {"scenario.rate_model": "lora_phy"}
+    runs = [
+        *[_run(k, "greedy", 100.0, kind="baseline", seed=str(k)) for k in range(3)],
+        *[finished_record(10 + k, "mappo", seed=str(k), params=lora, metrics={EE_KEY: 500.0}) for k in range(3)],
+        *[_run(20 + k, "ippo", 90.0, seed=str(k)) for k in range(3)],
+    ]
+    for r in runs[:3]:
+        r.params["scenario.rate_model"] = "shannon"
+    org = organise(runs)
+    assert org.matched_seeds(org.cells[(10, 2, "mappo")]) == []
+    assert org.matched_seeds(org.cells[(10, 2, "ippo")]) == ["0", "1", "2"]  # it logged no rate model
+    rows = {r["algorithm"]: r for r in learning_table(org, lambda r, k: ([], []))}
+    assert "mappo" not in rows and rows["ippo"]["share_of_reference"] == pytest.approx(0.9)  # no share to judge
+    assert org.normalised(org.cells[(10, 2, "mappo")]).size == 0
+    assert any("mappo (train): seed(s) 0, 1, 2 have no greedy run" in w for w in org.warnings), org.warnings
