@@ -129,6 +129,43 @@ def test_precision_route_tag_keeps_every_route_a_trial_ran_in(sqlite_tracker, mo
     assert tag() == "bfloat16/autocast,bfloat16/onednn"
 
 
+def test_a_trials_plugin_code_is_recorded_and_a_change_on_resume_shown(sqlite_tracker, tmp_path, monkeypatch, capsys):
+    """The git commit names the package's code, not a plugin's: each trial run records its plugins' source
+    digests, and a resume that finds them changed tags the run (it trained partly with each) and says so."""
+    from uavlora_rllib.experiment.grid import load_grid, trials
+    from uavlora_rllib.experiment.mlflow_callback import MlflowTrialCallback
+    from uavlora_rllib.experiment.tuner import trial_config
+
+    plugin = tmp_path / "my_loss_plugin.py"
+    plugin.write_text("DELTA = 1.0\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    t = sqlite_tracker
+    t.open_grid_run()
+    grid_file = write_tiny_grid(
+        tmp_path, "nest", mappo=TINY_MAPPO, episode_len=4, budget=60, plugins=["my_loss_plugin"]
+    )
+    grid = load_grid(grid_file)
+    trial = SimpleNamespace(trial_id="t1", config={"trial": trial_config(trials(grid)[0], grid)})
+
+    def driver() -> MlflowTrialCallback:
+        cb = MlflowTrialCallback(t.tracking_uri, "nest", t.grid_file, commit="c0ffee")
+        cb._tracker = t
+        return cb
+
+    run_id = driver().run_id(trial)
+    first = t.client.get_run(run_id).data.tags[run_schema.PLUGINS_TAG]
+    assert first.startswith("my_loss_plugin@") and len(first.split("@")[1]) == 12
+    assert (
+        driver().run_id(trial) == run_id and run_schema.PLUGINS_ON_RESUME_TAG not in t.client.get_run(run_id).data.tags
+    )
+    plugin.write_text("DELTA = 2.0\n")  # edited between the interrupt and --resume
+    capsys.readouterr()
+    assert driver().run_id(trial) == run_id
+    tags = t.client.get_run(run_id).data.tags
+    assert tags[run_schema.PLUGINS_TAG] == first and tags[run_schema.PLUGINS_ON_RESUME_TAG] != first
+    assert "plugin code changed since it started" in capsys.readouterr().out
+
+
 def test_reconciling_a_finished_trial_logs_each_result_once(sqlite_tracker, tmp_path):
     """A trial that finished while its driver died: the next driver logs the results its run lacks
     from result.json, each evaluation point once (the rows logged before the death are not repeated)."""

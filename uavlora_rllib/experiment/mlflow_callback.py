@@ -44,12 +44,15 @@ from uavlora_rllib.experiment.run_schema import (
     ENV_STEPS,
     EVAL_PREFIX,
     KIND_TRAIN,
+    PLUGINS_ON_RESUME_TAG,
+    PLUGINS_TAG,
     PRECISION_ROUTE,
     TRIAL_CONFIG_ARTIFACT,
     curves_csv,
     identity_params,
     metrics_to_log,
     number,
+    plugin_digests,
     read_trial_results,
     run_params,
     sampled_params,
@@ -155,8 +158,18 @@ class MlflowTrialCallback(Callback):
         cfg = trial.config.get("trial", trial.config)
         existing = self.tracker.run_for_trial(tid)
         identity = identity_params(cfg["algorithm"], cfg["seed"], cfg["n_eds"], cfg["n_uavs"])
+        plugins = plugin_digests(list(cfg.get("plugins", [])))
         if existing is not None:
             run_id = existing.info.run_id
+            started = existing.data.tags.get(PLUGINS_TAG)  # None: a run from before this tag, not compared
+            if started is not None and plugins != started and existing.data.tags.get(PLUGINS_ON_RESUME_TAG) != plugins:
+                # the run trained partly with other plugin code: kept visible beside what it started with
+                self.tracker.set_tag(run_id, PLUGINS_ON_RESUME_TAG, plugins)
+                print(
+                    f"MLflow: run {existing.info.run_name}: plugin code changed since it started ({started or 'none'}"
+                    f" -> {plugins or 'none'}); tag {PLUGINS_ON_RESUME_TAG}",
+                    flush=True,
+                )
             self._last_step[tid] = self.tracker.last_logged_step(existing)
             self.tracker.set_parent(existing)  # a run written before parents existed
             missing = {k: v for k, v in identity.items() if k not in existing.data.params}
@@ -181,6 +194,7 @@ class MlflowTrialCallback(Callback):
             )
             tags["trial_id"] = tid
             tags["checkpoint"] = ""
+            tags[PLUGINS_TAG] = plugins
             sampled = sampled_values(cfg)  # a sweep's values for this trial, as Tune resolved them
             params = {
                 **identity,

@@ -256,6 +256,27 @@ def metrics_to_log(result: Mapping[str, Any]) -> tuple[dict[str, float], dict[st
     return train, evals
 
 
+PLUGINS_TAG = "plugins"  # a trial's plugin modules as module@sha256[:12] of each one's source file
+PLUGINS_ON_RESUME_TAG = "plugins_on_resume"  # the same, when a --resume found them changed
+
+
+def plugin_digests(modules: list[str]) -> str:
+    """`module@<12 hex digits of its source file's SHA-256>` per plugin module, comma-separated ("" for
+    none): the git commit names the package's code, this names a plugin's, which lives outside it."""
+    import hashlib
+    import importlib.util
+
+    out = []
+    for module in modules:
+        try:
+            origin = getattr(importlib.util.find_spec(module), "origin", None)
+            with open(str(origin), "rb") as fh:
+                out.append(f"{module}@{hashlib.sha256(fh.read()).hexdigest()[:12]}")
+        except (ImportError, OSError, ValueError):
+            out.append(f"{module}@unknown")
+    return ",".join(out)
+
+
 def read_trial_results(trial_dir: str | None) -> list[dict]:
     """The rows of a trial's result.json (one JSON object per reported result), [] if absent."""
     if not trial_dir or "://" in trial_dir:
