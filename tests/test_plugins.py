@@ -134,3 +134,50 @@ def test_a_closed_pipe_is_not_blamed_on_the_cluster(tmp_path):
     )
     assert proc.stderr.strip().splitlines()[-1] == "141", proc.stderr
     assert "error" not in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+
+
+BASELINE = """
+    from uavlora_rllib.baselines.policies import FixedPolicy, register_baseline
+
+    def smallest_sf(scenario, seed):
+        return FixedPolicy(scenario)
+
+    register_baseline("{name}", smallest_sf)
+"""
+
+
+def test_a_plugin_baseline_runs_in_a_grid_and_in_evaluate(tmp_path, monkeypatch, capsys):
+    """README "Add a baseline": registered by a plugin module, it is a grid baseline (its Ray task imports the
+    grid's plugins on whatever node it runs) and an `evaluate --plugin` policy."""
+    import sys
+
+    from uavlora_rllib import evaluate
+    from uavlora_rllib.baselines import policies
+    from uavlora_rllib.experiment.baseline_tasks import evaluate_baseline
+    from uavlora_rllib.experiment.grid import baseline_runs, load_grid
+
+    _plugin(tmp_path, monkeypatch, "plug_baseline", BASELINE.format(name="my_fixed"))
+    grid = _grid(tmp_path, "plug_baseline", "mappo")
+    data = yaml.safe_load(open(grid))
+    data["baselines"] = ["my_fixed", "fixed"]
+    data["scenario"] = {"episode_len": 5}
+    open(grid, "w").write(yaml.safe_dump(data))
+    rc, out, err = _cli([grid, "--dry-run"], capsys)
+    assert rc == 0 and "my_fixed" in out, err
+    spec = next(s for s in baseline_runs(load_grid(grid)) if s.baseline == "my_fixed")
+    assert spec.plugins == ("plug_baseline",)
+    policies._PLUGIN_BASELINES.pop("my_fixed")  # as in a fresh worker process
+    sys.modules.pop("plug_baseline")
+    ours = evaluate_baseline(spec, 1)
+    fixed = evaluate_baseline(next(s for s in baseline_runs(load_grid(grid)) if s.baseline == "fixed"), 1)
+    assert ours["ee_sys_mean"] == pytest.approx(fixed["ee_sys_mean"])  # the same policy under its own name
+    argv = ["--plugin", "plug_baseline", "--policy", "my_fixed", "--n-eds", "6", "--episodes", "1", "--json"]
+    assert evaluate.main(argv) == 0
+    assert evaluate.main(["--policy", "no_such_baseline", "--episodes", "1"]) == 2
+    assert "neither a baseline (random, fixed, adr, best_fixed, greedy, optimal, my_fixed)" in capsys.readouterr().err
+
+
+def test_a_plugin_baseline_cannot_take_a_built_in_name(tmp_path, monkeypatch, capsys):
+    _plugin(tmp_path, monkeypatch, "plug_greedy", BASELINE.format(name="greedy"))
+    rc, _, err = _cli([_grid(tmp_path, "plug_greedy", "mappo"), "--dry-run"], capsys)
+    assert rc == 2 and err.count("\n") == 1 and "baseline 'greedy' is built in; a plugin takes another name" in err

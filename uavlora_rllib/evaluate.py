@@ -28,7 +28,14 @@ import sys
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
-from uavlora_rllib.baselines.policies import BASELINES, OBJECTIVES, REFERENCES, evaluation_seconds, make_baseline
+from uavlora_rllib.baselines.policies import (
+    BASELINES,
+    OBJECTIVES,
+    REFERENCES,
+    baseline_names,
+    evaluation_seconds,
+    make_baseline,
+)
 from uavlora_rllib.cli_args import Parser, UsageError, fail, int_in, positive_int, seed
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.experiment.evaluation import BOUND_METRIC
@@ -67,6 +74,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--scenario-yaml", default=None, help="YAML file of scenario fields (or with a 'scenario:' key)")
+    p.add_argument(
+        "--plugin",
+        action="append",
+        default=[],
+        metavar="MODULE",
+        help="import MODULE first (repeatable): a plugin's baseline (register_baseline) becomes a --policy",
+    )
     p.add_argument(
         "--objective", choices=OBJECTIVES, default=None, help="the greedy and optimal baselines' objective (default ee)"
     )
@@ -214,7 +228,7 @@ def check_checkpoint_dir(path: str) -> None:
     logs warnings and guesses before it gives up)."""
     if not os.path.exists(path):
         raise UsageError(
-            f"--policy: {path!r} is neither a baseline ({', '.join(BASELINES)}) nor an existing checkpoint path"
+            f"--policy: {path!r} is neither a baseline ({', '.join(baseline_names())}) nor an existing checkpoint path"
         )
     if not os.path.isdir(path):
         raise UsageError(f"--policy: checkpoint path {path!r} is not a directory")
@@ -228,7 +242,7 @@ def _resolve(args: argparse.Namespace):
     overrides = {k: v for k, v in (("n_eds", args.n_eds), ("n_uavs", args.n_uavs)) if v is not None}
     if args.objective is not None and args.policy not in ("greedy", "optimal"):
         raise UsageError(f"--objective: applies to the greedy and optimal baselines only; --policy is {args.policy!r}")
-    if args.policy in BASELINES:
+    if args.policy in baseline_names():
         if args.execution != "greedy":
             raise UsageError(
                 f"--execution: {args.execution!r} applies to a checkpoint; baselines have one execution mode"
@@ -332,9 +346,14 @@ def _duration(seconds: float) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
+        if args.plugin:
+            from uavlora_rllib.experiment.grid import import_plugins
+
+            import_plugins(args.plugin, prefix="--plugin")
         policy, cfg = _resolve(args)
-        kind = args.policy if args.policy in BASELINES else "learned"
-        label = args.policy if args.policy in BASELINES else f"checkpoint ({args.execution})"
+        is_baseline = args.policy in baseline_names()
+        kind = args.policy if is_baseline else "learned"
+        label = args.policy if is_baseline else f"checkpoint ({args.execution})"
         from uavlora_rllib.baselines.bound import upper_bound_of_core
 
         bound = upper_bound_of_core if args.policy in REFERENCES else None
@@ -368,7 +387,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(json.dumps(out))
     else:
         name = getattr(policy, "name", args.policy)
-        if args.policy not in BASELINES:  # a checkpoint plays greedily or sampled: say which
+        if not is_baseline:  # a checkpoint plays greedily or sampled: say which
             name = f"{name} ({args.execution} execution)"
         print(format_table(name, cfg, summary))
         if check is not None:

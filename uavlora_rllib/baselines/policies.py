@@ -31,6 +31,9 @@ joint per_uav action (90^U candidates) and `greedy` approximates it.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
 
 from uavlora_rllib.config_errors import ConfigError
@@ -424,8 +427,35 @@ def evaluation_seconds(name: str, cfg: ScenarioConfig, episodes: int) -> float:
 
 
 # ---------------------------------------------------------------- factory
+# name -> factory(scenario, seed) -> Policy: the baselines plugin modules add (`register_baseline`)
+_PLUGIN_BASELINES: dict[str, Callable[[ScenarioConfig, int], Any]] = {}
+
+
+def register_baseline(name: str, factory: Callable[[ScenarioConfig, int], Any]) -> None:
+    """Add baseline `name` from a plugin module (listed under a grid's `plugins:`, or `evaluate --plugin`):
+    `factory(scenario, seed)` returns an `evaluation.Policy` (`reset(core)`, and `act(core)` the actions of
+    all the core's scenarios). TypeError for a name that is not an identifier, a built-in's name, one taken
+    by another factory, or a factory that is not callable (the plugin's import then fails in one line)."""
+    if not isinstance(name, str) or not name.isidentifier():
+        raise TypeError(f"register_baseline: the name must be an identifier, got {name!r}")
+    if name in BASELINES:
+        raise TypeError(f"baseline {name!r} is built in; a plugin takes another name (built in: {list(BASELINES)})")
+    if not callable(factory):
+        raise TypeError(f"baseline {name!r}: the factory must be callable (scenario, seed) -> Policy, got {factory!r}")
+    known = _PLUGIN_BASELINES.get(name)
+    where = (getattr(factory, "__module__", ""), getattr(factory, "__qualname__", ""))
+    if known is not None and (known.__module__, known.__qualname__) != where:
+        raise TypeError(f"baseline {name!r} is already taken by {known.__module__}.{known.__qualname__}")
+    _PLUGIN_BASELINES[name] = factory
+
+
+def baseline_names() -> list[str]:
+    """The built-in baselines, then those the plugins imported so far registered."""
+    return [*BASELINES, *sorted(_PLUGIN_BASELINES)]
+
+
 def make_baseline(name: str, cfg: ScenarioConfig, seed: int = 0, objective: str = "ee"):
-    """The baseline policy `name` (one of BASELINES) for scenario `cfg`.
+    """The baseline policy `name` (one of BASELINES, or a plugin's: `register_baseline`) for scenario `cfg`.
 
     `seed` drives `random`, and picks `best_fixed`'s selection episodes; `objective` ("ee" or
     "reward") applies to greedy and optimal (and is validated for every name). In per_device
@@ -451,4 +481,6 @@ def make_baseline(name: str, cfg: ScenarioConfig, seed: int = 0, objective: str 
         return GreedyPolicy(cfg, objective)
     if name == "optimal":
         return OptimalPolicy(cfg, objective)
-    raise ConfigError(f"policy: unknown baseline {name!r}; allowed: {list(BASELINES)}")
+    if name in _PLUGIN_BASELINES:
+        return _PLUGIN_BASELINES[name](cfg, seed)
+    raise ConfigError(f"policy: unknown baseline {name!r}; allowed: {baseline_names()}")

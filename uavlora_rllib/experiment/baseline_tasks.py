@@ -28,7 +28,9 @@ def evaluate_baseline(spec: BaselineSpec, episodes: int) -> dict[str, Any]:
     from uavlora_rllib.baselines.bound import upper_bound_of_core
     from uavlora_rllib.baselines.policies import REFERENCES, make_baseline
     from uavlora_rllib.experiment.evaluation import run_episodes
+    from uavlora_rllib.experiment.grid import import_plugins
 
+    import_plugins(list(spec.plugins))  # a plugin's baseline registers itself there, on every node
     t0 = time.perf_counter()
     policy = make_baseline(spec.baseline, spec.scenario, seed=spec.seed)
     # the references also log the upper bound of the same slots, so the report can bracket the optimum

@@ -281,6 +281,7 @@ class BaselineSpec:
     n_eds: int
     n_uavs: int
     scenario: ScenarioConfig
+    plugins: tuple[str, ...] = ()  # the grid's plugin modules: the task imports them (a plugin's baseline)
 
     @property
     def name(self) -> str:
@@ -442,11 +443,11 @@ def _validate(grid: GridConfig) -> None:
         entries[name] = (entry, hparams)
     sweep.check_sweep(grid, spaces, eval_interval(grid))
 
-    from uavlora_rllib.baselines.policies import BASELINES, make_baseline
+    from uavlora_rllib.baselines.policies import baseline_names, make_baseline
 
     for i, name in enumerate(grid.baselines):
-        if name not in BASELINES:
-            raise ConfigError(f"baselines.{i}: unknown baseline {name!r}; allowed: {list(BASELINES)}")
+        if name not in baseline_names():  # a plugin's too (register_baseline)
+            raise ConfigError(f"baselines.{i}: unknown baseline {name!r}; allowed: {baseline_names()}")
     for n_eds, n_uavs in itertools.product(grid.n_eds, grid.n_uavs):
         where = f" (with n_eds={n_eds}, n_uavs={n_uavs})"
         try:
@@ -533,7 +534,7 @@ def trial_count(grid: GridConfig, specs: list[TrialSpec]) -> int:
 def baseline_runs(grid: GridConfig) -> list[BaselineSpec]:
     """The product baseline x seed x n_eds x n_uavs (evaluation seed = the grid's seed)."""
     return [
-        BaselineSpec(name, seed, n_eds, n_uavs, scenario_for(grid, n_eds, n_uavs))
+        BaselineSpec(name, seed, n_eds, n_uavs, scenario_for(grid, n_eds, n_uavs), tuple(grid.plugins))
         for name, seed, n_eds, n_uavs in itertools.product(grid.baselines, grid.seeds, grid.n_eds, grid.n_uavs)
     ]
 
