@@ -33,7 +33,6 @@ PLUGIN = '''"""MAPPO registered as "mappo_wd": importable only from the job's wo
 from uavlora_rllib.algorithms.common import registry
 from uavlora_rllib.algorithms.mappo.mappo import MAPPOConfig
 
-registry.MODULES.setdefault("mappo_wd", __name__)
 registry.register_algorithm("mappo_wd", MAPPOConfig, ("per_uav",))
 '''
 RAY = [sys.executable, "-m", "ray.scripts.scripts"]  # not bin/ray: a copied venv's script shebangs may be stale

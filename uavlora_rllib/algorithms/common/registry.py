@@ -300,7 +300,7 @@ def built_in() -> list[str]:
 
 
 def available() -> list[str]:
-    """Names whose module can be imported (implemented algorithms)."""
+    """Names whose module can be imported (implemented algorithms), then those imported plugins registered."""
     out = []
     for name, module in MODULES.items():
         try:
@@ -311,7 +311,7 @@ def available() -> list[str]:
             continue
         if name in _REGISTRY:
             out.append(name)
-    return out
+    return out + sorted(n for n in _REGISTRY if n not in out)
 
 
 def check_registered(name: str, path: str) -> None:
