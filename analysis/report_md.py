@@ -79,7 +79,8 @@ STATS_TEXT = """\
   denominator of "share of reference" above), which puts scenarios of very different EE on one
   scale. IQM: the 25% trimmed mean of all (seed, scenario) scores of an algorithm pooled
   (`analysis.stats.iqm`, the per-cell IQM's function); mean: the mean over scenarios of the
-  per-scenario seed means. P({ref} > X): over the scenarios both ran, the mean of each scenario's
+  per-scenario seed means. Optimality gap: 1 minus the mean of min(score, 1) over the pooled scores, how far
+  below the reference an algorithm falls (lower is better). P({ref} > X): over the scenarios both ran, the mean of each scenario's
   share of (seed of {ref}, seed of X) pairs in which {ref} scores higher, ties counting one half
   (the Mann-Whitney U / (n m); 0.5 = no difference). Performance profile: the fraction of runs
   scoring above tau, averaged over scenarios. Intervals: 95% percentile stratified bootstrap

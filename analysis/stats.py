@@ -196,6 +196,14 @@ def aggregate_mean(*strata: np.ndarray, axis: int = -1):
     return np.mean([np.mean(np.asarray(s, dtype=float), axis=axis) for s in strata], axis=0)
 
 
+def aggregate_optimality_gap(*strata: np.ndarray, axis: int = -1):
+    """1 minus the mean of min(score, 1) over all scores pooled (rliable's aggregate_optimality_gap at
+    gamma 1, the reference's level): how far below the reference an algorithm falls, a score above it
+    counting as reaching it (lower is better)."""
+    pooled = np.concatenate([np.asarray(s, dtype=float) for s in strata], axis=axis)
+    return 1.0 - np.mean(np.minimum(pooled, 1.0), axis=axis)
+
+
 def _p_greater(x: np.ndarray, y: np.ndarray):
     """P(X > Y) + 0.5 P(X = Y) over all pairs of the last axes: Mann-Whitney U / (n_x n_y)."""
     x, y = np.asarray(x, dtype=float)[..., :, None], np.asarray(y, dtype=float)[..., None, :]

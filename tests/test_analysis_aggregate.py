@@ -37,6 +37,13 @@ def test_rliable_metrics_test_numbers():
     assert stats.probability_of_improvement(strata(RL_X), strata(RL_Y)) == pytest.approx(1 / 3)
 
 
+def test_optimality_gap_counts_a_score_above_the_reference_as_reaching_it():
+    """rliable's aggregate_optimality_gap at gamma 1: 1 - mean(min(score, 1)) over the pooled scores."""
+    gap = stats.aggregate_optimality_gap(np.array([0.5, 1.2]), np.array([0.9, 1.0]))
+    assert gap == pytest.approx(1 - (0.5 + 1.0 + 0.9 + 1.0) / 4)
+    assert stats.aggregate_optimality_gap(np.array([2.0, 3.0])) == 0.0
+
+
 def test_probability_of_improvement_of_identical_sets_is_one_half():
     x = strata([[0.1, 0.9], [0.5, 0.7], [0.3, 0.2]])
     assert stats.probability_of_improvement(x, x) == 0.5
@@ -157,6 +164,8 @@ def test_rows_use_the_scenarios_reference_shares():
     assert m["n_scenarios"] == 2 and m["n_runs"] == 6 and m["scenarios"] == "V10U2 V60U4"
     assert m["iqm"] == pytest.approx(st.trim_mean([0.9, 0.96, 0.99] * 2, 0.25)) and m["mean"] == pytest.approx(0.95)
     assert m["iqm_ci95_low"] <= m["iqm"] <= m["iqm_ci95_high"]
+    assert m["optimality_gap"] == pytest.approx(0.05)  # every share below 1
+    assert m["optimality_gap_ci95_low"] <= 0.05 <= m["optimality_gap_ci95_high"]
     assert [r["algorithm"] for r in aggregate.aggregate_table(org, sets)] == [
         "mappo",
         "ippo",
