@@ -238,3 +238,21 @@ def ray_address(ray_session: SharedRay):
     module, so that those drivers inherit them."""
     with environ(ray_session.env):
         yield ray_session.address
+
+
+def write_grid(tmp_path, data, name: str = "grid.yaml") -> str:
+    """A grid YAML (a mapping, or text as is) written under tmp_path; its path."""
+    import yaml
+
+    path = tmp_path / name
+    path.write_text(data if isinstance(data, str) else yaml.safe_dump(data, sort_keys=False))
+    return str(path)
+
+
+def run_tune(argv, capsys) -> tuple[int, str, str]:
+    """`python -m uavlora_rllib.tune ARGV` in this process: (exit code, stdout, stderr)."""
+    from uavlora_rllib import tune as tune_cli
+
+    rc = tune_cli.main(argv)
+    out, err = capsys.readouterr()
+    return rc, out, err

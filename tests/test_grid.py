@@ -12,8 +12,9 @@ import sys
 import pytest
 import tune_stock_ppo  # noqa: F401  (registers stock_ppo, stock_ppo_b)
 import yaml
+from conftest import run_tune as run_cli
+from conftest import write_grid as write
 
-from uavlora_rllib import tune as tune_cli
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.experiment import sweep
 from uavlora_rllib.experiment.grid import baseline_runs, load_grid, parse_grid, trials
@@ -38,18 +39,6 @@ def base_grid(tmp_path) -> dict:
         "storage": str(tmp_path / "ray_results"),
         "mlflow": {"tracking_uri": f"sqlite:///{tmp_path / 'mlflow.db'}"},
     }
-
-
-def write(tmp_path, data, name="grid.yaml") -> str:
-    path = tmp_path / name
-    path.write_text(data if isinstance(data, str) else yaml.safe_dump(data, sort_keys=False))
-    return str(path)
-
-
-def run_cli(argv, capsys):
-    rc = tune_cli.main(argv)
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 # --------------------------------------------------------------------------- valid grids

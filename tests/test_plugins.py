@@ -8,8 +8,7 @@ import textwrap
 
 import pytest
 import yaml
-
-from uavlora_rllib import tune as tune_cli
+from conftest import run_tune as _cli
 
 # a plugin the README's way: tests/tune_stock_ppo.py's builder under a name of its own
 REGISTERED = """
@@ -52,12 +51,6 @@ def _grid(tmp_path, plugin: str, algorithm: str) -> str:
     path = tmp_path / "grid.yaml"
     path.write_text(yaml.safe_dump(grid, sort_keys=False))
     return str(path)
-
-
-def _cli(argv, capsys):
-    rc = tune_cli.main(argv)
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 def test_a_registered_plugin_algorithm_is_accepted_and_listed(tmp_path, monkeypatch, capsys):

@@ -10,10 +10,10 @@ import os
 import pickle
 
 import pytest
-import yaml
 from conftest import TINY_MAPPO
+from conftest import run_tune as cli
+from conftest import write_grid as write
 
-from uavlora_rllib import tune as tune_cli
 from uavlora_rllib.config_errors import ConfigError
 from uavlora_rllib.experiment import sweep
 from uavlora_rllib.experiment.grid import (
@@ -50,18 +50,6 @@ def sweep_grid(tmp_path, mappo=None, **extra) -> dict:
         "mlflow": {"tracking_uri": f"sqlite:///{tmp_path / 'mlflow.db'}"},
         **extra,
     }
-
-
-def write(tmp_path, data, name="grid.yaml") -> str:
-    path = tmp_path / name
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
-    return str(path)
-
-
-def cli(argv, capsys):
-    rc = tune_cli.main(argv)
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 # --------------------------------------------------------------------------- valid sweeps
