@@ -364,11 +364,12 @@ def curves(
             notes.append(f"V={v} U={u} {alg}: no FINISHED run; its {metric} curve uses unfinished runs")
         ref = org.reference((v, u)) if matched else None
         if ref is not None:
-            ran = set(org.cells[(v, u, ref.name)].seeds)
+            # the seeds every share of the reference uses (the same seed and task: Organised.matched_seeds)
+            ran = set(org.matched_seeds(cell)) if cell is not None else set(org.cells[(v, u, ref.name)].seeds)
             if dropped := sorted({str(r.seed) for r in use} - ran):
                 notes.append(
                     f"V={v} U={u} {alg}: seed(s) {', '.join(dropped)} left out of its {metric} curve: "
-                    f"the {ref.name} reference has no run of them"
+                    f"the {ref.name} reference has no run of them on the same task"
                 )
             use = [r for r in use if str(r.seed) in ran]
         series, seeds = [], []

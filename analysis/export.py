@@ -47,7 +47,7 @@ import numpy as np
 
 from analysis.data import Organised
 from analysis.runs import RunRecord
-from uavlora_rllib.experiment.run_schema import number
+from uavlora_rllib.experiment.run_schema import EVAL_INTERVAL_PARAM, number
 
 ENVIRONMENT = "uavlora"
 MARL_EVAL_FILE = "results_marl_eval.json"  # its name in a report's folder
@@ -76,10 +76,13 @@ def schedule_places(steps: list[float], interval: float) -> dict[int, float]:
     return out
 
 
-def schedule_interval(gaps: list[float], budget: float | None) -> float | None:
-    """The evaluation interval [env steps], which runs do not log: the budget over the number of
-    intervals the median gap between evaluations gives (a gap is an interval plus or minus an
-    iteration), or that gap without a budget; None without gaps."""
+def schedule_interval(gaps: list[float], budget: float | None, logged: float | None = None) -> float | None:
+    """The evaluation interval [env steps]: the run's param eval.interval_env_steps where it logged one;
+    for a run from before that param, the budget over the number of intervals the median gap between
+    evaluations gives (a gap is an interval plus or minus an iteration; right where the interval divides
+    the budget, as the default budget / 20 does), or that gap without a budget; None without either."""
+    if logged:
+        return logged
     if not gaps:
         return None
     gap = float(np.median(gaps))
@@ -116,7 +119,9 @@ def marl_eval_data(org: Organised, history: Callable) -> tuple[dict[str, Any], l
         return {ENVIRONMENT: {}}, notes + ["marl-eval export: no learner run with execution metrics; the file is empty"]
     places: dict[tuple[str, str, str], dict[int, float]] = {}
     for key, (r, _, steps, _) in found.items():
-        interval = schedule_interval(gaps[key[0]], number(r.params.get("stop.env_steps")))
+        interval = schedule_interval(
+            gaps[key[0]], number(r.params.get("stop.env_steps")), number(r.params.get(EVAL_INTERVAL_PARAM))
+        )
         places[key] = schedule_places(steps, interval) if interval else dict(enumerate(steps))
     common = sorted(set.intersection(*(set(p) for p in places.values())))
     n_points = Counter(len(p) for p in places.values())

@@ -90,7 +90,7 @@ def progress(total: int, desc: str):
     return tqdm(total=total, desc=desc, unit="step", disable=None, leave=False)
 
 
-STAGING = ".report-partial"  # inside --out: the report being written (`staged_out_dir`)
+STAGING = ".report-partial"  # inside --out: the report being written, `<STAGING>-<pid>` (`staged_out_dir`)
 
 
 @contextlib.contextmanager
@@ -102,9 +102,13 @@ def staged_out_dir(out_dir: str) -> Iterator[str]:
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise ReportError(f"--out: {out_dir!r} is a file; expected a folder (existing or new)")
     check_writable_folder(out_dir, "--out")
-    staging = os.path.join(out_dir, STAGING)
+    staging = os.path.join(out_dir, f"{STAGING}-{os.getpid()}")  # a report writing into the same --out keeps its own
     try:
-        shutil.rmtree(staging, ignore_errors=True)  # a killed report's
+        for name in os.listdir(out_dir):  # those of reports killed outright (their process is gone)
+            pid = name[len(STAGING) + 1 :] if name.startswith(f"{STAGING}-") else ""
+            if pid.isdigit() and not _alive(int(pid)):
+                shutil.rmtree(os.path.join(out_dir, name), ignore_errors=True)
+        shutil.rmtree(staging, ignore_errors=True)
         os.makedirs(staging)
     except OSError as exc:
         raise ReportError(f"--out: cannot write to {out_dir!r}: {exc.strerror or exc}") from None
@@ -114,6 +118,16 @@ def staged_out_dir(out_dir: str) -> Iterator[str]:
         shutil.rmtree(staging, ignore_errors=True)
         raise
     publish(staging, out_dir)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
 
 
 def publish(staging: str, out_dir: str) -> None:

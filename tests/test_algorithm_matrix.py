@@ -6,8 +6,8 @@ the algorithm's default hyperparameters), check the paper's training metrics, ru
 and the sampled policy, save a checkpoint, restore it and get the same greedy actions, and
 evaluate the checkpoint with the evaluate CLI (its `main`, in this process: a subprocess would
 start its own Ray for every case; tests/test_evaluate_cli.py covers the
-subprocess path). A new algorithm, built in or registered by a plugin imported here (tests/tune_stock_ppo.py
-is), is covered without new test code.
+subprocess path). A new algorithm in `registry.MODULES` is covered without new test code (and one a plugin
+registered, where its module was imported before this one is collected).
 
 The resource tests build configs only (no Ray): `resources.num_learners` and
 `resources.num_gpus_per_learner` reach every algorithm's AlgorithmConfig, and

@@ -393,7 +393,13 @@ def test_a_report_stopped_while_writing_leaves_the_previous_one_whole(store, mon
         and after["notes.txt"] == b"mine"
         and set(after) == set(before) - {"fig2.png", "fig2.svg"}
     )
-    assert not (out / report_files.STAGING).exists()
+    assert not any(p.name.startswith(report_files.STAGING) for p in out.iterdir())
+    dead = out / f"{report_files.STAGING}-999999999"  # a report killed outright left it (no such process)
+    dead.mkdir()
+    mine = out / f"{report_files.STAGING}-{os.getppid()}"  # a running report's (this process's parent is alive)
+    mine.mkdir()
+    assert report.main([*argv, "--no-fig2"]) == 0
+    assert not dead.exists() and mine.exists()
 
 
 def test_bad_experiment_and_uri(store, tmp_path, capsys):

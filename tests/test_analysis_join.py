@@ -255,6 +255,10 @@ def test_marl_eval_places_on_the_evaluation_schedule():
     assert sorted(places) == list(range(1, 11)) and places[1] == 20400.0 and 26400.0 not in places.values()
     assert sorted(schedule_places(early, interval)) == list(range(1, 9))
     assert schedule_interval([], 200000.0) is None and schedule_interval([5000.0], None) == 5000.0
+    # an interval that does not divide the budget: the logged one places runs of other iteration sizes alike
+    mappo, qmix = [15000.0, 30000.0, 45000.0, 60000.0], [16000.0, 30000.0, 46000.0, 60000.0]
+    interval = schedule_interval(np.diff(mappo).tolist() + np.diff(qmix).tolist(), 200000.0, logged=15000.0)
+    assert sorted(schedule_places(mappo, interval)) == sorted(schedule_places(qmix, interval)) == [1, 2, 3, 4]
 
 
 def test_fig2_best_learner_or_flag(stores):

@@ -189,3 +189,8 @@ def test_a_learner_of_another_scenario_gets_no_share_of_the_reference():
     assert "mappo" not in rows and rows["ippo"]["share_of_reference"] == pytest.approx(0.9)  # no share to judge
     assert org.normalised(org.cells[(10, 2, "mappo")]).size == 0
     assert any("mappo (train): seed(s) 0, 1, 2 have no greedy run" in w for w in org.warnings), org.warnings
+    from analysis.data import curves
+
+    drawn, notes = curves(lambda r, k: ([0.0, 1.0], [1.0, 2.0]), org, EE_KEY, 0.0, 3, matched=True)
+    assert set(drawn[(10, 2)]) == {"greedy", "ippo"} or set(drawn[(10, 2)]) == {"ippo"}  # Fig. 3a: not mappo
+    assert any("mappo: seed(s) 0, 1, 2 left out" in n and "on the same task" in n for n in notes), notes

@@ -153,6 +153,7 @@ def test_a_trials_plugin_code_is_recorded_and_a_change_on_resume_shown(sqlite_tr
         return cb
 
     run_id = driver().run_id(trial)
+    assert t.client.get_run(run_id).data.params[run_schema.EVAL_INTERVAL_PARAM] == "3"  # 60 // 20: the export's
     first = t.client.get_run(run_id).data.tags[run_schema.PLUGINS_TAG]
     assert first.startswith("my_loss_plugin@") and len(first.split("@")[1]) == 12
     assert (

@@ -24,7 +24,7 @@ HPARAMS = """
 
     @dataclass(config={{"extra": "forbid", "frozen": True}})
     class H:
-        delta: float = Field({default}, gt=0.0, description="a positive number [1]")
+        delta: float = Field({default}gt=0.0, description="a positive number [1]")
 
     registry.declare("{name}", H, {modes})
 """
@@ -66,11 +66,12 @@ def test_a_registered_plugin_algorithm_is_accepted_and_listed(tmp_path, monkeypa
 @pytest.mark.parametrize(
     "name, default, modes, message",
     [
-        ("only_declared", "1.0", '("per_uav",)', "algorithms.only_declared: algorithm 'only_declared' is declared"),
-        ("bad_modes", "1.0", '"per_uav"', "action_modes must be a non-empty tuple of ['per_uav', 'per_device']"),
-        ("typo_modes", "1.0", '("per_ued",)', "got ('per_ued',)"),
-        ("bad_default", "-1.0", '("per_uav",)', "algorithm 'bad_default'.delta: Input should be greater than 0"),
-        ("mappo", "1.0", '("per_uav",)', "algorithm 'mappo' is built in; a plugin takes another name"),
+        ("only_declared", "1.0, ", '("per_uav",)', "algorithms.only_declared: algorithm 'only_declared' is declared"),
+        ("bad_modes", "1.0, ", '"per_uav"', "action_modes must be a non-empty tuple of ['per_uav', 'per_device']"),
+        ("typo_modes", "1.0, ", '("per_ued",)', "got ('per_ued',)"),
+        ("bad_default", "-1.0, ", '("per_uav",)', "algorithm 'bad_default'.delta: Input should be greater than 0"),
+        ("mappo", "1.0, ", '("per_uav",)', "algorithm 'mappo' is built in; a plugin takes another name"),
+        ("no_default", "", '("per_uav",)', "every hyperparameter needs a default; none for delta"),
     ],
 )
 def test_a_plugin_mistake_is_one_line(tmp_path, monkeypatch, capsys, name, default, modes, message):
@@ -174,3 +175,55 @@ def test_a_plugin_baseline_cannot_take_a_built_in_name(tmp_path, monkeypatch, ca
     _plugin(tmp_path, monkeypatch, "plug_greedy", BASELINE.format(name="greedy"))
     rc, _, err = _cli([_grid(tmp_path, "plug_greedy", "mappo"), "--dry-run"], capsys)
     assert rc == 2 and err.count("\n") == 1 and "baseline 'greedy' is built in; a plugin takes another name" in err
+
+
+SUBCLASSED = """
+    from uavlora_rllib.algorithms.common import registry
+    from uavlora_rllib.algorithms.mappo.mappo import MAPPOConfig
+
+    class MyMAPPO(MAPPOConfig):  # the README's own pattern, under a built-in's name
+        pass
+
+    registry.register_algorithm("mappo", MyMAPPO)
+"""
+
+
+def test_a_plugin_cannot_take_a_built_ins_name_with_its_classes(tmp_path, monkeypatch, capsys):
+    """Reusing the built-in's hyperparameter class (through a config subclass) is still another algorithm."""
+    _plugin(tmp_path, monkeypatch, "plug_mymappo", SUBCLASSED)
+    rc, _, err = _cli([_grid(tmp_path, "plug_mymappo", "mappo"), "--dry-run"], capsys)
+    assert rc == 2 and err.count("\n") == 1 and "algorithm 'mappo' is built in; a plugin takes another name" in err
+
+
+def test_a_plugin_baselines_error_is_one_line(tmp_path, monkeypatch, capsys):
+    _plugin(
+        tmp_path,
+        monkeypatch,
+        "plug_bad_baseline",
+        """
+        from uavlora_rllib.baselines.policies import register_baseline
+
+        def build(scenario, seed):
+            raise ValueError("plays per_device scenarios only")
+
+        register_baseline("picky", build)
+        """,
+    )
+    grid = _grid(tmp_path, "plug_bad_baseline", "mappo")
+    data = yaml.safe_load(open(grid))
+    data["baselines"] = ["picky"]
+    open(grid, "w").write(yaml.safe_dump(data))
+    rc, _, err = _cli([grid, "--dry-run"], capsys)
+    assert rc == 2 and err.count("\n") == 1, err
+    assert "baseline 'picky' (a plugin's): ValueError: plays per_device scenarios only" in err
+
+
+def test_a_broken_pipe_that_is_not_stdout_is_an_error(tmp_path, monkeypatch, capsys):
+    from uavlora_rllib import tune as tune_cli
+
+    def broken(path):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr(tune_cli, "load_grid", broken)
+    rc, out, err = _cli([_grid(tmp_path, "plug_registered", "mappo"), "--dry-run"], capsys)
+    assert rc == 2 and err.startswith("error: broken pipe:") and err.count("\n") == 1, err

@@ -144,6 +144,24 @@ def _calibrate(grid, specs, args: argparse.Namespace) -> int | None:
     return None
 
 
+def _stdout_closed() -> bool:
+    """Whether stdout's reader has gone: the write end of a pipe whose reader closed it polls as an
+    error (POLLERR), and a flush of what is still buffered fails."""
+    import select
+
+    try:
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+        if any(ev & (select.POLLERR | select.POLLHUP) for _, ev in poller.poll(0)):
+            return True
+        sys.stdout.flush()
+    except BrokenPipeError:
+        return True
+    except (OSError, ValueError, AttributeError):  # no real descriptor (a captured stdout)
+        return False
+    return False
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     from uavlora_rllib.experiment.quiet import quiet_known_warnings
 
@@ -197,7 +215,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return run_grid(grid, args.grid, args)
     except (UsageError, ConfigError) as exc:
         return fail(exc, code=EXIT_USAGE)
-    except BrokenPipeError:  # stdout closed early (`--dry-run | head`): nothing left to say, and no cluster to blame
+    except BrokenPipeError as exc:
+        if not _stdout_closed():  # another pipe (a socket, a subprocess): an error like any other
+            return fail(f"broken pipe: {exc}", code=EXIT_USAGE)
+        # stdout closed early (`--dry-run | head`): nothing left to say, and no cluster to blame
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # Python's own flush at exit must not fail
         return EXIT_BROKEN_PIPE
     except ConnectionError as exc:  # ray.init(address=...) found no cluster there

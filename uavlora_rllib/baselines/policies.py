@@ -482,5 +482,11 @@ def make_baseline(name: str, cfg: ScenarioConfig, seed: int = 0, objective: str 
     if name == "optimal":
         return OptimalPolicy(cfg, objective)
     if name in _PLUGIN_BASELINES:
-        return _PLUGIN_BASELINES[name](cfg, seed)
+        try:
+            return _PLUGIN_BASELINES[name](cfg, seed)
+        except ConfigError:
+            raise
+        except Exception as exc:  # a plugin's code: one line naming it, not a traceback
+            detail = " ".join(str(exc).split()) or "(no message)"
+            raise ConfigError(f"baseline {name!r} (a plugin's): {type(exc).__name__}: {detail}") from None
     raise ConfigError(f"policy: unknown baseline {name!r}; allowed: {baseline_names()}")

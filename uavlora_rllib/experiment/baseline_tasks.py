@@ -26,11 +26,12 @@ BASELINE_CPUS = 1.0  # the simulator and every baseline are single-threaded NumP
 def evaluate_baseline(spec: BaselineSpec, episodes: int) -> dict[str, Any]:
     """The evaluation summary of one baseline run (runs inside a Ray task)."""
     from uavlora_rllib.baselines.bound import upper_bound_of_core
-    from uavlora_rllib.baselines.policies import REFERENCES, make_baseline
+    from uavlora_rllib.baselines.policies import BASELINES, REFERENCES, make_baseline
     from uavlora_rllib.experiment.evaluation import run_episodes
     from uavlora_rllib.experiment.grid import import_plugins
 
-    import_plugins(list(spec.plugins))  # a plugin's baseline registers itself there, on every node
+    if spec.baseline not in BASELINES:  # a plugin's baseline registers itself on import, on this node
+        import_plugins(list(spec.plugins))
     t0 = time.perf_counter()
     policy = make_baseline(spec.baseline, spec.scenario, seed=spec.seed)
     # the references also log the upper bound of the same slots, so the report can bracket the optimum

@@ -42,6 +42,7 @@ from uavlora_rllib.experiment.run_schema import (
     CHECKPOINT_ARTIFACT,
     CURVES_ARTIFACT,
     ENV_STEPS,
+    EVAL_INTERVAL_PARAM,
     EVAL_PREFIX,
     KIND_TRAIN,
     PLUGINS_ON_RESUME_TAG,
@@ -207,6 +208,8 @@ class MlflowTrialCallback(Callback):
                 ),
             }
             params.update(sampled_params(sampled))
+            if "eval_interval_env_steps" in cfg:  # where the periodic evaluations fall (analysis/export.py)
+                params[EVAL_INTERVAL_PARAM] = str(int(cfg["eval_interval_env_steps"]))
             name = trial_run_name(cfg, tid)
             run_id = self.tracker.create_run(name, tags, params)
             self._last_step[tid] = -1

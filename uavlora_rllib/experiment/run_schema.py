@@ -256,6 +256,7 @@ def metrics_to_log(result: Mapping[str, Any]) -> tuple[dict[str, float], dict[st
     return train, evals
 
 
+EVAL_INTERVAL_PARAM = "eval.interval_env_steps"  # a trial's env steps between greedy evaluations (0: none)
 PLUGINS_TAG = "plugins"  # a trial's plugin modules as module@sha256[:12] of each one's source file
 PLUGINS_ON_RESUME_TAG = "plugins_on_resume"  # the same, when a --resume found them changed
 

@@ -100,7 +100,8 @@ def status_reporter(sampled: Sequence[str] = ()):
     trial dict, cut short; the CLIReporter shows chosen config and metric columns instead.
     Tune uses it only with RAY_AIR_NEW_OUTPUT=0 (read when `fit` starts: the driver sets
     it before `fit`, for restored experiments too, whose pickled run config holds this reporter).
-    Its EE column is the latest greedy evaluation (sweep.SWEEP_METRIC, in every result): what the
+    Its EE column is the latest greedy evaluation (sweep.SWEEP_METRIC, in every result from the first
+    evaluation on; blank before, and until the final one with evaluation.interval_env_steps 0): what the
     project judges by, and not blank, as the training EE is after an iteration that ended no episode.
     """
     from ray.tune import CLIReporter

@@ -28,7 +28,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
 
-from pydantic import Field
+from pydantic import Field, ValidationError
 from pydantic.dataclasses import dataclass as typed_dataclass
 from pydantic.dataclasses import is_pydantic_dataclass
 
@@ -232,8 +232,9 @@ def _checked_spec(name: str, hparams_cls: type, action_modes: Any, known: Algori
         raise TypeError(f"{where} is already taken by {known.hparams_cls.__module__}.{known.hparams_cls.__qualname__}")
     try:
         defaults = hparams_cls()
-    except TypeError as exc:
-        raise TypeError(f"{where}: every hyperparameter needs a default ({exc})") from None
+    except (TypeError, ValidationError):  # pydantic dataclasses raise ValidationError ("Field required")
+        missing = [n for n, f in hparams_cls.__pydantic_fields__.items() if f.is_required()]
+        raise TypeError(f"{where}: every hyperparameter needs a default; none for {', '.join(missing)}") from None
     # pydantic leaves defaults unchecked: a default outside its field's own constraints fails every grid
     build(hparams_cls, {f.name: getattr(defaults, f.name) for f in dataclasses.fields(hparams_cls)}, where)
     return AlgorithmSpec(name=name, hparams_cls=hparams_cls, action_modes=tuple(action_modes))
@@ -259,8 +260,18 @@ def spec(name: str, path: str = "algorithm") -> AlgorithmSpec:
     return get(name, path)
 
 
+def _check_owner(name: str, module: str) -> None:
+    """A built-in's name is registered by its own MODULES module only: a plugin reusing its hyperparameter
+    class (or subclassing its config) under that name would replace it silently."""
+    if name in MODULES and MODULES[name].startswith("uavlora_rllib.algorithms.") and module != MODULES[name]:
+        raise TypeError(f"algorithm {name!r} is built in; a plugin takes another name (built in: {built_in()})")
+
+
 def register(entry: AlgorithmEntry) -> None:
-    """Register `entry` under its name (checked as a declaration is: `_checked_spec`)."""
+    """Register `entry` under its name (checked as a declaration is: `_checked_spec`; a plain entry's
+    owner is the module of its `build`)."""
+    if entry.build.__module__ != __name__:  # register_algorithm's entries: checked there
+        _check_owner(entry.name, entry.build.__module__)
     _checked_spec(
         entry.name, entry.hparams_cls, entry.action_modes, _REGISTRY.get(entry.name) or _SPECS.get(entry.name)
     )
@@ -281,6 +292,7 @@ def register_algorithm(name: str, config_cls: type[Any], action_modes: tuple[str
             hparams = entry.hparams(hparams)
         return team_config(config_cls(), name, scenario, hparams, resources, seed)
 
+    _check_owner(name, config_cls.__module__)
     declared = _SPECS.get(name)
     if declared is not None:
         if declared.hparams_cls is not config_cls.hparams_cls or action_modes is not None:
