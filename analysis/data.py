@@ -210,7 +210,7 @@ def organise(records: list[RunRecord]) -> Organised:
         # one run per seed: the newest FINISHED one (records are sorted by start time)
         by_seed: dict[str, RunRecord] = {}
         for r in cell.runs:
-            seed = str(r.seed) if r.seed is not None else r.run_id
+            seed = r.seed_key
             if seed in by_seed:
                 cell.duplicates.append(by_seed[seed])
             by_seed[seed] = r
@@ -356,9 +356,9 @@ def curves(
     for (v, u, alg), runs in sorted(groups.items()):
         finished = [r for r in runs if r.status == "FINISHED"]
         # one run per seed: the newest (runs are in start order), the tables' run where the cell has the seed
-        by_seed = {str(r.seed) if r.seed is not None else r.run_id: r for r in finished or runs}
+        by_seed = {r.seed_key: r for r in finished or runs}
         cell = org.cells.get((v, u, alg))
-        by_seed.update({str(r.seed) if r.seed is not None else r.run_id: r for r in (cell.runs if cell else [])})
+        by_seed.update({r.seed_key: r for r in (cell.runs if cell else [])})
         use = list(by_seed.values())
         if not finished:
             notes.append(f"V={v} U={u} {alg}: no FINISHED run; its {metric} curve uses unfinished runs")

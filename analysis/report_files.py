@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+import socket
 from collections.abc import Iterator
 from typing import Any
 
@@ -50,6 +51,7 @@ from analysis.tables import (
     write_csv,
 )
 from analysis.verdicts import TABLE_LEARNING_COLUMNS, learning_md, learning_table, stopped_before_budget
+from uavlora_rllib.experiment.driver_lock import pid_alive
 
 # Every file the report may write (nothing else in --out is touched or logged).
 OUTPUT_FILES = tuple(
@@ -90,7 +92,7 @@ def progress(total: int, desc: str):
     return tqdm(total=total, desc=desc, unit="step", disable=None, leave=False)
 
 
-STAGING = ".report-partial"  # inside --out: the report being written, `<STAGING>-<pid>` (`staged_out_dir`)
+STAGING = ".report-partial"  # inside --out: the report being written, `<STAGING>-<host>-<pid>` (`staged_out_dir`)
 
 
 @contextlib.contextmanager
@@ -102,11 +104,12 @@ def staged_out_dir(out_dir: str) -> Iterator[str]:
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise ReportError(f"--out: {out_dir!r} is a file; expected a folder (existing or new)")
     check_writable_folder(out_dir, "--out")
-    staging = os.path.join(out_dir, f"{STAGING}-{os.getpid()}")  # a report writing into the same --out keeps its own
+    mine = f"{STAGING}-{socket.gethostname()}-"  # a report writing into the same --out keeps its own
+    staging = os.path.join(out_dir, f"{mine}{os.getpid()}")
     try:
-        for name in os.listdir(out_dir):  # those of reports killed outright (their process is gone)
-            pid = name[len(STAGING) + 1 :] if name.startswith(f"{STAGING}-") else ""
-            if pid.isdigit() and not _alive(int(pid)):
+        for name in os.listdir(out_dir):  # this host's reports killed outright (their process is gone)
+            pid = name[len(mine) :] if name.startswith(mine) else ""
+            if pid.isdigit() and not pid_alive(int(pid)):
                 shutil.rmtree(os.path.join(out_dir, name), ignore_errors=True)
         shutil.rmtree(staging, ignore_errors=True)
         os.makedirs(staging)
@@ -118,16 +121,6 @@ def staged_out_dir(out_dir: str) -> Iterator[str]:
         shutil.rmtree(staging, ignore_errors=True)
         raise
     publish(staging, out_dir)
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's process
-        return True
-    return True
 
 
 def publish(staging: str, out_dir: str) -> None:

@@ -57,6 +57,11 @@ class RunRecord:
     end_time: int | None = None  # ms since the epoch; None while the run is unfinished
 
     @property
+    def seed_key(self) -> str:
+        """What tells a cell's runs apart: its seed, or its id where it logged none."""
+        return str(self.seed) if self.seed is not None else self.run_id
+
+    @property
     def label(self) -> str:
         """Short human description for warnings."""
         name = f" ({self.run_name})" if self.run_name else ""

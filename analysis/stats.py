@@ -186,9 +186,14 @@ def bootstrap_ci95(
 # ---------------------------------------------------------------- aggregates over scenarios
 # Every statistic takes the strata as positional arrays and reduces along `axis` (the seeds), so
 # that scipy.stats.bootstrap can call it on a whole batch of resamples at once.
+def _pooled(strata: tuple[np.ndarray, ...], axis: int) -> np.ndarray:
+    """All scores of all strata in one array (along `axis`)."""
+    return np.concatenate([np.asarray(s, dtype=float) for s in strata], axis=axis)
+
+
 def aggregate_iqm(*strata: np.ndarray, axis: int = -1):
     """IQM of all scores of all strata pooled (rliable's aggregate_iqm)."""
-    return iqm(np.concatenate([np.asarray(s, dtype=float) for s in strata], axis=axis), axis=axis)
+    return iqm(_pooled(strata, axis), axis=axis)
 
 
 def aggregate_mean(*strata: np.ndarray, axis: int = -1):
@@ -200,8 +205,7 @@ def aggregate_optimality_gap(*strata: np.ndarray, axis: int = -1):
     """1 minus the mean of min(score, 1) over all scores pooled (rliable's aggregate_optimality_gap at
     gamma 1, the reference's level): how far below the reference an algorithm falls, a score above it
     counting as reaching it (lower is better)."""
-    pooled = np.concatenate([np.asarray(s, dtype=float) for s in strata], axis=axis)
-    return 1.0 - np.mean(np.minimum(pooled, 1.0), axis=axis)
+    return 1.0 - np.mean(np.minimum(_pooled(strata, axis), 1.0), axis=axis)
 
 
 def _p_greater(x: np.ndarray, y: np.ndarray):

@@ -1,13 +1,13 @@
-"""Every registered algorithm x every action mode it supports, through the registry only.
+"""Every built-in algorithm x every action mode it supports, through the registry only.
 
-For each (algorithm, action mode) pair of `registry.available()` (BenchMARL-style): build the
+For each (algorithm, action mode) pair of `registry.built_in()` (BenchMARL-style): build the
 trial's config, run one training iteration on a tiny scenario (V=10, U=2, 10-slot episodes,
 the algorithm's default hyperparameters), check the paper's training metrics, run the greedy
 and the sampled policy, save a checkpoint, restore it and get the same greedy actions, and
 evaluate the checkpoint with the evaluate CLI (its `main`, in this process: a subprocess would
 start its own Ray for every case; tests/test_evaluate_cli.py covers the
-subprocess path). A new algorithm in `registry.MODULES` is covered without new test code (and one a plugin
-registered, where its module was imported before this one is collected).
+subprocess path). A new algorithm in `registry.MODULES` is covered without new test code; the test plugins are
+not (their configs follow RLlib's, not common/config.py's), whichever test module imported them first.
 
 The resource tests build configs only (no Ray): `resources.num_learners` and
 `resources.num_gpus_per_learner` reach every algorithm's AlgorithmConfig, and
@@ -31,7 +31,7 @@ torch.set_num_threads(1)
 
 TINY = ScenarioConfig(n_eds=10, n_uavs=2, episode_len=10)
 RES = registry.Resources(num_envs_per_env_runner=4)
-CASES = [(name, mode) for name in registry.available() for mode in registry.get(name).action_modes]
+CASES = [(name, mode) for name in registry.built_in() for mode in registry.get(name).action_modes]
 IDS = [f"{name}-{mode}" for name, mode in CASES]
 
 
@@ -145,7 +145,7 @@ def test_sampled_execution_differs_from_greedy():
     assert (s1 != greedy).mean() > 0.8 and (s1 != s2).mean() > 0.8
 
 
-@pytest.mark.parametrize("name", registry.available())
+@pytest.mark.parametrize("name", registry.built_in())
 def test_learner_resources_reach_the_algorithm_config(name):
     """resources.num_learners / num_gpus_per_learner / num_cpus_per_learner reach RLlib, and
     Resources.bundles() is what RLlib itself would reserve for the trial."""
@@ -167,7 +167,7 @@ def test_learner_resources_reach_the_algorithm_config(name):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", registry.available())
+@pytest.mark.parametrize("name", registry.built_in())
 def test_policy_reads_weights_from_a_remote_learner(ray_session, name):
     """With num_learners=1 the learner is a Ray actor (no local learner object exists); the
     registry's policy still gets the trained weights (LearnerGroup.get_weights)."""
@@ -192,7 +192,7 @@ def test_policy_reads_weights_from_a_remote_learner(ray_session, name):
         algo.stop()
 
 
-@pytest.mark.parametrize("name", registry.available())
+@pytest.mark.parametrize("name", registry.built_in())
 def test_list_hparams_documents_every_field(name, capsys):
     """`tune --list-hparams ALGO` prints each hyperparameter with its default and a description
     (every field of every algorithm's typed config must have one)."""
@@ -221,7 +221,7 @@ def test_declared_spec_is_the_registered_one(name):
     assert registry.HPARAMS_MODULES[name].rsplit(".", 1)[0] == registry.MODULES[name].rsplit(".", 1)[0]
 
 
-@pytest.mark.parametrize("name", registry.available())
+@pytest.mark.parametrize("name", registry.built_in())
 def test_learning_rates_are_bounded(name):
     """A learning rate of 1e300 (or any > 1) is refused at config load, naming the field, instead of
     reaching Adam and turning the losses into NaN."""

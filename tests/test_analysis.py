@@ -17,6 +17,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+import socket
 import subprocess
 import sys
 import time
@@ -394,9 +395,10 @@ def test_a_report_stopped_while_writing_leaves_the_previous_one_whole(store, mon
         and set(after) == set(before) - {"fig2.png", "fig2.svg"}
     )
     assert not any(p.name.startswith(report_files.STAGING) for p in out.iterdir())
-    dead = out / f"{report_files.STAGING}-999999999"  # a report killed outright left it (no such process)
+    host = socket.gethostname()
+    dead = out / f"{report_files.STAGING}-{host}-999999999"  # a report killed outright left it (no such process)
     dead.mkdir()
-    mine = out / f"{report_files.STAGING}-{os.getppid()}"  # a running report's (this process's parent is alive)
+    mine = out / f"{report_files.STAGING}-{host}-{os.getppid()}"  # a running report's (this process's parent)
     mine.mkdir()
     assert report.main([*argv, "--no-fig2"]) == 0
     assert not dead.exists() and mine.exists()

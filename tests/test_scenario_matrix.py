@@ -16,6 +16,7 @@ import math
 
 import numpy as np
 import pytest
+import tune_stock_ppo  # noqa: F401  (its learners join LEARNER_CASES whatever the collection order)
 from conftest import random_actions
 
 from uavlora_rllib.algorithms.common import registry

@@ -22,6 +22,12 @@ class ConfigError(ValueError):
     """Invalid user input; the message names the field path and the allowed values."""
 
 
+def exception_line(exc: BaseException) -> str:
+    """`Type: message` on one line, for an error raised by user code (a plugin) that is reported, not shown
+    as a traceback."""
+    return f"{type(exc).__name__}: {' '.join(str(exc).split()) or '(no message)'}"
+
+
 def _fields_at(root: type | None, loc: tuple[Any, ...]) -> list[str] | None:
     """Field names of the (nested) dataclass that holds the field at `loc`."""
     cls = root

@@ -188,6 +188,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             return EXIT_OK
         if args.grid is None:
             raise UsageError("grid: a grid YAML is required (or --list-hparams ALGO)")
+        if args.dry_run and args.resume:  # a preview of the whole grid, not of what a resume would redo
+            raise UsageError(
+                "--dry-run: previews the grid and starts nothing, so --resume has nothing to resume; drop one of them"
+            )
         grid = load_grid(args.grid)
         local_problem = None
         if not args.address:  # a local Ray: a trial that needs more CPUs than it has never starts
@@ -196,10 +200,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             except ConfigError as exc:
                 local_problem = f"{args.grid}: {exc}"
         specs = trials(grid)
-        if args.dry_run and args.resume:  # a preview of the whole grid, not of what a resume would redo
-            raise UsageError(
-                "--dry-run: previews the grid and starts nothing, so --resume has nothing to resume; drop one of them"
-            )
         if (args.calibrate or args.calibrate_iterations is not None) and _calibrate(grid, specs, args) is not None:
             return EXIT_INTERRUPTED
         if args.dry_run or args.calibrate:  # a preview (e.g. of a cluster grid on a laptop): say it, do not refuse

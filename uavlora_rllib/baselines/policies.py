@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from uavlora_rllib.config_errors import ConfigError
+from uavlora_rllib.config_errors import ConfigError, exception_line
 from uavlora_rllib.sim import physics
 from uavlora_rllib.sim.actions import decode_joint_action, encode_joint_action, per_device_action_len
 from uavlora_rllib.sim.core import BatchCore
@@ -487,6 +487,5 @@ def make_baseline(name: str, cfg: ScenarioConfig, seed: int = 0, objective: str 
         except ConfigError:
             raise
         except Exception as exc:  # a plugin's code: one line naming it, not a traceback
-            detail = " ".join(str(exc).split()) or "(no message)"
-            raise ConfigError(f"baseline {name!r} (a plugin's): {type(exc).__name__}: {detail}") from None
+            raise ConfigError(f"baseline {name!r} (a plugin's): {exception_line(exc)}") from None
     raise ConfigError(f"policy: unknown baseline {name!r}; allowed: {baseline_names()}")

@@ -44,8 +44,9 @@ def evaluate_baseline(spec: BaselineSpec, episodes: int) -> dict[str, Any]:
 def failure_text(exc: BaseException, limit: int = 300) -> str:
     """What a failed evaluation raised, on one line: the task's own exception (a RayTaskError's cause) as
     `Type: message`, not the remote traceback that str() of a RayTaskError begins with."""
-    cause = getattr(exc, "cause", None) or exc
-    return f"{type(cause).__name__}: {' '.join(str(cause).split())}"[:limit]
+    from uavlora_rllib.config_errors import exception_line
+
+    return exception_line(getattr(exc, "cause", None) or exc)[:limit]
 
 
 class BaselinePool:

@@ -68,7 +68,8 @@ def _read(path: str) -> LockInfo | None:
         return LockInfo("?", -1, "", 0.0, 0.0)
 
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether process `pid` exists on this host (another user's counts)."""
     if pid <= 0:
         return False
     try:
@@ -84,7 +85,7 @@ def is_stale(info: LockInfo, now: float | None = None, host: str | None = None) 
     now = time.time() if now is None else now
     if now - info.heartbeat > STALE_S:
         return True
-    return info.host == (host or socket.gethostname()) and not _pid_alive(info.pid)
+    return info.host == (host or socket.gethostname()) and not pid_alive(info.pid)
 
 
 class DriverLock:

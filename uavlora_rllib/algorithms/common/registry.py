@@ -225,8 +225,7 @@ def _checked_spec(name: str, hparams_cls: type, action_modes: Any, known: Algori
         raise TypeError(f"{where}: action_modes must be a non-empty tuple of {list(allowed)}, got {action_modes!r}")
     if not (isinstance(hparams_cls, type) and is_pydantic_dataclass(hparams_cls)):
         raise TypeError(f"{where}: hparams_cls must be a pydantic dataclass (common/hparams.py), got {hparams_cls!r}")
-    if name in HPARAMS_MODULES and hparams_cls.__module__ != HPARAMS_MODULES[name]:
-        raise TypeError(f"{where} is built in; a plugin takes another name (built in: {built_in()})")
+    _check_owner(name, hparams_cls.__module__, HPARAMS_MODULES)
     # the same class defined again (its module imported anew) is the same algorithm; another class is not
     if known is not None and _defined_at(known.hparams_cls) != _defined_at(hparams_cls):
         raise TypeError(f"{where} is already taken by {known.hparams_cls.__module__}.{known.hparams_cls.__qualname__}")
@@ -260,10 +259,11 @@ def spec(name: str, path: str = "algorithm") -> AlgorithmSpec:
     return get(name, path)
 
 
-def _check_owner(name: str, module: str) -> None:
-    """A built-in's name is registered by its own MODULES module only: a plugin reusing its hyperparameter
-    class (or subclassing its config) under that name would replace it silently."""
-    if name in MODULES and MODULES[name].startswith("uavlora_rllib.algorithms.") and module != MODULES[name]:
+def _check_owner(name: str, module: str, owners: dict[str, str]) -> None:
+    """A built-in's name is declared or registered by its own module (`owners`: HPARAMS_MODULES or MODULES)
+    only: a plugin reusing its hyperparameter class (or subclassing its config) under that name would
+    replace it silently."""
+    if name in owners and owners[name].startswith("uavlora_rllib.algorithms.") and module != owners[name]:
         raise TypeError(f"algorithm {name!r} is built in; a plugin takes another name (built in: {built_in()})")
 
 
@@ -271,7 +271,7 @@ def register(entry: AlgorithmEntry) -> None:
     """Register `entry` under its name (checked as a declaration is: `_checked_spec`; a plain entry's
     owner is the module of its `build`)."""
     if entry.build.__module__ != __name__:  # register_algorithm's entries: checked there
-        _check_owner(entry.name, entry.build.__module__)
+        _check_owner(entry.name, entry.build.__module__, MODULES)
     _checked_spec(
         entry.name, entry.hparams_cls, entry.action_modes, _REGISTRY.get(entry.name) or _SPECS.get(entry.name)
     )
@@ -292,7 +292,7 @@ def register_algorithm(name: str, config_cls: type[Any], action_modes: tuple[str
             hparams = entry.hparams(hparams)
         return team_config(config_cls(), name, scenario, hparams, resources, seed)
 
-    _check_owner(name, config_cls.__module__)
+    _check_owner(name, config_cls.__module__, MODULES)
     declared = _SPECS.get(name)
     if declared is not None:
         if declared.hparams_cls is not config_cls.hparams_cls or action_modes is not None:
